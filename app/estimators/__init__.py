@@ -1,0 +1,38 @@
+"""The estimators, by name. ``DEFAULT`` is the one used when none is named."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .base import (BatchResult, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT, REJECTIONS,
+                   StepFlags, TimeIssue, count_flags)
+
+DEFAULT = "robust"
+NAMES = ("robust", "lab", "complementary", "phone")
+
+
+def estimator_class(name: str) -> type[Estimator]:
+    if name == "robust":
+        from .robust import RobustEKF
+        return RobustEKF
+    if name == "lab":
+        from .lab import LabEKF
+        return LabEKF
+    if name == "complementary":
+        from .complementary import ComplementaryDNRF
+        return ComplementaryDNRF
+    if name == "phone":
+        from .phone import PhoneOrientation
+        return PhoneOrientation
+    raise KeyError(f"unknown estimator {name!r} (known: {', '.join(NAMES)})")
+
+
+def make_estimator(name: str = DEFAULT, params: dict[str, Any] | None = None) -> Estimator:
+    """A fresh estimator ``name`` with its defaults changed by ``params`` (validated)."""
+    cls = estimator_class(name)
+    return cls(**(params or {}))
+
+
+__all__ = ["BatchResult", "Estimator", "FLAG_COLUMNS", "Reason", "REASON_TEXT", "REJECTIONS",
+           "StepFlags", "TimeIssue", "count_flags", "DEFAULT", "NAMES", "estimator_class",
+           "make_estimator"]

@@ -1,0 +1,215 @@
+"""Typed, validated parameter sets: SI units inside, the unit in every non-SI name.
+
+Every estimator has one frozen dataclass of parameters. Each field carries its
+metadata (unit, valid range, the unit shown to users and a sentence of help), so
+validation, the TOML presets, the HTTP API and the GUI all read one definition.
+Changing parameters always goes through :func:`replace_params`, which checks every
+changed field first and applies nothing if any is refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib
+
+
+class ParamError(ValueError):
+    """A refused parameter change: ``field`` names the parameter, ``reason`` says why."""
+
+    def __init__(self, field_name: str, reason: str):
+        super().__init__(f"{field_name}: {reason}")
+        self.field = field_name
+        self.reason = reason
+
+
+def param(default, *, unit: str = "", lo: float | None = None, hi: float | None = None,
+      doc: str = "", user_unit: str | None = None, user_scale: float = 1.0,
+      choices: tuple | None = None, log: bool = False, tunable: bool = True,
+      length: int | None = None, optional: bool = False):
+    """A parameter field. ``user_unit``/``user_scale`` give the unit shown to users:
+    ``user_value = value * user_scale`` (for example rad/s shown as deg/s).
+    ``log`` marks a quantity tuned over decades (noise levels)."""
+    meta = dict(unit=unit, lo=lo, hi=hi, doc=doc, user_unit=user_unit or unit,
+                user_scale=user_scale, choices=choices, log=log, tunable=tunable,
+                length=length, optional=optional)
+    if isinstance(default, list):
+        default = tuple(default)
+    if isinstance(default, tuple):
+        return field(default_factory=lambda d=tuple(default): d, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+DEG = 180.0 / math.pi
+
+
+def _check_number(name: str, value: Any, meta: dict) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ParamError(name, f"must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ParamError(name, f"must be finite, got {value!r}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    unit = meta.get("unit") or ""
+    if lo is not None and v < lo:
+        raise ParamError(name, f"{v:g} is below the minimum {lo:g} {unit}".rstrip())
+    if hi is not None and v > hi:
+        raise ParamError(name, f"{v:g} is above the maximum {hi:g} {unit}".rstrip())
+    return v
+
+
+def coerce(name: str, value: Any, current: Any, meta: dict) -> Any:
+    """Check one value against the field's type and range; return it in canonical form."""
+    choices = meta.get("choices")
+    if isinstance(current, bool):
+        if not isinstance(value, bool):
+            raise ParamError(name, f"must be true or false, got {value!r}")
+        return value
+    if choices is not None:
+        if value not in choices:
+            raise ParamError(name, f"must be one of {', '.join(map(str, choices))}; got {value!r}")
+        return value
+    length = meta.get("length")
+    if isinstance(current, tuple) or length:
+        if value is None and meta.get("optional"):
+            return None
+        n = length or len(current)
+        if isinstance(value, (list, tuple)) and value and isinstance(value[0], (list, tuple)):
+            value = [x for row in value for x in row]  # a matrix given row by row
+        if not isinstance(value, (list, tuple)) or len(value) != n:
+            raise ParamError(name, f"must be a list of {n} numbers, got {value!r}")
+        return tuple(_check_number(f"{name}[{i}]", v, meta) for i, v in enumerate(value))
+    if isinstance(current, str):
+        if not isinstance(value, str):
+            raise ParamError(name, f"must be text, got {value!r}")
+        return value
+    if isinstance(current, int) and not isinstance(current, bool) and meta.get("integer"):
+        v = _check_number(name, value, meta)
+        if v != int(v):
+            raise ParamError(name, f"must be a whole number, got {value!r}")
+        return int(v)
+    if current is None:
+        if value is None:
+            return None
+        return _check_number(name, value, meta)
+    return _check_number(name, value, meta)
+
+
+def fields_of(params_or_cls) -> dict[str, dataclasses.Field]:
+    return {f.name: f for f in dataclasses.fields(params_or_cls)}
+
+
+def replace_params(params, changes: dict[str, Any]):
+    """A new parameter set with ``changes`` applied, or ParamError naming the first
+    refused field. Unknown keys are refused; nothing is applied unless all pass."""
+    fmap = fields_of(params)
+    clean = {}
+    for name, value in changes.items():
+        if name not in fmap:
+            raise ParamError(name, f"unknown parameter for {type(params).__name__} "
+                                   f"(known: {', '.join(sorted(fmap))})")
+        clean[name] = coerce(name, value, getattr(params, name), fmap[name].metadata)
+    new = dataclasses.replace(params, **clean)
+    check = getattr(new, "check", None)
+    if check is not None:
+        check()  # cross-field rules, raise ParamError
+    return new
+
+
+def to_dict(params) -> dict[str, Any]:
+    out = {}
+    for f in dataclasses.fields(params):
+        v = getattr(params, f.name)
+        out[f.name] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def describe(params_cls) -> list[dict[str, Any]]:
+    """The parameter table: name, default, unit, range, user unit, help."""
+    rows = []
+    defaults = params_cls()
+    for f in dataclasses.fields(params_cls):
+        m = f.metadata
+        v = getattr(defaults, f.name)
+        rows.append(dict(name=f.name, default=list(v) if isinstance(v, tuple) else v,
+                         unit=m.get("unit", ""), lo=m.get("lo"), hi=m.get("hi"),
+                         user_unit=m.get("user_unit", ""), user_scale=m.get("user_scale", 1.0),
+                         choices=m.get("choices"), log=m.get("log", False), doc=m.get("doc", "")))
+    return rows
+
+
+# ----------------------------------------------------------------- presets (TOML)
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_CONFIG = CONFIG_DIR / "default.toml"
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        # a bare preset name: look in configs/
+        alt = CONFIG_DIR / (str(path) if str(path).endswith(".toml") else f"{path}.toml")
+        if alt.is_file():
+            path = alt
+        else:
+            raise FileNotFoundError(f"no such config file: {path}")
+    with open(path, "rb") as fh:
+        return tomllib.load(fh)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def dump_toml(sections: dict[str, dict[str, Any]], header: str = "") -> str:
+    """Write nested ``{section: {key: value}}`` as TOML (None values are left out)."""
+    lines = [f"# {ln}" if ln else "#" for ln in header.splitlines()] if header else []
+    top = {k: v for k, v in sections.items() if not isinstance(v, dict)}
+    for k, v in top.items():
+        if v is not None:
+            lines.append(f"{k} = {_toml_value(v)}")
+    for name, sec in sections.items():
+        if not isinstance(sec, dict):
+            continue
+        lines.append("")
+        lines.append(f"[{name}]")
+        for k, v in sec.items():
+            if v is None:
+                continue
+            if isinstance(v, (list, tuple)) and v and isinstance(v[0], (list, tuple)):
+                inner = ",\n    ".join(_toml_value(r) for r in v)
+                lines.append(f"{k} = [\n    {inner},\n]")
+            else:
+                lines.append(f"{k} = {_toml_value(v)}")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class CommonParams:
+    """Parameters every estimator has: a switch per sensor (lab manual, exercise 9)
+    and the time-step limits that keep bad timestamps from doing harm."""
+    use_gyr: bool = param(True, doc="use the gyroscope (off: random-walk time update)")
+    use_acc: bool = param(True, doc="use the accelerometer")
+    use_mag: bool = param(True, doc="use the magnetometer")
+    max_gap: float = param(1.0, unit="s", lo=0.01, hi=60.0,
+                           doc="a time step longer than this is a gap: no integration across it")
+    gyr_hold: float = param(0.1, unit="s", lo=0.0, hi=5.0,
+                            doc="how long the last gyroscope sample is held for rows without one")
+
+    def check(self) -> None:
+        """Cross-field rules; subclasses extend it."""

@@ -1,0 +1,97 @@
+"""The Sensor Fusion app's line format (see ``shared/protocols/sensorfusion-app.md``).
+
+One sample per line: ``<time_ms>\\t<TAG>\\t<v1>\\t<v2>...``. :func:`parse_line` turns a
+line into a :class:`Sample` or raises :class:`MalformedLine` with the reason; it is
+shared by the log reader and the live receiver, so both accept exactly the same input.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+# tag -> accepted value counts (numeric tags) ; None = free text fields
+TAG_ARITY: dict[str, tuple[int, ...] | None] = {
+    "ACC": (3,), "GYR": (3,), "MAG": (3,),
+    "ORI": (4, 3),            # w x y z; rarely x y z only (w = sqrt(1 - x²-y²-z²))
+    "RAWGYR": (6, 3), "RAWMAG": (6, 3),   # raw x y z, bias x y z
+    "GPS": (3, 2, 4, 5, 6), "PRS": (1,), "LGT": (1,), "PRX": (1,), "TMP": (1,),
+    "BAT": (3, 1, 2),
+    "RSSWIFI": None, "RSSCELL": None, "RSSBLE": None, "TXT": None,
+}
+# tags whose values are vectors the estimators use
+MOTION_TAGS = ("ACC", "GYR", "MAG", "ORI")
+
+
+class MalformedLine(ValueError):
+    """A line that cannot be used; ``reason`` is a short key for counting."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    time_ms: int            # as sent by the phone (its own clock, per tag)
+    tag: str
+    values: tuple           # floats for numeric tags, str for text tags
+
+    @property
+    def t(self) -> float:
+        return self.time_ms / 1000.0
+
+
+def _float(text: str) -> float:
+    # Java float text: 9.81, -0.0, 4.02E-4, NaN, Infinity
+    s = text.strip()
+    if s in ("Infinity", "+Infinity"):
+        return math.inf
+    if s == "-Infinity":
+        return -math.inf
+    return float(s)
+
+
+def parse_line(line: str | bytes) -> Sample:
+    """Parse one line (without or with its line ending). Raises MalformedLine."""
+    if isinstance(line, bytes):
+        try:
+            line = line.decode("ascii")
+        except UnicodeDecodeError:
+            line = line.decode("utf-8", errors="replace")
+    line = line.rstrip("\r\n")
+    if not line.strip():
+        raise MalformedLine("empty")
+    parts = line.split("\t")
+    if len(parts) < 2:
+        parts = line.split()  # be liberal: spaces instead of tabs
+    if len(parts) < 2:
+        raise MalformedLine("no_tag", line[:80])
+    ts, tag = parts[0].strip(), parts[1].strip()
+    try:
+        t_f = float(ts)
+    except ValueError:
+        raise MalformedLine("bad_time", ts[:40]) from None
+    if not math.isfinite(t_f):
+        raise MalformedLine("bad_time", ts[:40])
+    time_ms = int(t_f)
+    if tag not in TAG_ARITY:
+        raise MalformedLine("unknown_tag", tag[:40])
+    raw = parts[2:]
+    arity = TAG_ARITY[tag]
+    if arity is None:
+        return Sample(time_ms, tag, tuple(raw))
+    # drop one trailing empty field (a stray tab at the end of the line)
+    if raw and raw[-1].strip() == "":
+        raw = raw[:-1]
+    if len(raw) not in arity:
+        raise MalformedLine("wrong_count", f"{tag} with {len(raw)} values")
+    try:
+        vals = tuple(_float(v) for v in raw)
+    except ValueError:
+        raise MalformedLine("not_numeric", f"{tag}: {' '.join(raw)[:60]}") from None
+    if tag == "ORI" and len(vals) == 3:
+        x, y, z = vals
+        w2 = 1.0 - x * x - y * y - z * z
+        vals = (math.sqrt(w2) if w2 > 0.0 else 0.0, x, y, z)
+    return Sample(time_ms, tag, vals)

@@ -1,0 +1,283 @@
+"""Quaternion and rotation math of the lab manual, in one place.
+
+Conventions (used everywhere in orientlab):
+- quaternions are scalar first ``[w, x, y, z]`` and describe the rotation from the
+  sensor frame to the world frame: ``v_world = Q(q) @ v_sensor``;
+- world frame ENU (x east, y north, z up), sensor frame Android's
+  (x right, y top of the screen, z out of the screen);
+- after normalisation ``w >= 0`` (the manual's ``mu_normalizeQ``).
+
+Every function is plain numpy and is also compiled with numba (``njit``), so the
+estimators' hot loops can call the very same code. Formula numbers refer to the
+lab manual (Section 3.1 and Appendix A.2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_SQRT_EPS = np.sqrt(np.finfo(np.float64).eps)
+
+
+@njit(cache=True)
+def normalize(q):
+    """Unit quaternion with w >= 0 (manual A.2.1). A zero quaternion becomes identity."""
+    n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    out = np.empty(4)
+    if n == 0.0 or not np.isfinite(n):
+        out[0] = 1.0
+        out[1] = 0.0
+        out[2] = 0.0
+        out[3] = 0.0
+        return out
+    s = 1.0 / n
+    if q[0] < 0.0:
+        s = -s
+    for i in range(4):
+        out[i] = q[i] * s
+    return out
+
+
+@njit(cache=True)
+def Q(q):
+    """Rotation matrix of a unit quaternion, formula (2a): v_world = Q(q) v_sensor."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    R = np.empty((3, 3))
+    R[0, 0] = 2.0 * (q0 * q0 + q1 * q1) - 1.0
+    R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+    R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+    R[1, 0] = 2.0 * (q1 * q2 + q0 * q3)
+    R[1, 1] = 2.0 * (q0 * q0 + q2 * q2) - 1.0
+    R[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+    R[2, 0] = 2.0 * (q1 * q3 - q0 * q2)
+    R[2, 1] = 2.0 * (q2 * q3 + q0 * q1)
+    R[2, 2] = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    return R
+
+
+@njit(cache=True)
+def dQdq(q):
+    """Derivatives of Q(q) with respect to q0..q3, formulas (2f)-(2i); shape (4, 3, 3)."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    D = np.empty((4, 3, 3))
+    D[0, 0, 0] = 2 * q0; D[0, 0, 1] = -q3;   D[0, 0, 2] = q2
+    D[0, 1, 0] = q3;     D[0, 1, 1] = 2 * q0; D[0, 1, 2] = -q1
+    D[0, 2, 0] = -q2;    D[0, 2, 1] = q1;     D[0, 2, 2] = 2 * q0
+    D[1, 0, 0] = 2 * q1; D[1, 0, 1] = q2;     D[1, 0, 2] = q3
+    D[1, 1, 0] = q2;     D[1, 1, 1] = 0.0;    D[1, 1, 2] = -q0
+    D[1, 2, 0] = q3;     D[1, 2, 1] = q0;     D[1, 2, 2] = 0.0
+    D[2, 0, 0] = 0.0;    D[2, 0, 1] = q1;     D[2, 0, 2] = q0
+    D[2, 1, 0] = q1;     D[2, 1, 1] = 2 * q2; D[2, 1, 2] = q3
+    D[2, 2, 0] = -q0;    D[2, 2, 1] = q3;     D[2, 2, 2] = 0.0
+    D[3, 0, 0] = 0.0;    D[3, 0, 1] = -q0;    D[3, 0, 2] = q1
+    D[3, 1, 0] = q0;     D[3, 1, 1] = 0.0;    D[3, 1, 2] = q2
+    D[3, 2, 0] = q1;     D[3, 2, 1] = q2;     D[3, 2, 2] = 2 * q3
+    return 2.0 * D
+
+
+@njit(cache=True)
+def S_omega(w):
+    """S(omega) of formula (2d): dq/dt = 1/2 S(omega) q, omega in the sensor frame."""
+    wx, wy, wz = w[0], w[1], w[2]
+    S = np.empty((4, 4))
+    S[0, 0] = 0.0; S[0, 1] = -wx; S[0, 2] = -wy; S[0, 3] = -wz
+    S[1, 0] = wx;  S[1, 1] = 0.0; S[1, 2] = wz;  S[1, 3] = -wy
+    S[2, 0] = wy;  S[2, 1] = -wz; S[2, 2] = 0.0; S[2, 3] = wx
+    S[3, 0] = wz;  S[3, 1] = wy;  S[3, 2] = -wx; S[3, 3] = 0.0
+    return S
+
+
+@njit(cache=True)
+def S_bar(q):
+    """S-bar(q) of formula (2e): dq/dt = 1/2 S-bar(q) omega."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    S = np.empty((4, 3))
+    S[0, 0] = -q1; S[0, 1] = -q2; S[0, 2] = -q3
+    S[1, 0] = q0;  S[1, 1] = -q3; S[1, 2] = q2
+    S[2, 0] = q3;  S[2, 1] = q0;  S[2, 2] = -q1
+    S[3, 0] = -q2; S[3, 1] = q1;  S[3, 2] = q0
+    return S
+
+
+@njit(cache=True)
+def F_exact(w, T):
+    """Transition matrix of the exact time update (2j): q_next = F q."""
+    n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    half = 0.5 * n * T
+    if half < 1e-12:
+        sinc = 1.0
+    else:
+        sinc = np.sin(half) / half
+    return np.cos(half) * np.eye(4) + (0.5 * T * sinc) * S_omega(w)
+
+
+@njit(cache=True)
+def F_approx(w, T):
+    """Transition matrix of the approximate time update (2k): I + T/2 S(omega)."""
+    return np.eye(4) + (0.5 * T) * S_omega(w)
+
+
+@njit(cache=True)
+def time_update_exact(q, w, T):
+    """Formula (2j) without noise: exp(1/2 S(omega) T) q (not renormalised)."""
+    return F_exact(w, T) @ q
+
+
+@njit(cache=True)
+def time_update_approx(q, w, T):
+    """Formula (2k) without noise: (I + 1/2 S(omega) T) q (not renormalised)."""
+    return F_approx(w, T) @ q
+
+
+@njit(cache=True)
+def quat_mul(p, q):
+    """Hamilton product p * q (scalar first)."""
+    out = np.empty(4)
+    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
+    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
+    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
+    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
+    return out
+
+
+@njit(cache=True)
+def quat_conj(q):
+    """Conjugate (the inverse of a unit quaternion)."""
+    out = np.empty(4)
+    out[0] = q[0]
+    out[1] = -q[1]
+    out[2] = -q[2]
+    out[3] = -q[3]
+    return out
+
+
+@njit(cache=True)
+def quat_from_rotvec(v):
+    """Unit quaternion of the rotation vector v (axis * angle, rad)."""
+    a = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    out = np.empty(4)
+    out[0] = np.cos(0.5 * a)
+    if a < 1e-12:
+        s = 0.5
+    else:
+        s = np.sin(0.5 * a) / a
+    out[1] = v[0] * s
+    out[2] = v[1] * s
+    out[3] = v[2] * s
+    return out
+
+
+@njit(cache=True)
+def rotvec_from_quat(q):
+    """Rotation vector (axis * angle, rad, angle in [0, pi]) of a unit quaternion."""
+    qq = normalize(q)
+    vn = np.sqrt(qq[1] * qq[1] + qq[2] * qq[2] + qq[3] * qq[3])
+    out = np.zeros(3)
+    if vn < 1e-15:
+        return out
+    angle = 2.0 * np.arctan2(vn, qq[0])
+    for i in range(3):
+        out[i] = qq[i + 1] / vn * angle
+    return out
+
+
+@njit(cache=True)
+def quat_from_matrix(R):
+    """Unit quaternion of a rotation matrix: formula (2b), in its numerically stable
+    form (the largest of the four diagonal combinations is used as the pivot)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    q = np.empty(4)
+    if tr > 0.0:
+        t = np.sqrt(tr + 1.0)  # the manual's t: q0 = t/2
+        q[0] = 0.5 * t
+        q[1] = (R[2, 1] - R[1, 2]) / (2.0 * t)
+        q[2] = (R[0, 2] - R[2, 0]) / (2.0 * t)
+        q[3] = (R[1, 0] - R[0, 1]) / (2.0 * t)
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        t = np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q[1] = 0.5 * t
+        q[0] = (R[2, 1] - R[1, 2]) / (2.0 * t)
+        q[2] = (R[0, 1] + R[1, 0]) / (2.0 * t)
+        q[3] = (R[0, 2] + R[2, 0]) / (2.0 * t)
+    elif R[1, 1] >= R[2, 2]:
+        t = np.sqrt(1.0 - R[0, 0] + R[1, 1] - R[2, 2])
+        q[2] = 0.5 * t
+        q[0] = (R[0, 2] - R[2, 0]) / (2.0 * t)
+        q[1] = (R[0, 1] + R[1, 0]) / (2.0 * t)
+        q[3] = (R[1, 2] + R[2, 1]) / (2.0 * t)
+    else:
+        t = np.sqrt(1.0 - R[0, 0] - R[1, 1] + R[2, 2])
+        q[3] = 0.5 * t
+        q[0] = (R[1, 0] - R[0, 1]) / (2.0 * t)
+        q[1] = (R[0, 2] + R[2, 0]) / (2.0 * t)
+        q[2] = (R[1, 2] + R[2, 1]) / (2.0 * t)
+    return normalize(q)
+
+
+@njit(cache=True)
+def angle_between(q0, q):
+    """Formula (2c): the angle (rad) q must be turned by to obtain q0."""
+    d = abs(q0[0] * q[0] + q0[1] * q[1] + q0[2] * q[2] + q0[3] * q[3])
+    if d > 1.0:
+        d = 1.0
+    return 2.0 * np.arccos(d)
+
+
+@njit(cache=True)
+def q2euler(q):
+    """Euler angles exactly as the manual's appendix A.2.2 ``q2euler``.
+
+    Returns ``[yaw (about z), pitch (about x), roll (about y)]`` in rad, each wrapped
+    to [-pi, pi). Note the manual's sign: a positive rotation about the world's z axis
+    gives a *negative* yaw (yaw grows clockwise seen from above, like a compass).
+    """
+    # the appendix first reorders q to [q0, q2, q1, q3]
+    a, b, c, d = q[0], q[2], q[1], q[3]
+    xzpwy = b * d + a * c
+    e = np.zeros(3)
+    if xzpwy + _SQRT_EPS > 0.5:  # north pole
+        e[0] = 2.0 * np.arctan2(b, a)
+    elif xzpwy - _SQRT_EPS < -0.5:  # south pole
+        e[0] = -2.0 * np.arctan2(b, a)
+    else:
+        e[0] = np.arctan2(2.0 * (b * c - a * d), 1.0 - 2.0 * (c * c + d * d))
+        e[2] = np.arctan2(2.0 * (c * d - a * b), 1.0 - 2.0 * (b * b + c * c))
+    s = 2.0 * xzpwy
+    if s > 1.0:
+        s = 1.0
+    elif s < -1.0:
+        s = -1.0
+    e[1] = -np.arcsin(s)
+    for i in range(3):
+        e[i] = np.mod(e[i] + np.pi, 2.0 * np.pi) - np.pi
+    return e
+
+
+def q2euler_many(qs: np.ndarray) -> np.ndarray:
+    """q2euler for an (N, 4) array; returns (N, 3)."""
+    qs = np.atleast_2d(np.asarray(qs, dtype=float))
+    return np.array([q2euler(q) for q in qs]).reshape(-1, 3)
+
+
+def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
+    """Total, heading and inclination error (rad) of (N, 4) estimates against references.
+
+    The error quaternion is ``e = q_est * conj(q_ref)`` (both sensor-to-world), a rotation
+    in the world frame; heading is its part about the world's vertical (swing-twist
+    decomposition), inclination the rest. This is BROAD's metric.
+    """
+    q_est = np.atleast_2d(q_est)
+    q_ref = np.atleast_2d(q_ref)
+    w = q_est[:, 0] * q_ref[:, 0] + np.sum(q_est[:, 1:] * q_ref[:, 1:], axis=1)
+    # e = q_est * conj(q_ref)
+    e0 = w
+    ex = -q_est[:, 0] * q_ref[:, 1] + q_est[:, 1] * q_ref[:, 0] - q_est[:, 2] * q_ref[:, 3] + q_est[:, 3] * q_ref[:, 2]
+    ey = -q_est[:, 0] * q_ref[:, 2] + q_est[:, 1] * q_ref[:, 3] + q_est[:, 2] * q_ref[:, 0] - q_est[:, 3] * q_ref[:, 1]
+    ez = -q_est[:, 0] * q_ref[:, 3] - q_est[:, 1] * q_ref[:, 2] + q_est[:, 2] * q_ref[:, 1] + q_est[:, 3] * q_ref[:, 0]
+    total = 2.0 * np.arccos(np.clip(np.abs(e0), 0.0, 1.0))
+    heading = 2.0 * np.arctan2(np.abs(ez), np.abs(e0))
+    incl = 2.0 * np.arccos(np.clip(np.sqrt(e0 ** 2 + ez ** 2), 0.0, 1.0))
+    # heading via atan2 keeps the sign-ambiguity of q away; wrap to [0, pi]
+    heading = np.where(heading > np.pi, 2 * np.pi - heading, heading)
+    return total, heading, incl
