@@ -281,3 +281,51 @@ def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
     # heading via atan2 keeps the sign-ambiguity of q away; wrap to [0, pi]
     heading = np.where(heading > np.pi, 2 * np.pi - heading, heading)
     return total, heading, incl
+
+
+@njit(cache=True)
+def q_from_acc_mag(acc, mag, use_mag):
+    """Initial alignment: the orientation whose 'up' is the accelerometer's direction
+    (specific force at rest points up) and, when ``use_mag``, whose north is the
+    horizontal part of the magnetic field (TRIAD). Without the magnetometer, the
+    heading is chosen so the phone's top (y) points north (or its x axis points
+    east when the top points straight up)."""
+    an = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
+    u = acc / an
+    e = np.zeros(3)
+    ok = False
+    if use_mag:
+        e = np.cross(mag, u)
+        en = np.sqrt(e[0] ** 2 + e[1] ** 2 + e[2] ** 2)
+        if en > 1e-9 * (np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2) + 1e-300):
+            e = e / en
+            ok = True
+    if not ok:
+        y = np.array([0.0, 1.0, 0.0])
+        nn = y - (y @ u) * u
+        if np.sqrt(nn @ nn) < 0.1:
+            x = np.array([1.0, 0.0, 0.0])
+            e = x - (x @ u) * u
+            e = e / np.sqrt(e @ e)
+        else:
+            nn = nn / np.sqrt(nn @ nn)
+            e = np.cross(nn, u)
+    n = np.cross(u, e)
+    R = np.empty((3, 3))
+    R[0, :] = e  # rows: world axes (east, north, up) in sensor coordinates
+    R[1, :] = n
+    R[2, :] = u
+    return quat_from_matrix(R)
+
+
+def attitude_cov_from_quat_cov(q: np.ndarray, Pq: np.ndarray) -> np.ndarray:
+    """Covariance (rad², world frame) of the rotation-vector error of a quaternion
+    estimate whose 4x4 covariance is ``Pq``: the error rotation is
+    ``(q + dq) * conj(q) ≈ [1, dtheta/2]``, so ``dtheta = 2 * vec(dq * conj(q))``."""
+    qc = quat_conj(q)
+    T = np.empty((3, 4))
+    for i in range(4):
+        basis = np.zeros(4)
+        basis[i] = 1.0
+        T[:, i] = 2.0 * quat_mul(basis, qc)[1:]
+    return T @ Pq @ T.T

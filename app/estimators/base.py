@@ -44,6 +44,7 @@ class Reason(IntEnum):
     WAIT = 9        # not used yet: waiting for the initial alignment
     GAP = 10        # gyroscope: time gap too long to integrate (value: dt, s)
     REST = 11       # gyroscope: at rest, bias update made
+    LATE = 12       # the row's timestamp is before the previous row's: skipped
 
     @property
     def label(self) -> str:
@@ -63,6 +64,7 @@ REASON_TEXT = {
     Reason.WAIT: "waiting for initial alignment",
     Reason.GAP: "time gap too long to integrate",
     Reason.REST: "at rest (bias update)",
+    Reason.LATE: "timestamp before the previous row (skipped)",
 }
 
 
@@ -73,6 +75,11 @@ class TimeIssue(IntEnum):
     GAP = 3         # gap longer than max_gap: no integration across it
     FIRST = 4       # first row
 
+
+# Plain int copies of the codes for numba-compiled code (it cannot cast IntEnum to float)
+R_USED, R_ABSENT, R_DISABLED, R_INVALID, R_NORM, R_NIS, R_DIP, R_FIELD, R_INIT, R_WAIT, R_GAP, \
+    R_REST, R_LATE = (int(r) for r in Reason)
+T_OK, T_REPEATED, T_BACKWARD, T_GAP, T_FIRST = (int(x) for x in TimeIssue)
 
 # The flag record written after every row (floats so one array holds them all).
 FLAG_COLUMNS = (
@@ -93,11 +100,11 @@ F_GYR, F_ACC, F_ACC_VAL, F_ACC_NIS, F_MAG, F_MAG_VAL, F_MAG_NIS, F_REST, F_TIME 
 @njit(cache=True)
 def new_flags():
     f = np.full(NFLAGS, np.nan)
-    f[F_GYR] = Reason.ABSENT
-    f[F_ACC] = Reason.ABSENT
-    f[F_MAG] = Reason.ABSENT
+    f[F_GYR] = R_ABSENT
+    f[F_ACC] = R_ABSENT
+    f[F_MAG] = R_ABSENT
     f[F_REST] = 0.0
-    f[F_TIME] = TimeIssue.OK
+    f[F_TIME] = T_OK
     return f
 
 
@@ -111,31 +118,31 @@ def vector_state(v, enabled):
         if np.isnan(v[i]):
             n_nan += 1
         elif not np.isfinite(v[i]):
-            return Reason.INVALID if enabled else Reason.DISABLED
+            return R_INVALID if enabled else R_DISABLED
         elif v[i] == 0.0:
             n_zero += 1
     if n_nan == 3:
-        return Reason.ABSENT
+        return R_ABSENT
     if not enabled:
-        return Reason.DISABLED
+        return R_DISABLED
     if n_nan > 0 or n_zero == 3:
-        return Reason.INVALID
-    return Reason.USED
+        return R_INVALID
+    return R_USED
 
 
 @njit(cache=True)
 def time_step(t_prev, t, max_gap):
     """(dt, TimeIssue) of a row at ``t`` after one at ``t_prev`` (NaN: first row)."""
     if np.isnan(t_prev):
-        return 0.0, TimeIssue.FIRST
+        return 0.0, T_FIRST
     dt = t - t_prev
     if not np.isfinite(dt) or dt < 0.0:
-        return 0.0, TimeIssue.BACKWARD
+        return 0.0, T_BACKWARD
     if dt == 0.0:
-        return 0.0, TimeIssue.REPEATED
+        return 0.0, T_REPEATED
     if max_gap > 0.0 and dt > max_gap:
-        return dt, TimeIssue.GAP
-    return dt, TimeIssue.OK
+        return dt, T_GAP
+    return dt, T_OK
 
 
 def _as_vec(v) -> np.ndarray:
@@ -206,6 +213,17 @@ def count_flags(flags: np.ndarray) -> dict[str, dict[str, int]]:
     return out
 
 
+@dataclass
+class Row:
+    """What ``Estimator._begin_row`` found out about a row."""
+    dt: float               # s since the previous row (0 on the first, repeated or gap row)
+    issue: TimeIssue
+    gyr: Reason             # state of each sensor's sample before any gate
+    acc: Reason
+    mag: Reason
+    w: np.ndarray | None    # angular rate to integrate over dt (rad/s), None: random walk
+
+
 class Estimator:
     """Base class: the common interface of every orientation estimator.
 
@@ -247,6 +265,8 @@ class Estimator:
     def reset(self) -> None:
         """Forget the orientation; the next rows align it again."""
         self.t = float("nan")
+        self._w = None
+        self._w_t = float("nan")
         self.last_flags = StepFlags.from_row(np.nan, new_flags())
         self._reset_state()
 
@@ -271,6 +291,38 @@ class Estimator:
 
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         raise NotImplementedError
+
+    def _begin_row(self, t, gyr, acc, mag, flags) -> "Row | None":
+        """The part of a row every estimator shares: the time step and its issues,
+        each sensor's state before any gate (``vector_state``), and the held gyroscope
+        rate (the row's own sample, else the last one for up to ``gyr_hold`` s).
+        Returns None (row skipped, samples flagged LATE) for a backward timestamp.
+        Uses ``self.t`` (time of the last row) and ``self._w``/``self._w_t`` (held rate)."""
+        p = self._params
+        dt, issue = time_step(self.t, t, p.max_gap)
+        flags[F_TIME] = issue
+        gs = vector_state(gyr, p.use_gyr)
+        as_ = vector_state(acc, p.use_acc)
+        ms = vector_state(mag, p.use_mag)
+        if issue == TimeIssue.BACKWARD:
+            for col, st in ((F_GYR, gs), (F_ACC, as_), (F_MAG, ms)):
+                flags[col] = Reason.LATE if st == Reason.USED else st
+            return None
+        flags[F_GYR], flags[F_ACC], flags[F_MAG] = gs, as_, ms
+        self.t = t
+        w = None
+        if p.use_gyr:
+            if gs == Reason.USED:
+                w = gyr
+                self._w, self._w_t = gyr.copy(), t
+            elif self._w is not None and t - self._w_t <= p.gyr_hold:
+                w = self._w
+        if issue == TimeIssue.GAP:
+            if gs == Reason.USED:
+                flags[F_GYR] = Reason.GAP
+            w = None
+        return Row(dt=dt, issue=TimeIssue(issue), gyr=Reason(gs), acc=Reason(as_),
+                   mag=Reason(ms), w=w)
 
     def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
         """Process rows in order; the estimate and flags after each. Arrays are (N,)
