@@ -1,0 +1,363 @@
+"""The ``orientlab`` command: estimate orientation from a recording, calibrate, serve.
+
+``orientlab estimate INPUT --out OUT.csv``
+    Reads INPUT (a Sensor Fusion app log, a CSV or an npz: see :mod:`app.readers`),
+    runs one estimator over it in chunks (memory stays bounded; the estimator's state
+    carries over from chunk to chunk) and writes a CSV with the header
+    ``t,qw,qx,qy,qz,`` followed by the flag columns of
+    :data:`app.estimators.FLAG_COLUMNS`:
+
+    - ``gyr``, ``acc``, ``mag``: the :class:`~app.estimators.Reason` as its lowercase
+      name (``used``, ``absent``, ``norm``, ``nis``, ...);
+    - ``time``: the :class:`~app.estimators.TimeIssue` as its lowercase name (``ok``,
+      ``first``, ``repeated``, ``backward``, ``gap``);
+    - ``rest``: 1 or 0;
+    - ``acc_value``, ``acc_nis``, ``mag_value``, ``mag_nis``: numbers, an empty cell
+      where there is no value (the output never holds the text ``nan``).
+
+    Rows: for CSV and npz input exactly one output row per input row, in order; a CSV
+    line that cannot be parsed at all (wrong number of cells, text in a number cell) is
+    skipped and counted, but a row with NaN, inf or empty cells is kept (the estimator
+    flags it). ``t`` is copied from the input. For an app log, one row per ACC, GYR,
+    MAG or ORI sample in time order, ``t`` on the log's reference clock.
+
+    The output is written to a temporary file renamed to OUT at the end, so a failed
+    run leaves no half-written OUT. On stderr: a progress line for long inputs (only
+    if stderr is a terminal or the input is large), a summary of skipped input and
+    refused updates, and as the last line ``N samples in S s (R samples/s)`` (S counts
+    the estimation only, not reading or writing). ``--quiet`` keeps only that last line.
+
+``orientlab calibrate INPUT --out PRESET.toml``
+    Statistics of a stationary recording (lab manual exercise 2, :mod:`app.calibration`):
+    prints the report and writes a preset for ``--config``.
+
+``orientlab serve``
+    The live dashboard (:mod:`app.server.run`).
+
+Exit status: 0 on success, 2 on a usage error, an unreadable input, or a refused
+parameter or preset (one line on stderr says which).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from .config import ConfigError, load_config
+from .estimators import DEFAULT, FLAG_COLUMNS, NAMES, Reason, TimeIssue, make_estimator
+from .estimators.base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL,
+                              F_REST, F_TIME, count_flags)
+from .params import ParamError
+from .readers import DEFAULT_CHUNK_ROWS, ReaderError, iter_chunks
+
+PROG = "orientlab"
+# inputs at least this large show a progress line even when stderr is not a terminal
+PROGRESS_MIN_BYTES = 20_000_000
+OUTPUT_COLUMNS = ("t", "qw", "qx", "qy", "qz") + FLAG_COLUMNS
+_REASON_LABELS = {int(r): r.label for r in Reason}
+_TIME_LABELS = {int(r): r.name.lower() for r in TimeIssue}
+
+
+class CliError(Exception):
+    """A failure reported as one line on stderr, exit status 2."""
+
+
+# ---------------------------------------------------------------- argument parsing
+
+def parse_set(items: list[str] | None) -> dict[str, Any]:
+    """``key=value`` pairs; a value is JSON when it parses (numbers, true/false,
+    lists), else a string."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise CliError(f"--set {item!r}: expected key=value")
+        try:
+            out[key] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key] = text
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="orientlab: orientation estimation from phone IMU data "
+                    "(Sensor Fusion app logs and streams, CSV, npz).",
+        epilog=f"Run '{PROG} COMMAND --help' for a command's options.")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    e = sub.add_parser(
+        "estimate", help="estimate the orientation of every row of a recording",
+        description="Estimate the orientation of every row of a recording and write "
+                    "it with the per-row flags to a CSV.",
+        epilog="Output columns: " + ",".join(OUTPUT_COLUMNS) + ". Reasons and time issues "
+               "are written as lowercase names (used, norm, nis, ...; ok, backward, ...), "
+               "missing values as empty cells. CSV/npz input: one output row per input "
+               "row (CSV lines that cannot be parsed are skipped and counted; rows with "
+               "NaN values are kept). App log: one row per ACC/GYR/MAG/ORI sample, in "
+               "time order.")
+    e.add_argument("input", metavar="INPUT",
+                   help="Sensor Fusion app log, CSV (header t,acc_x,...) or .npz")
+    e.add_argument("--out", "-o", required=True, metavar="OUT.csv", help="output CSV")
+    e.add_argument("--filter", "-f", choices=NAMES, default=None, metavar="NAME",
+                   help=f"estimator: {', '.join(NAMES)} (default: the preset's primary, "
+                        f"else {DEFAULT})")
+    e.add_argument("--config", "-c", metavar="FILE",
+                   help="preset TOML (a path or a name in configs/)")
+    e.add_argument("--set", "-s", action="append", metavar="KEY=VALUE", dest="set",
+                   help="override one parameter of the estimator (repeatable); VALUE is "
+                        "JSON when it parses (0.01, true, [0,0,9.81]), else text")
+    e.add_argument("--chunk", type=int, default=DEFAULT_CHUNK_ROWS, metavar="ROWS",
+                   help=f"rows per processing chunk (default {DEFAULT_CHUNK_ROWS})")
+    e.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress line and no bad-input summary (the final "
+                        "samples/s line stays)")
+    e.set_defaults(func=cmd_estimate)
+
+    c = sub.add_parser(
+        "calibrate", help="statistics of a stationary recording -> report and preset",
+        description="Compute mean, covariance, normality, trend and histograms per sensor "
+                    "from a recording of the phone lying still (any pose), print the "
+                    "report and write a preset (TOML) for --config.")
+    c.add_argument("input", metavar="INPUT", help="stationary recording (log, CSV or npz)")
+    c.add_argument("--out", "-o", required=True, metavar="PRESET.toml",
+                   help="where to write the preset")
+    c.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser(
+        "serve", help="run the live dashboard (phone receiver + browser view)",
+        description="Serve the live dashboard: the phone connects over TCP, the browser "
+                    "shows the estimates and the controls.")
+    s.add_argument("--host", default="0.0.0.0",
+                   help="address to listen on (default 0.0.0.0 so the phone can connect)")
+    s.add_argument("--port", type=int, default=8000, help="HTTP port of the dashboard (8000)")
+    s.add_argument("--viewer-port", type=int, default=8080, help="port of the 3D viewer (8080)")
+    s.add_argument("--phone-port", type=int, default=3400,
+                   help="TCP port the phone streams to (3400, the app's default)")
+    s.add_argument("--config", "-c", metavar="FILE", help="preset TOML")
+    s.add_argument("--source", default="demo", metavar="SOURCE",
+                   help="'demo' (simulated phone), 'none' (wait for a phone) or a "
+                        "recording to replay (default demo)")
+    s.set_defaults(func=cmd_serve)
+    return p
+
+
+# ---------------------------------------------------------------- estimate
+
+def _labels(col: np.ndarray, table: dict[int, str]) -> list[str]:
+    return [table.get(v, str(v)) for v in col.astype(int).tolist()]
+
+
+def _numbers(col: np.ndarray, fmt: str) -> list[str]:
+    return ["" if v != v else fmt % v for v in col.tolist()]
+
+
+def format_rows(t: np.ndarray, q: np.ndarray, flags: np.ndarray) -> str:
+    """CSV text (no header) of estimates and flag records, see the module doc."""
+    cols = [_numbers(t, "%.6f")] + [_numbers(q[:, i], "%.9f") for i in range(4)]
+    for j in range(flags.shape[1]):
+        if j in (F_GYR, F_ACC, F_MAG):
+            cols.append(_labels(flags[:, j], _REASON_LABELS))
+        elif j == F_TIME:
+            cols.append(_labels(flags[:, j], _TIME_LABELS))
+        elif j == F_REST:
+            cols.append(["1" if v > 0.5 else "0" for v in flags[:, j].tolist()])
+        elif j in (F_ACC_VAL, F_ACC_NIS, F_MAG_VAL, F_MAG_NIS):
+            cols.append(_numbers(flags[:, j], "%.6g"))
+    if not cols[0]:
+        return ""
+    return "\n".join(",".join(r) for r in zip(*cols)) + "\n"
+
+
+def _merge_counts(total: dict, part: dict) -> None:
+    for key, sub in part.items():
+        dst = total.setdefault(key, {})
+        for k, v in sub.items():
+            dst[k] = dst.get(k, 0) + v
+
+
+class Progress:
+    """A plain-text progress line on stderr, rewritten with ``\\r``."""
+
+    def __init__(self, stream: TextIO, enabled: bool):
+        self.stream, self.enabled, self.shown = stream, enabled, False
+        self._last = -1
+
+    def update(self, done: float, rows: int) -> None:
+        pct = int(done * 100)
+        if not self.enabled or pct == self._last:
+            return
+        self._last = pct
+        bar = "#" * (pct // 5) + "." * (20 - pct // 5)
+        self.stream.write(f"\r{PROG}: [{bar}] {pct:3d}% {rows} rows")
+        self.stream.flush()
+        self.shown = True
+
+    def close(self) -> None:
+        if self.shown:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def input_summary(counts: dict) -> list[str]:
+    """Lines about skipped or rearranged input, from a Recording's counts."""
+    out = []
+    bad = counts.get("malformed") or {}
+    if bad:
+        detail = ", ".join(f"{k}: {v}" for k, v in sorted(bad.items()))
+        out.append(f"input: {sum(bad.values())} malformed lines skipped ({detail})")
+    if counts.get("late"):
+        out.append(f"input: {counts['late']} samples too late to order, skipped")
+    if counts.get("clamped"):
+        out.append(f"input: {counts['clamped']} slightly late samples, time clamped")
+    offsets = {k: v for k, v in (counts.get("offsets_s") or {}).items() if v}
+    if offsets:
+        out.append("input: clock offsets " + ", ".join(f"{k} {v:+.3f} s"
+                                                         for k, v in offsets.items()))
+    return out
+
+
+def flag_summary(flags: dict) -> list[str]:
+    """Lines about refused updates and time issues, from merged :func:`count_flags`."""
+    out = []
+    for key in ("gyr", "acc", "mag"):
+        c = {k: v for k, v in (flags.get(key) or {}).items() if k != "used"}
+        if c:
+            out.append(f"{key}: used {flags[key].get('used', 0)}, "
+                       + ", ".join(f"{k} {v}" for k, v in sorted(c.items())))
+    if flags.get("time"):
+        out.append("time: " + ", ".join(f"{k} {v}" for k, v in sorted(flags["time"].items())))
+    return out
+
+
+def make_configured(name: str | None, config_path: str | None, sets: list[str] | None):
+    """The estimator chosen by ``--filter`` (or the preset's primary) with the preset's
+    parameters then the ``--set`` overrides. CliError on a refused value."""
+    overrides = parse_set(sets)
+    try:
+        config = load_config(config_path)
+    except ConfigError as e:
+        raise CliError(str(e)) from None
+    name = name or config.get("primary", DEFAULT)
+    params = {**config.get(name, {}), **overrides}
+    try:
+        return make_estimator(name, params)
+    except ParamError as e:
+        raise CliError(f"{name}: --set/--config {e}") from None
+    except ImportError as e:
+        raise CliError(f"estimator {name!r} is not available ({e})") from None
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    err = sys.stderr
+    est = make_configured(args.filter, args.config, args.set)
+    if args.chunk < 1:
+        raise CliError("--chunk must be at least 1")
+    try:
+        size = os.path.getsize(args.input)
+    except OSError:
+        size = 0
+    progress = Progress(err, not args.quiet and (err.isatty() or size >= PROGRESS_MIN_BYTES))
+    out_path = Path(args.out)
+    n_rows, spent = 0, 0.0
+    flags_total: dict = {}
+    counts: dict = {}
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".orientlab-", suffix=".csv",
+                                   dir=str(out_path.parent) if str(out_path.parent) else ".")
+    except OSError as e:
+        raise CliError(f"{out_path}: cannot write ({e.strerror or e})") from None
+    try:
+        with os.fdopen(fd, "w", newline="") as fh:
+            fh.write(",".join(OUTPUT_COLUMNS) + "\n")
+            for chunk in iter_chunks(args.input, rows=args.chunk):
+                t0 = time.perf_counter()
+                res = est.run(chunk.t, chunk.gyr, chunk.acc, chunk.mag, chunk.ori)
+                spent += time.perf_counter() - t0
+                fh.write(format_rows(res.t, res.q, res.flags))
+                n_rows += len(chunk)
+                counts = chunk.counts
+                if len(chunk):
+                    _merge_counts(flags_total, count_flags(res.flags))
+                progress.update(chunk.done, n_rows)
+        os.replace(tmp, out_path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    finally:
+        progress.close()
+    if not args.quiet:
+        for line in input_summary(counts) + flag_summary(flags_total):
+            print(f"{PROG}: {line}", file=err)
+    rate = n_rows / spent if spent > 0 else 0.0
+    print(f"{n_rows} samples in {spent:.3f} s ({rate:.0f} samples/s)", file=err)
+    return 0
+
+
+# ---------------------------------------------------------------- calibrate
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibration import calibrate, format_report, to_preset
+    from .readers import read_recording
+
+    rec = read_recording(args.input)
+    stats = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
+    if not stats.sensors:
+        raise CliError(f"{args.input}: no accelerometer, gyroscope or magnetometer samples")
+    sys.stdout.write(format_report(stats))
+    for line in input_summary(rec.counts):
+        print(f"{PROG}: {line}", file=sys.stderr)
+    text = to_preset(stats)
+    try:
+        Path(args.out).write_text(text, encoding="utf-8")
+    except OSError as e:
+        raise CliError(f"{args.out}: cannot write ({e.strerror or e})") from None
+    try:
+        load_config(args.out)  # what we write must be what --config accepts
+    except ConfigError as e:
+        raise CliError(f"the written preset is refused: {e}") from None
+    print(f"preset written to {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------- serve
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    try:
+        from .server.run import serve
+    except ImportError as e:
+        raise CliError(f"serve is not available ({e})") from None
+    return int(serve(args) or 0)
+
+
+# ---------------------------------------------------------------- entry point
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (CliError, ReaderError, ConfigError) as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+"""Shared fixtures. ``shared_dir``: the ``../shared`` folder beside the repository
+(real logs and data sets, never copied into the repo), or the test is skipped."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture
+def shared_dir() -> Path:
+    if not SHARED.is_dir():
+        pytest.skip(f"{SHARED} not present (real data lives beside the repository)")
+    return SHARED
+
+
+# The real Sensor Fusion app logs (shared/data/sensorfusion-app/SOURCES.md)
+REAL_LOGS = (
+    "alekodu_activityrecognition/sensorLog_20221024T182616_standstill.txt",
+    "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt",
+    "alekodu_activityrecognition/sensorLog_20221024T182709_walking_pocket.txt",
+    "alekodu_activityrecognition/sensorLog_20221024T182741_running_hand.txt",
+    "alekodu_activityrecognition/sensorLog_20221024T182818_running_pocket.txt",
+    "alekodu_activityrecognition/sensorLog_20221024T183036_walking_pocket_long_time.txt",
+    "BaiLiping_WASP_IMU/sensorLog.txt",
+    "BaiLiping_WASP_IMU/data1.txt",
+    "BaiLiping_WASP_IMU/run1.txt",
+)
+
+
+@pytest.fixture(params=REAL_LOGS, ids=lambda p: Path(p).stem)
+def real_log(request, shared_dir) -> Path:
+    """Each real app log in turn (skipped when absent)."""
+    path = shared_dir / "data" / "sensorfusion-app" / request.param
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    return path

@@ -1,0 +1,261 @@
+"""Readers: app logs (all quirks), CSV, npz, chunking, errors, the real logs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.readers import ReaderError, detect_format, iter_chunks, read_recording
+
+# ---------------------------------------------------------------- generated app logs
+
+ACC_OFFSET_MS = 131_072_000
+
+
+def app_log_lines() -> tuple[list[str], dict]:
+    """A log with every quirk: unsorted lines, ACC on a clock 131 072 s ahead, corrupted
+    lines, an ORI line with 3 values, non-motion tags. Returns (lines, expectations)."""
+    lines = []
+    n = 60
+    for k in range(n):
+        t = 500_000 + 10 * k
+        group = [f"{t + 2}\tGYR\t{0.01 * k}\t0.0\t0.0",
+                 f"{t + ACC_OFFSET_MS}\tACC\t0.0\t0.0\t{9.0 + 0.01 * k}"]
+        if k % 3 == 0:
+            group.append(f"{t - 4}\tMAG\t0.0\t20.0\t-40.0")   # stamped earlier, arrives later
+        if k % 2:
+            group.reverse()
+        lines += group
+    lines.insert(5, f"{500_020}\tRAWGYR\t0.1\t0.2\t0.3\t0.0\t0.0\t0.0\t0.1\t0.2")  # 8 values
+    lines.insert(9, f"{500_030}\tRAWGYR\t0.1\t0.2")               # 2 values -> bad (RAWGYR: 3 or 6)
+    lines.insert(12, "")
+    lines.insert(20, f"{500_100}\tGYR\t0.1\tabc\t0.3")
+    lines.insert(30, f"{500_150}\tWHAT\t1\t2\t3")
+    lines.insert(40, f"{500_205}\tORI\t0.1\t0.2\t0.3")           # 3 values: w computed
+    lines.insert(41, f"1666000000000\tGPS\t58.4\t15.6\t80.0")     # Unix-epoch clock
+    lines.insert(50, f"{500_300}\tPRX\t5.0")
+    expect = dict(acc=n, gyr=n, mag=len(range(0, n, 3)), ori=1,
+                  malformed={"wrong_count": 2, "empty": 1, "not_numeric": 1, "unknown_tag": 1})
+    return lines, expect
+
+
+def write_log(path, lines, ending="\n"):
+    path.write_bytes((ending.join(lines) + ending).encode("ascii"))
+    return path
+
+
+def check_log_recording(rec, expect):
+    assert rec.kind == "applog"
+    n_acc = int(np.sum(~np.isnan(rec.acc[:, 0])))
+    n_gyr = int(np.sum(~np.isnan(rec.gyr[:, 0])))
+    n_mag = int(np.sum(~np.isnan(rec.mag[:, 0])))
+    assert (n_acc, n_gyr, n_mag) == (expect["acc"], expect["gyr"], expect["mag"])
+    assert len(rec) == expect["acc"] + expect["gyr"] + expect["mag"] + expect["ori"]
+    # exactly one sensor per row
+    has = np.stack([~np.isnan(rec.acc[:, 0]), ~np.isnan(rec.gyr[:, 0]), ~np.isnan(rec.mag[:, 0]),
+                    ~np.isnan(rec.ori[:, 0])], axis=1)
+    assert np.all(has.sum(axis=1) == 1)
+    assert np.all(np.diff(rec.t) >= 0), "rows must be in time order"
+    assert rec.t[-1] - rec.t[0] < 1.0, "ACC must be mapped onto the GYR/MAG clock"
+    assert rec.counts["malformed"] == expect["malformed"]
+    assert rec.counts["offsets_s"]["ACC"] == pytest.approx(131_072.0, abs=0.02)
+    assert rec.counts["offsets_s"]["GPS"] > 1e9
+    assert rec.counts["late"] == 0
+    # ORI with 3 values: w = sqrt(1 - x² - y² - z²)
+    ori = rec.ori[~np.isnan(rec.ori[:, 0])]
+    np.testing.assert_allclose(ori, [[math.sqrt(1 - 0.14), 0.1, 0.2, 0.3]])
+    # the ACC value of step k is 9 + 0.01 k, in order of time
+    accz = rec.acc[~np.isnan(rec.acc[:, 2]), 2]
+    np.testing.assert_allclose(accz, 9.0 + 0.01 * np.arange(expect["acc"]))
+
+
+@pytest.mark.parametrize("ending", ["\n", "\r\n", "\r"], ids=["lf", "crlf", "cr"])
+def test_app_log_with_all_quirks(tmp_path, ending):
+    lines, expect = app_log_lines()
+    path = write_log(tmp_path / "sensorLog_x.txt", lines, ending)
+    assert detect_format(path) == "applog"
+    check_log_recording(read_recording(path), expect)
+
+
+def test_app_log_detected_by_content_not_extension(tmp_path):
+    lines, expect = app_log_lines()
+    path = write_log(tmp_path / "recording.csv", lines)
+    check_log_recording(read_recording(path), expect)
+
+
+def test_app_log_chunks_concatenate_to_the_whole(tmp_path):
+    lines, expect = app_log_lines()
+    path = write_log(tmp_path / "log.txt", lines)
+    whole = read_recording(path)
+    chunks = list(iter_chunks(path, rows=7))
+    assert all(len(c) <= 7 for c in chunks) and len(chunks) == math.ceil(len(whole) / 7)
+    np.testing.assert_array_equal(np.concatenate([c.t for c in chunks]), whole.t)
+    np.testing.assert_array_equal(np.concatenate([c.acc for c in chunks]), whole.acc)
+    assert chunks[-1].counts == whole.counts
+    assert chunks[-1].done == 1.0
+
+
+def test_chunks_are_produced_lazily(tmp_path):
+    """The first chunk is ready long before the file is consumed (bounded memory)."""
+    lines = [f"{1000 + 5 * k}\tACC\t0.0\t0.0\t9.81" for k in range(20_000)]
+    path = write_log(tmp_path / "long.txt", lines)
+    first = next(iter_chunks(path, rows=1000))
+    assert len(first) == 1000 and first.done < 0.2
+
+
+# ---------------------------------------------------------------- CSV
+
+def test_csv_with_empty_cells_nan_inf_and_malformed_rows(tmp_path):
+    text = ("t,acc_x,acc_y,acc_z,gyr_x,gyr_y,gyr_z,note\r\n"
+            "0.00,0,0,9.81,0.1,0.2,0.3,a\r\n"
+            "0.01,,,,0.1,0.2,0.3,b\r\n"          # acc missing
+            "0.02,nan,0,9.81,inf,0,-inf,c\r\n"   # passes through
+            "0.03,0,0,9.81,0.1\r\n"              # wrong count: skipped
+            "0.04,0,zero,9.81,0.1,0.2,0.3,d\r\n"  # text in a number cell: skipped
+            "\r\n"
+            "0.05,1,2,3,4,5,6,e\r\n")
+    path = tmp_path / "rec.csv"
+    path.write_text(text, newline="")
+    rec = read_recording(path)
+    assert rec.kind == "csv"
+    np.testing.assert_array_equal(rec.t, [0.0, 0.01, 0.02, 0.05])
+    assert np.isnan(rec.acc[1]).all()
+    assert np.isnan(rec.acc[2, 0]) and rec.gyr[2, 0] == math.inf and rec.gyr[2, 2] == -math.inf
+    np.testing.assert_array_equal(rec.gyr[3], [4, 5, 6])
+    assert np.isnan(rec.mag).all() and rec.mag.shape == (4, 3)
+    assert rec.ori is None
+    assert rec.counts["malformed"] == {"wrong_count": 1, "not_numeric": 1}
+
+
+def test_csv_with_ori_and_columns_in_any_order(tmp_path):
+    path = tmp_path / "rec.dat"
+    path.write_text("mag_z,mag_y,mag_x,ori_w,ori_x,ori_y,ori_z,t\n"
+                    "-40,20,1,1,0,0,0,0.5\n"
+                    "-41,21,2,0,1,0,0,0.6\n")
+    rec = read_recording(path)
+    np.testing.assert_array_equal(rec.t, [0.5, 0.6])
+    np.testing.assert_array_equal(rec.mag, [[1, 20, -40], [2, 21, -41]])
+    np.testing.assert_array_equal(rec.ori, [[1, 0, 0, 0], [0, 1, 0, 0]])
+    assert np.isnan(rec.acc).all() and np.isnan(rec.gyr).all()
+
+
+def test_csv_chunks(tmp_path):
+    path = tmp_path / "rec.csv"
+    rows = "\n".join(f"{k / 100},0,0,9.81" for k in range(1000))
+    path.write_text("t,acc_x,acc_y,acc_z\n" + rows + "\n")
+    chunks = list(iter_chunks(path, rows=300))
+    assert [len(c) for c in chunks] == [300, 300, 300, 100]
+    np.testing.assert_allclose(np.concatenate([c.t for c in chunks]), np.arange(1000) / 100)
+    assert chunks[-1].counts["rows"] == 1000
+
+
+def test_csv_header_only_gives_an_empty_recording(tmp_path):
+    path = tmp_path / "rec.csv"
+    path.write_text("t,gyr_x,gyr_y,gyr_z\n")
+    rec = read_recording(path)
+    assert len(rec) == 0 and rec.gyr.shape == (0, 3)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("time,acc_x,acc_y,acc_z\n0,0,0,9.81\n", "no 't' column"),
+    ("t,acc_x,acc_y\n0,0,0\n", "none of acc_x"),
+    ("t,foo,bar\n0,1,2\n", "none of acc_x"),
+    ("hello world\nthis is text\n", "unknown format"),
+    ("", "empty file"),
+])
+def test_unreadable_files_raise_a_clear_error(tmp_path, content, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(content)
+    with pytest.raises(ReaderError, match=message) as e:
+        read_recording(path)
+    assert "\n" not in str(e.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ReaderError, match="no such file"):
+        read_recording(tmp_path / "nope.csv")
+
+
+# ---------------------------------------------------------------- npz
+
+def test_npz_with_t_and_extra_keys(tmp_path):
+    rng = np.random.default_rng(0)
+    acc, gyr, mag = rng.normal(size=(3, 50, 3))
+    t = np.linspace(0, 1, 50)
+    path = tmp_path / "rec.npz"
+    np.savez(path, acc=acc, gyr=gyr, mag=mag, t=t, opt_quat=np.ones((50, 4)),
+             movement=np.ones(50, bool))
+    rec = read_recording(path)
+    assert rec.kind == "npz" and rec.ori is None
+    np.testing.assert_array_equal(rec.t, t)
+    np.testing.assert_array_equal(rec.acc, acc)
+    np.testing.assert_array_equal(rec.gyr, gyr)
+    np.testing.assert_array_equal(rec.mag, mag)
+
+
+def test_npz_with_fs_and_without_mag_in_chunks(tmp_path):
+    acc = np.tile([0.0, 0.0, 9.81], (25, 1))
+    gyr = np.zeros((25, 3))
+    path = tmp_path / "rec.bin"          # no .npz extension: detected by content
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, acc=acc, gyr=gyr, fs=np.float64(100.0))
+    chunks = list(iter_chunks(path, rows=10))
+    assert [len(c) for c in chunks] == [10, 10, 5]
+    np.testing.assert_allclose(np.concatenate([c.t for c in chunks]), np.arange(25) / 100.0)
+    assert all(np.isnan(c.mag).all() for c in chunks)
+
+
+@pytest.mark.parametrize("arrays, message", [
+    (dict(acc=np.zeros((5, 3))), "neither 't'"),
+    (dict(t=np.arange(5.0), foo=np.zeros((5, 3))), "none of the arrays"),
+    (dict(t=np.arange(5.0), acc=np.zeros((5, 2))), "shape"),
+    (dict(t=np.arange(4.0), acc=np.zeros((5, 3))), "4 values for 5 rows"),
+])
+def test_bad_npz(tmp_path, arrays, message):
+    path = tmp_path / "bad.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(ReaderError, match=message):
+        read_recording(path)
+
+
+# ---------------------------------------------------------------- real data
+
+def test_real_logs_read_in_order(real_log):
+    rec = read_recording(real_log)
+    assert rec.kind == "applog" and len(rec) > 1000
+    assert np.all(np.diff(rec.t) >= 0)
+    tags = rec.counts["tags"]
+    motion = sum(tags.get(k, 0) for k in ("ACC", "GYR", "MAG", "ORI"))
+    assert len(rec) == motion                     # nothing late, nothing lost
+    assert rec.counts["late"] == 0
+    assert int(np.sum(~np.isnan(rec.acc[:, 0]))) == tags["ACC"]
+    expected_bad = {"wrong_count": 2} if "standstill" in real_log.name else {}
+    assert rec.counts["malformed"] == expected_bad
+    assert rec.counts["lines"] == sum(tags.values()) + sum(expected_bad.values())
+    # values in m/s² (not g, not mg): about gravity, larger while running
+    assert 8.0 < np.nanmedian(np.linalg.norm(rec.acc, axis=1)) < 16.0
+
+
+def test_standstill_log_has_two_corrupted_rawgyr_lines(shared_dir):
+    path = (shared_dir / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
+            / "sensorLog_20221024T182616_standstill.txt")
+    if not path.is_file():
+        pytest.skip("standstill log absent")
+    rec = read_recording(path)
+    assert rec.counts["malformed"] == {"wrong_count": 2}
+    assert rec.counts["tags"]["RAWGYR"] == 2632
+    # a block of ~23 lines was written ~0.9 s early in this file: it is put back in place
+    assert np.all(np.diff(rec.t) >= 0) and np.max(np.diff(rec.t)) < 0.05
+
+
+def test_broad_npz(shared_dir):
+    path = shared_dir / "data" / "broad" / "01_undisturbed_slow_rotation_A.npz"
+    if not path.is_file():
+        pytest.skip("BROAD data absent")
+    rec = read_recording(path)
+    raw = np.load(path)
+    assert len(rec) == raw["acc"].shape[0]
+    np.testing.assert_allclose(np.diff(rec.t), 1.0 / float(raw["fs"]))
+    np.testing.assert_array_equal(rec.mag, raw["mag"])
