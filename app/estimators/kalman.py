@@ -29,18 +29,24 @@ def nis_and_gain(P, H, R, innov):
 
 
 @njit(cache=True)
-def correct(P, H, R, innov, nis_gate):
+def correct(P, H, R, innov, nis_gate, mask=None):
     """Generic EKF measurement update with an innovation gate.
 
-    ``nis_gate <= 0`` switches the gate off. Returns ``(accepted, nis, dx, P_new)``;
-    when the gate refuses, ``dx`` is zero and ``P_new`` is ``P`` (unchanged).
-    The covariance update is Joseph's form, which keeps P symmetric positive
-    semi-definite even with a sub-optimal gain.
+    ``nis_gate <= 0`` switches the gate off. ``mask`` (optional, one 0/1 per state)
+    names the states the update may change; the gain rows of the others are zeroed
+    (a "consider" update: a heading measurement that must not tilt the attitude).
+    Returns ``(accepted, nis, dx, P_new)``; when the gate refuses, ``dx`` is zero
+    and ``P_new`` is ``P`` (unchanged). The covariance update is Joseph's form,
+    which stays right for the masked (sub-optimal) gain and keeps P symmetric.
     """
     nis, K, S = nis_and_gain(P, H, R, innov)
     n = P.shape[0]
     if not np.isfinite(nis) or (nis_gate > 0.0 and nis > nis_gate):
         return False, nis, np.zeros(n), P
+    if mask is not None:
+        for i in range(n):
+            if mask[i] == 0.0:
+                K[i, :] = 0.0
     dx = K @ innov
     IKH = np.eye(n) - K @ H
     P_new = IKH @ P @ IKH.T + K @ R @ K.T

@@ -1,0 +1,562 @@
+"""``robust``: orientlab's default estimator, an error-state EKF built for real phones.
+
+Structure (4c) of the lab manual (gyroscope as input, its bias in the state) in the
+error-state (multiplicative) form: the nominal attitude ``q`` is a unit quaternion; the
+filter's state is the small rotation ``δθ`` (world frame, ``q_true = exp(δθ) ⊗ q``) and
+the gyroscope bias ``b`` (sensor frame), 6 states with a well-conditioned 6x6 ``P``
+(no covariance along the unit-norm constraint, no renormalisation hack).
+
+What makes it accurate on real data (see ``shared/notes/robust-orientation.md``):
+
+- **Tilt from an inertial low-pass of the accelerometer.** Each specific-force sample
+  is rotated into the world frame and low-pass filtered there (``acc_tau``, ~3 s), so
+  the phone's accelerations, which average to zero, cancel, while gravity stays. The
+  filtered direction is the measurement (2 components, ``h = (-δθy, δθx)``); the
+  filter state is rotated with every correction, so it always lives in the current
+  estimate's world frame. A norm band and an innovation (NIS) gate refuse what is left.
+- **Heading only from the magnetometer.** The field is rotated into the world frame
+  with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
+  the gain is masked so this update can never tilt the attitude.
+- **Magnetic disturbance detection.** Field strength and dip angle are compared with
+  a reference learned slowly while undisturbed (``mag_norm_gate_rel``,
+  ``mag_dip_gate``); a persistent new homogeneous field (stable strength and dip
+  while the phone turns for ``mag_new_field_time``) becomes the new reference; after
+  ``mag_max_reject`` seconds of rejection the reference is re-learned.
+- **Rest detection** (gyroscope and accelerometer both quiet for ``rest_time``):
+  the low-passed gyroscope is then a direct measurement of the bias.
+- **Measurement noise as densities** (``tilt_noise``, ``heading_noise`` in rad·√s):
+  ``R = σ²/Δt`` per update, so the correction time constants, ``tilt_noise /
+  gyr_noise`` and ``heading_noise / gyr_noise``, do not depend on the sample rates.
+
+Every update goes through :func:`app.estimators.kalman.correct`. The per-row code is
+numba-compiled (``robust_step``); ``robust_run`` loops it over arrays for batch
+use. The same functions run uncompiled (``.py_func``) as the readable numpy reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .. import quaternion as qm
+from ..params import CommonParams, DEG, param
+from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
+                   F_TIME, NFLAGS, R_DIP, R_DISABLED, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
+                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator, new_flags,
+                   time_step, vector_state)
+from .kalman import correct
+
+GRAVITY = 9.81
+ALIGN_WAIT_S = 0.5
+
+
+@dataclass(frozen=True)
+class RobustParams(CommonParams):
+    gyr_noise: float = param(0.005, unit="rad/√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/√s",
+                             user_scale=DEG, doc="gyroscope noise density (attitude random walk)")
+    bias_noise: float = param(1e-4, unit="rad/s/√s", lo=0.0, hi=0.1, log=True, user_unit="deg/s/√s",
+                              user_scale=DEG, doc="gyroscope bias random walk")
+    bias_init: float = param(0.02, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
+                             user_scale=DEG, doc="σ of the gyroscope bias at the start")
+    gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
+                            doc="initial gyroscope bias (calibration)")
+    tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+                              user_scale=DEG, doc="noise density of the low-passed gravity direction")
+    acc_tau: float = param(3.0, unit="s", lo=0.0, hi=60.0,
+                           doc="time constant of the inertial low-pass of the accelerometer")
+    acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
+                                doc="accelerometer used only while | |a| - g | <= this × g; 0: off")
+    acc_nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
+                                doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
+    heading_noise: float = param(0.05, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+                                 user_scale=DEG, doc="noise density of the magnetometer heading")
+    mag_nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
+                                doc="NIS gate of the heading update (χ², 1 dof); 0: off")
+    mag_norm_gate_rel: float = param(0.1, lo=0.0, hi=2.0,
+                                     doc="field strength may differ from the reference by this fraction; 0: off")
+    mag_dip_gate: float = param(10.0 / DEG, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
+                                doc="dip angle may differ from the reference by this much; 0: off")
+    mag_ref_tau: float = param(30.0, unit="s", lo=0.1, hi=3600.0,
+                               doc="time constant of learning the field reference while undisturbed")
+    mag_new_field_time: float = param(20.0, unit="s", lo=0.0, hi=600.0,
+                                      doc="a new homogeneous field is accepted after this long while turning")
+    mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
+                                    user_scale=DEG, doc="turn rate that counts towards accepting a new field")
+    mag_max_reject: float = param(60.0, unit="s", lo=0.0, hi=3600.0,
+                                  doc="after this long rejected, the field reference is re-learned; 0: never")
+    rest_gyr_th: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s", user_scale=DEG,
+                               doc="rest: gyroscope deviation from its low-pass below this")
+    rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,
+                               doc="rest: accelerometer deviation from its low-pass below this")
+    rest_time: float = param(1.5, unit="s", lo=0.0, hi=60.0, doc="quiet this long = at rest; 0: no rest detection")
+    rest_noise: float = param(0.005, unit="rad/s·√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/s·√s",
+                              user_scale=DEG, doc="noise density of the bias measurement at rest")
+    rw_noise: float = param(0.5, unit="rad/√s", lo=1e-4, hi=10.0, log=True,
+                            doc="attitude random walk without gyroscope")
+
+
+# ----------------------------------------------------------------- layouts
+# parameter vector (derived coefficients included), built by RobustEKF._on_params
+(P_USE_GYR, P_USE_ACC, P_USE_MAG, P_MAX_GAP, P_GYR_HOLD, P_GYR_NOISE, P_BIAS_NOISE, P_BIAS_INIT,
+ P_TILT_NOISE, P_ACC_TAU, P_ACC_BAND, P_ACC_NIS, P_HEAD_NOISE, P_MAG_NIS, P_MAG_NORM, P_MAG_DIP,
+ P_MAG_REF_TAU, P_MAG_NEW_T, P_MAG_NEW_RATE, P_MAG_MAX_REJ, P_REST_GYR, P_REST_ACC, P_REST_T,
+ P_REST_NOISE, P_RW_NOISE, P_B0X, P_B0Y, P_B0Z, NPARAM) = range(29)
+
+# state vector (everything but P)
+S_Q = 0          # 4: nominal attitude
+S_B = 4          # 3: gyroscope bias
+S_ALP = 7        # 3: low-passed specific force, world frame of the estimate
+S_GLP = 10       # 3: low-passed gyroscope (rest detection)
+S_AL2 = 13       # 3: low-passed accelerometer, sensor frame (rest detection)
+S_REST_T = 16    # s quiet so far
+S_T = 17         # time of the last row
+S_INIT = 18      # 1 once aligned
+S_W = 19         # 3: held gyroscope sample
+S_W_T = 22       # its time
+S_WAIT_T = 23    # time of an accelerometer sample waiting for alignment (NaN: none)
+S_WAIT = 24      # 3: that sample
+S_REF_N = 27     # field reference: strength (µT)
+S_REF_D = 28     # field reference: dip (rad, elevation of the field: negative in the north)
+S_REF_OK = 29    # 1 once there is a reference
+S_CAND_N = 30    # candidate new field: strength
+S_CAND_D = 31    # candidate new field: dip
+S_CAND_T = 32    # s the candidate has been stable while turning
+S_REJ_T = 33     # s of continuous magnetic rejection
+S_T0 = 34        # time of the alignment
+S_MAG_T = 35     # time of the last magnetometer update attempt
+S_ACC_T = 36     # time of the last accelerometer sample
+S_GLP_OK = 37    # 1 once the rest low-passes are initialised
+S_REST = 38      # 1 at rest
+S_NIS_REJ_T = 39 # s of continuous heading-NIS rejection
+NSTATE = 40
+
+_MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
+
+
+@njit(cache=True)
+def _lp_coef(dt, tau):
+    if tau <= 0.0:
+        return 1.0
+    return 1.0 - np.exp(-dt / tau)
+
+
+@njit(cache=True)
+def _inject(s, P, dx):
+    """Apply an error-state correction: q <- exp(δθ) ⊗ q, b <- b + δb, and rotate
+    the world-frame low-pass with the attitude so it stays in the estimate's frame."""
+    dq = qm.quat_from_rotvec(dx[0:3])
+    s[S_Q:S_Q + 4] = qm.normalize(qm.quat_mul(dq, s[S_Q:S_Q + 4]))
+    for i in range(3):
+        s[S_B + i] += dx[3 + i]
+    s[S_ALP:S_ALP + 3] = qm.Q(dq) @ s[S_ALP:S_ALP + 3]
+
+
+@njit(cache=True)
+def _align(s, P, p, t, acc, mag, use_mag):
+    s[S_Q:S_Q + 4] = qm.q_from_acc_mag(acc, mag, use_mag)
+    for i in range(3):
+        s[S_B + i] = p[P_B0X + i]
+    R = qm.Q(s[S_Q:S_Q + 4])
+    s[S_ALP:S_ALP + 3] = R @ acc
+    P[:, :] = 0.0
+    tilt0 = 10.0 * np.pi / 180.0
+    head0 = (20.0 if use_mag else 180.0) * np.pi / 180.0
+    P[0, 0] = tilt0 ** 2
+    P[1, 1] = tilt0 ** 2
+    P[2, 2] = head0 ** 2
+    for i in range(3, 6):
+        P[i, i] = max(p[P_BIAS_INIT], 1e-6) ** 2
+    s[S_INIT] = 1.0
+    s[S_T0] = t
+    s[S_WAIT_T] = np.nan
+    s[S_MAG_T] = np.nan
+    s[S_ACC_T] = t
+    s[S_REF_OK] = 0.0
+    s[S_REJ_T] = 0.0
+    s[S_CAND_T] = 0.0
+    s[S_NIS_REJ_T] = 0.0
+
+
+@njit(cache=True)
+def _predict(s, P, p, w, dt):
+    """Time update over dt with the rate w (NaN: random walk without gyroscope)."""
+    if np.isnan(w[0]):
+        var = p[P_RW_NOISE] ** 2 * dt
+        for i in range(3):
+            P[i, i] += var
+        bv = p[P_BIAS_NOISE] ** 2 * dt
+        for i in range(3, 6):
+            P[i, i] += bv
+        return
+    q = s[S_Q:S_Q + 4]
+    R = qm.Q(q)
+    wc = w - s[S_B:S_B + 3]
+    s[S_Q:S_Q + 4] = qm.normalize(qm.quat_mul(q, qm.quat_from_rotvec(wc * dt)))
+    # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd
+    A = -R * dt
+    Ptb = P[0:3, 3:6].copy()
+    Pbb = P[3:6, 3:6].copy()
+    APbb = A @ Pbb
+    P[0:3, 0:3] += A @ Ptb.T + Ptb @ A.T + APbb @ A.T
+    P[0:3, 3:6] = Ptb + APbb
+    P[3:6, 0:3] = P[0:3, 3:6].T
+    gv = p[P_GYR_NOISE] ** 2 * dt
+    bv = p[P_BIAS_NOISE] ** 2 * dt
+    for i in range(3):
+        P[i, i] += gv
+        P[3 + i, 3 + i] += bv
+
+
+@njit(cache=True)
+def _rest_update(s, P, p, gyr, acc, dt, has_gyr, has_acc, f):
+    """Rest detection on the deviation of gyroscope and accelerometer from their
+    low-passes; at rest the low-passed gyroscope measures the bias directly."""
+    if p[P_REST_T] <= 0.0:
+        s[S_REST] = 0.0
+        return
+    tau = 0.5
+    if s[S_GLP_OK] == 0.0:
+        if has_gyr:
+            s[S_GLP:S_GLP + 3] = gyr
+        if has_acc:
+            s[S_AL2:S_AL2 + 3] = acc
+        if has_gyr and has_acc:
+            s[S_GLP_OK] = 1.0
+        return
+    quiet = True
+    if has_gyr:
+        k = _lp_coef(dt, tau) if dt > 0 else 0.0
+        for i in range(3):
+            s[S_GLP + i] += k * (gyr[i] - s[S_GLP + i])
+        d = gyr - s[S_GLP:S_GLP + 3]
+        if np.sqrt(d @ d) > p[P_REST_GYR]:
+            quiet = False
+    if has_acc:
+        k = _lp_coef(dt, tau) if dt > 0 else 0.0
+        for i in range(3):
+            s[S_AL2 + i] += k * (acc[i] - s[S_AL2 + i])
+        d = acc - s[S_AL2:S_AL2 + 3]
+        if np.sqrt(d @ d) > p[P_REST_ACC]:
+            quiet = False
+    if quiet:
+        s[S_REST_T] += dt
+    else:
+        s[S_REST_T] = 0.0
+    s[S_REST] = 1.0 if s[S_REST_T] >= p[P_REST_T] else 0.0
+    f[F_REST] = s[S_REST]
+    if s[S_REST] == 1.0 and has_gyr and dt > 0.0:
+        H = np.zeros((3, 6))
+        for i in range(3):
+            H[i, 3 + i] = 1.0
+        Rm = (p[P_REST_NOISE] ** 2 / dt) * np.eye(3)
+        innov = s[S_GLP:S_GLP + 3] - s[S_B:S_B + 3]
+        ok, nis, dx, Pn = correct(P, H, Rm, innov, 0.0)
+        if ok:
+            P[:, :] = Pn
+            _inject(s, P, dx)
+            f[F_GYR] = R_REST
+
+
+@njit(cache=True)
+def _acc_update(s, P, p, t, acc, f):
+    n = np.sqrt(acc @ acc)
+    f[F_ACC_VAL] = n
+    dt = t - s[S_ACC_T] if np.isfinite(s[S_ACC_T]) else 0.0
+    s[S_ACC_T] = t
+    if p[P_ACC_BAND] > 0.0 and abs(n - GRAVITY) > p[P_ACC_BAND] * GRAVITY:
+        f[F_ACC] = R_NORM
+        return
+    if dt <= 0.0:
+        dt = 1e-3
+    # inertial low-pass, with a running mean while younger than acc_tau (fast start)
+    k = _lp_coef(dt, p[P_ACC_TAU])
+    age = t - s[S_T0]
+    if age > 0.0 and dt / (age + dt) > k:
+        k = dt / (age + dt)
+    aw = qm.Q(s[S_Q:S_Q + 4]) @ acc
+    for i in range(3):
+        s[S_ALP + i] += k * (aw[i] - s[S_ALP + i])
+    a = s[S_ALP:S_ALP + 3]
+    an = np.sqrt(a @ a)
+    if an < 1e-6:
+        f[F_ACC] = R_NORM
+        return
+    innov = np.empty(2)
+    innov[0] = a[0] / an
+    innov[1] = a[1] / an
+    H = np.zeros((2, 6))
+    H[0, 1] = -1.0
+    H[1, 0] = 1.0
+    Rm = (p[P_TILT_NOISE] ** 2 / dt) * np.eye(2)
+    ok, nis, dx, Pn = correct(P, H, Rm, innov, p[P_ACC_NIS])
+    f[F_ACC_NIS] = nis
+    if ok:
+        P[:, :] = Pn
+        _inject(s, P, dx)
+        f[F_ACC] = R_USED
+    else:
+        f[F_ACC] = R_NIS
+        f[F_ACC_VAL] = nis
+
+
+@njit(cache=True)
+def _mag_update(s, P, p, t, mag, w, f):
+    mw = qm.Q(s[S_Q:S_Q + 4]) @ mag
+    n = np.sqrt(mw @ mw)
+    dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
+    dt = t - s[S_MAG_T] if np.isfinite(s[S_MAG_T]) else 0.0
+    s[S_MAG_T] = t
+    if s[S_REF_OK] == 0.0:
+        s[S_REF_N] = n
+        s[S_REF_D] = dip
+        s[S_CAND_N] = n
+        s[S_CAND_D] = dip
+        s[S_REF_OK] = 1.0
+    # candidate for a new homogeneous field: stable strength and dip while turning
+    kc = _lp_coef(dt, 2.0) if dt > 0 else 0.0
+    cn_dev = abs(n - s[S_CAND_N]) / max(s[S_CAND_N], 1e-6)
+    cd_dev = abs(dip - s[S_CAND_D])
+    if cn_dev <= max(p[P_MAG_NORM], 0.05) and cd_dev <= max(p[P_MAG_DIP], 0.05):
+        rate = 0.0 if np.isnan(w[0]) else np.sqrt(w @ w)
+        if rate >= p[P_MAG_NEW_RATE]:
+            s[S_CAND_T] += dt
+        s[S_CAND_N] += kc * (n - s[S_CAND_N])
+        s[S_CAND_D] += kc * (dip - s[S_CAND_D])
+    else:
+        s[S_CAND_N] = n
+        s[S_CAND_D] = dip
+        s[S_CAND_T] = 0.0
+    n_dev = abs(n - s[S_REF_N]) / s[S_REF_N]
+    d_dev = abs(dip - s[S_REF_D])
+    reason = R_USED
+    if p[P_MAG_NORM] > 0.0 and n_dev > p[P_MAG_NORM]:
+        reason = R_NORM
+        f[F_MAG_VAL] = n
+    elif p[P_MAG_DIP] > 0.0 and d_dev > p[P_MAG_DIP]:
+        reason = R_DIP
+        f[F_MAG_VAL] = d_dev
+    if reason != R_USED:
+        s[S_REJ_T] += dt
+        relearn = p[P_MAG_MAX_REJ] > 0.0 and s[S_REJ_T] >= p[P_MAG_MAX_REJ]
+        new_field = s[S_CAND_T] >= p[P_MAG_NEW_T]
+        if relearn or new_field:
+            s[S_REF_N] = s[S_CAND_N]
+            s[S_REF_D] = s[S_CAND_D]
+            s[S_REJ_T] = 0.0
+            s[S_CAND_T] = 0.0
+            # the heading may have drifted meanwhile: let the next updates pull harder
+            P[2, 2] += (10.0 * np.pi / 180.0) ** 2
+        f[F_MAG] = reason
+        return
+    s[S_REJ_T] = 0.0
+    kr = _lp_coef(dt, p[P_MAG_REF_TAU]) if dt > 0 else 0.0
+    s[S_REF_N] += kr * (n - s[S_REF_N])
+    s[S_REF_D] += kr * (dip - s[S_REF_D])
+    f[F_MAG_VAL] = n
+    hn = np.sqrt(mw[0] ** 2 + mw[1] ** 2)
+    if hn < 1e-3 * n:
+        f[F_MAG] = R_DIP  # field (almost) vertical: no heading information
+        return
+    innov = np.empty(1)
+    innov[0] = np.arctan2(mw[0], mw[1])
+    H = np.zeros((1, 6))
+    H[0, 2] = 1.0
+    if dt <= 0.0:
+        dt = 0.02
+    Rm = np.empty((1, 1))
+    Rm[0, 0] = p[P_HEAD_NOISE] ** 2 / dt
+    gate = p[P_MAG_NIS]
+    if s[S_NIS_REJ_T] > 10.0:
+        gate = 0.0  # rejected for long with a plausible field: the estimate is what is wrong
+    ok, nis, dx, Pn = correct(P, H, Rm, innov, gate, _MASK_HEADING)
+    f[F_MAG_NIS] = nis
+    if ok:
+        P[:, :] = Pn
+        _inject(s, P, dx)
+        f[F_MAG] = R_USED
+        s[S_NIS_REJ_T] = 0.0
+    else:
+        f[F_MAG] = R_NIS
+        f[F_MAG_VAL] = nis
+        s[S_NIS_REJ_T] += dt
+
+
+@njit(cache=True)
+def robust_step(s, P, p, t, gyr, acc, mag, f):
+    """Process one row: time update, rest detection, tilt update, heading update."""
+    dt, issue = time_step(s[S_T], t, p[P_MAX_GAP])
+    f[F_TIME] = issue
+    gs = vector_state(gyr, p[P_USE_GYR] > 0.5)
+    as_ = vector_state(acc, p[P_USE_ACC] > 0.5)
+    ms = vector_state(mag, p[P_USE_MAG] > 0.5)
+    if issue == T_BACKWARD:
+        f[F_GYR] = R_LATE if gs == R_USED else gs
+        f[F_ACC] = R_LATE if as_ == R_USED else as_
+        f[F_MAG] = R_LATE if ms == R_USED else ms
+        return
+    f[F_GYR] = gs
+    f[F_ACC] = as_
+    f[F_MAG] = ms
+    s[S_T] = t
+    w = np.full(3, np.nan)
+    if p[P_USE_GYR] > 0.5:
+        if gs == R_USED:
+            w[:] = gyr
+            s[S_W:S_W + 3] = gyr
+            s[S_W_T] = t
+        elif np.isfinite(s[S_W_T]) and t - s[S_W_T] <= p[P_GYR_HOLD]:
+            w[:] = s[S_W:S_W + 3]
+    if issue == T_GAP:
+        if gs == R_USED:
+            f[F_GYR] = R_GAP
+        w[:] = np.nan
+
+    if s[S_INIT] == 0.0:
+        _try_align(s, P, p, t, acc, mag, gs, as_, ms, f)
+        return
+    if dt > 0.0:
+        _predict(s, P, p, w, dt)
+    _rest_update(s, P, p, gyr, acc, dt, gs == R_USED, as_ == R_USED, f)
+    if as_ == R_USED:
+        _acc_update(s, P, p, t, acc, f)
+    if ms == R_USED:
+        wb = w - s[S_B:S_B + 3]
+        _mag_update(s, P, p, t, mag, wb, f)
+
+
+@njit(cache=True)
+def _try_align(s, P, p, t, acc, mag, gs, as_, ms, f):
+    if gs == R_USED:
+        f[F_GYR] = R_WAIT
+    if as_ == R_USED:
+        f[F_ACC] = R_WAIT
+        if p[P_USE_MAG] < 0.5:
+            _align(s, P, p, t, acc, mag, False)
+            f[F_ACC] = R_INIT
+            return
+        s[S_WAIT_T] = t
+        s[S_WAIT:S_WAIT + 3] = acc
+    if ms == R_USED:
+        f[F_MAG] = R_WAIT
+        if np.isfinite(s[S_WAIT_T]):
+            _align(s, P, p, t, s[S_WAIT:S_WAIT + 3].copy(), mag, True)
+            f[F_MAG] = R_INIT
+            return
+    if np.isfinite(s[S_WAIT_T]) and t - s[S_WAIT_T] > ALIGN_WAIT_S:
+        _align(s, P, p, t, s[S_WAIT:S_WAIT + 3].copy(), mag, False)
+        f[F_ACC] = R_INIT
+        return
+    if p[P_USE_ACC] < 0.5 and (ms == R_USED or gs == R_USED):
+        # no accelerometer: start level, heading from the field if there is one
+        up = np.array([0.0, 0.0, GRAVITY])
+        _align(s, P, p, t, up, mag, ms == R_USED)
+        P[0, 0] = (30.0 * np.pi / 180.0) ** 2
+        P[1, 1] = P[0, 0]
+        f[F_MAG if ms == R_USED else F_GYR] = R_INIT
+
+
+@njit(cache=True)
+def robust_run(s, P, p, T, G, A, M, Qout, Fout):
+    """Batch: ``robust_step`` for every row; the estimate and flags after each."""
+    for k in range(T.shape[0]):
+        f = Fout[k]
+        f[:] = np.nan
+        f[F_GYR] = 1.0
+        f[F_ACC] = 1.0
+        f[F_MAG] = 1.0
+        f[F_REST] = 0.0
+        f[F_TIME] = 0.0
+        robust_step(s, P, p, T[k], G[k], A[k], M[k], f)
+        Qout[k, :] = s[S_Q:S_Q + 4]
+
+
+def new_state() -> np.ndarray:
+    s = np.zeros(NSTATE)
+    s[S_Q] = 1.0
+    for i in (S_T, S_W_T, S_WAIT_T, S_T0, S_MAG_T, S_ACC_T):
+        s[i] = np.nan
+    return s
+
+
+class RobustEKF(Estimator):
+    name = "robust"
+    title = "Robust error-state EKF (default)"
+    Params = RobustParams
+
+    def _on_params(self) -> None:
+        p = self._params
+        v = np.zeros(NPARAM)
+        v[P_USE_GYR], v[P_USE_ACC], v[P_USE_MAG] = float(p.use_gyr), float(p.use_acc), float(p.use_mag)
+        v[P_MAX_GAP], v[P_GYR_HOLD] = p.max_gap, p.gyr_hold
+        v[P_GYR_NOISE], v[P_BIAS_NOISE], v[P_BIAS_INIT] = p.gyr_noise, p.bias_noise, p.bias_init
+        v[P_TILT_NOISE], v[P_ACC_TAU], v[P_ACC_BAND], v[P_ACC_NIS] = (p.tilt_noise, p.acc_tau,
+                                                                       p.acc_band_rel, p.acc_nis_gate)
+        v[P_HEAD_NOISE], v[P_MAG_NIS] = p.heading_noise, p.mag_nis_gate
+        v[P_MAG_NORM], v[P_MAG_DIP], v[P_MAG_REF_TAU] = p.mag_norm_gate_rel, p.mag_dip_gate, p.mag_ref_tau
+        v[P_MAG_NEW_T], v[P_MAG_NEW_RATE], v[P_MAG_MAX_REJ] = (p.mag_new_field_time, p.mag_new_min_rate,
+                                                               p.mag_max_reject)
+        v[P_REST_GYR], v[P_REST_ACC], v[P_REST_T], v[P_REST_NOISE] = (p.rest_gyr_th, p.rest_acc_th,
+                                                                     p.rest_time, p.rest_noise)
+        v[P_RW_NOISE] = p.rw_noise
+        v[P_B0X:P_B0X + 3] = p.gyr_bias
+        self._p = v
+
+    def _reset_state(self) -> None:
+        self._s = new_state()
+        self._P = np.eye(6) * 1e-4
+
+    def _step(self, t, gyr, acc, mag, ori, flags) -> None:
+        robust_step(self._s, self._P, self._p, t, gyr, acc, mag, flags)
+        self.t = self._s[S_T]
+
+    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+        t = np.ascontiguousarray(t, dtype=float)
+        n = t.shape[0]
+        arrs = [np.full((n, 3), np.nan) if x is None else np.ascontiguousarray(x, dtype=float)
+                for x in (gyr, acc, mag)]
+        for a in arrs:
+            if a.shape != (n, 3):
+                raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
+        qs = np.empty((n, 4))
+        flags = np.empty((n, NFLAGS))
+        robust_run(self._s, self._P, self._p, t, arrs[0], arrs[1], arrs[2], qs, flags)
+        self.t = self._s[S_T]
+        return BatchResult(t=t, q=qs, flags=flags)
+
+    @property
+    def initialized(self) -> bool:
+        return bool(self._s[S_INIT])
+
+    @property
+    def q(self) -> np.ndarray:
+        return self._s[S_Q:S_Q + 4].copy()
+
+    def attitude_cov(self) -> np.ndarray:
+        return self._P[0:3, 0:3].copy()
+
+    @property
+    def gyr_bias(self) -> np.ndarray:
+        return self._s[S_B:S_B + 3].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self._P.copy()
+
+    def diagnostics(self) -> dict:
+        p, s = self._params, self._s
+        ref_n = s[S_REF_N] if s[S_REF_OK] else float("nan")
+        return {
+            "acc_band": (GRAVITY * (1 - p.acc_band_rel), GRAVITY * (1 + p.acc_band_rel))
+            if p.acc_band_rel > 0 else None,
+            "mag_band": (ref_n * (1 - p.mag_norm_gate_rel), ref_n * (1 + p.mag_norm_gate_rel))
+            if p.mag_norm_gate_rel > 0 and s[S_REF_OK] else None,
+            "mag_ref_norm": ref_n,
+            "mag_ref_dip": s[S_REF_D] if s[S_REF_OK] else float("nan"),
+            "acc_lp_world": s[S_ALP:S_ALP + 3].tolist(),
+            "gyr_bias": s[S_B:S_B + 3].tolist(),
+            "rest": bool(s[S_REST]),
+            "acc_nis_gate": p.acc_nis_gate,
+            "mag_nis_gate": p.mag_nis_gate,
+        }
