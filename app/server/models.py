@@ -1,0 +1,105 @@
+"""Pydantic models of the HTTP API (they make the OpenAPI docs at ``/docs``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class Health(BaseModel):
+    status: str = Field(description="'ok' while the filter task runs")
+    source: str
+    estimators: list[str]
+    primary: str
+
+
+class Info(BaseModel):
+    """What the landing page needs to embed the viewer and explain the phone set-up."""
+    viewer_port: int
+    phone_port: int
+    lan_ip: str
+    source: str
+
+
+class Decision(BaseModel):
+    """How the primary estimator treated the last sample of a sensor."""
+    reason: str = Field(description="used, norm, nis, dip, field, disabled, absent, wait, ...")
+    text: str
+    rejected: bool = Field(description="a valid sample refused by a gate")
+    value: float | None = Field(None, description="the value the gate tested (norm m/s² or µT, "
+                                "L_k µT, dip rad, NIS)")
+    nis: float | None = None
+    t: float | None = None
+
+
+class EstimatorState(BaseModel):
+    q: list[float]
+    euler_deg: list[float]
+    initialized: bool
+    error_to_phone_deg: float | None
+    error_to_truth_deg: float | None
+    acc: Decision
+    mag: Decision
+    gyr_bias: list[float] | None
+
+
+class State(BaseModel):
+    """The state after the last processed sample."""
+    model_config = ConfigDict(extra="allow")
+    t: float | None = Field(description="s, the phone's clock as sent: time_ms/1000 of the last "
+                            "processed sample (on the clock of the stream's first motion tag)")
+    source: str = Field(description="demo, phone, phone-disconnected, replay or none")
+    status: str = Field(description="the source in words, as the GUI shows it")
+    primary: str
+    q: list[float] = Field(description="[w, x, y, z] of the primary estimator, sensor to world (ENU)")
+    euler_deg: list[float] = Field(description="[yaw, pitch, roll] by the manual's q2euler, degrees")
+    initialized: bool
+    phone_q: list[float] | None = Field(description="the phone's own estimate (ORI) or null")
+    phone_euler_deg: list[float] | None
+    truth_q: list[float] | None = Field(description="ground truth (demo only) or null")
+    error_to_phone_deg: float | None = Field(description="formula (2c) between q and phone_q")
+    error_to_truth_deg: float | None
+    acc_rejected: bool
+    mag_rejected: bool
+    acc: Decision
+    mag: Decision
+    standstill: bool
+    sigma_deg: list[float] | None = Field(description="1σ attitude uncertainty about E, N, Up")
+    diagnostics: dict[str, Any]
+    rates_hz: dict[str, float | None]
+    counts: dict[str, Any] = Field(description="lines, samples, malformed (+ by reason), late, "
+                                   "clamped, tags, updates per estimator and sensor, totals")
+    clock_offsets_s: dict[str, float]
+    estimators: dict[str, EstimatorState]
+
+
+class Params(BaseModel):
+    """The parameters (SI units): the primary, the switches every estimator shares
+    (values of the primary) and each estimator's full set."""
+    model_config = ConfigDict(extra="allow")
+    primary: str
+    estimators: dict[str, dict[str, Any]]
+
+
+class PresetRequest(BaseModel):
+    name: str = Field(description="letters, digits, '-' or '_'", examples=["lecture-3"])
+
+
+PATCH_DOC = """A partial JSON object; every field is validated before anything is applied
+(an unknown key or an out-of-range value: 422 naming the field, nothing applied). Values in SI
+units (rad/s, m/s², µT, s), as in GET /api/params.
+
+- a top-level parameter (`use_gyr`, `use_acc`, `use_mag`, `max_gap`, or any parameter some
+  estimator has) applies to **every** estimator that has it;
+- `primary`: the estimator drawn and plotted (`robust`, `lab`, `complementary`, `phone`);
+- `estimators`: `{"<estimator>": {"<param>": value}}` for one estimator (wins over top level);
+- `reset`: `true` forgets the orientation (the filters align again).
+
+Changes apply from the next sample on. The response is the new GET /api/params."""
+
+PATCH_EXAMPLES = {
+    "magnetometer off": {"value": {"use_mag": False}},
+    "lab filter, approximate time update": {
+        "value": {"primary": "lab", "estimators": {"lab": {"time_update": "approx", "acc_noise": 0.3}}}},
+}

@@ -1,0 +1,252 @@
+"""The viser 3D scene, drawn from an engine :class:`~app.server.engine.Snapshot`.
+
+An ENU world (x east, y north, z up) with a grid and E/N/Up labels; the phone as a
+flat slab in its sensor frame (x right, y top of the screen, z out of the screen): a
+dark screen on the +z face, an orange band and the earpiece at the top (+y), the
+sensor axes (x red, y green, z blue). Beside it:
+
+- translucent phones for the phone's own estimate (orange) and, in the demo, the
+  ground truth (green);
+- the attitude uncertainty: a cone around each sensor axis whose half-widths are
+  2σ of the rotation that moves that axis (from the estimator's ``attitude_cov``);
+- two arrow pairs: gravity and magnetic field, the measured one (accelerometer /
+  magnetometer turned to world coordinates by the estimate) beside the expected
+  one (the estimator's references), so a disturbance shows as a mismatch;
+- a floating status line (standstill, accelerometer / magnetometer disturbed with
+  the reason and the value that tripped the gate).
+
+Pure drawing: no filter state is touched. Quaternion math comes from
+:mod:`app.quaternion`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..estimators import REJECTIONS, Reason
+from ..quaternion import Q, quat_from_matrix
+from .engine import Snapshot
+
+W, H, D = 0.7, 1.4, 0.08            # phone size in scene units (x, y, z)
+AXIS_LEN = 1.0
+ARROW_LEN = 0.9
+SIGMA_K = 2.0                        # cones show ±2σ
+MAX_CONE_DEG = 60.0
+GRAV_AT = np.array([-1.7, -1.4, 0.0])
+MAG_AT = np.array([1.7, -1.4, 0.0])
+GREY = (150, 150, 150)
+C_ACC, C_MAG, C_BAD = (0, 150, 255), (190, 0, 200), (230, 30, 30)
+AXIS_COLORS = ((220, 40, 40), (40, 170, 40), (40, 80, 230))
+
+
+def _cone_mesh(n: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A unit cone: apex at the origin, axis +z, base of radius 1 at z = 1 (closed)."""
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a), np.ones(n)], axis=1)
+    verts = np.vstack([[0.0, 0.0, 0.0], ring, [0.0, 0.0, 1.0]])
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        faces.append((0, 1 + j, 1 + i))
+        faces.append((n + 1, 1 + i, 1 + j))
+    return verts.astype(np.float32), np.array(faces, dtype=np.uint32)
+
+
+# For the cone around sensor axis i: columns = where the cone's local x, y, z go, and
+# which rotation (about sensor axis k) widens it along its local x and y.
+_CONE_FRAMES = (
+    (np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]], float), (2, 1)),   # around x: along y, z
+    (np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]], float), (0, 2)),   # around y: along z, x
+    (np.eye(3), (1, 0)),                                             # around z: along x, y
+)
+
+
+def _phone_body(scene, name: str, color, opacity=None) -> None:
+    """A phone slab with its screen and top marked, under ``name``."""
+    scene.add_box(f"{name}/body", color=color, dimensions=(W, H, D), opacity=opacity)
+    scene.add_box(f"{name}/top", color=(255, 140, 0), dimensions=(W * 1.001, 0.06, D * 1.05),
+                  position=(0.0, H / 2 - 0.03, 0.0), opacity=opacity)
+    if opacity is None:
+        scene.add_box(f"{name}/screen", color=(25, 35, 70), dimensions=(W - 0.07, H - 0.2, 0.01),
+                      position=(0.0, -0.02, D / 2 + 0.004))
+        scene.add_box(f"{name}/earpiece", color=(200, 200, 200), dimensions=(0.18, 0.025, 0.012),
+                      position=(0.0, H / 2 - 0.1, D / 2 + 0.006))
+        scene.add_icosphere(f"{name}/camera", radius=0.022, color=(10, 10, 10),
+                            position=(0.14, H / 2 - 0.1, D / 2 + 0.006))
+
+
+def _arrow_points(vec: np.ndarray | None) -> np.ndarray:
+    p = np.zeros((1, 2, 3), dtype=np.float32)
+    if vec is not None and np.all(np.isfinite(vec)):
+        p[0, 1] = vec
+    return p
+
+
+class Scene:
+    """Builds the scene once; :meth:`draw` updates it from a snapshot."""
+
+    def __init__(self, server):
+        self.server = server
+        sc = server.scene
+        sc.set_up_direction("+z")
+        sc.add_grid("/world/grid", width=4.0, height=4.0, cell_size=0.25, section_size=1.0,
+                    plane="xy", position=(0.0, 0.0, -0.9))
+        axes = np.array([[[0, 0, -0.9], [2.1, 0, -0.9]], [[0, 0, -0.9], [0, 2.1, -0.9]],
+                         [[0, 0, -0.9], [0, 0, 1.4]]], dtype=np.float32)
+        sc.add_line_segments("/world/axes", points=axes,
+                             colors=np.array([[[200, 60, 60]] * 2, [[60, 160, 60]] * 2,
+                                              [[60, 90, 220]] * 2], dtype=np.uint8),
+                             thickness=0.012)
+        for text, pos in (("E", (2.25, 0, -0.9)), ("N", (0, 2.25, -0.9)), ("Up", (0, 0, 1.5))):
+            sc.add_label(f"/world/label_{text}", text, position=pos, font_screen_scale=1.6,
+                         anchor="center-center")
+        # the estimate
+        self.phone = sc.add_frame("/phone", show_axes=False)
+        _phone_body(sc, "/phone", (225, 225, 232))
+        sc.add_frame("/phone/axes", axes_length=AXIS_LEN, axes_radius=0.018, origin_radius=0.03)
+        for i, text in enumerate("xyz"):
+            pos = [0.0, 0.0, 0.0]
+            pos[i] = AXIS_LEN + 0.1
+            sc.add_label(f"/phone/axis_{text}", text, position=tuple(pos), anchor="center-center")
+        sc.add_label("/phone/top_label", "top", position=(0.0, H / 2 + 0.12, 0.0),
+                     anchor="center-center", font_screen_scale=0.9)
+        verts, faces = _cone_mesh()
+        self.cones = []
+        for i in range(3):
+            R, _ = _CONE_FRAMES[i]
+            self.cones.append(sc.add_mesh_simple(
+                f"/phone/cone_{'xyz'[i]}", verts, faces, color=AXIS_COLORS[i], opacity=0.25,
+                side="double", wxyz=tuple(quat_from_matrix(R)), scale=(0.01, 0.01, AXIS_LEN),
+                cast_shadow=False, receive_shadow=False))
+        # the phone's own estimate and the truth
+        self.own = sc.add_frame("/phone_own", show_axes=False, visible=False)
+        _phone_body(sc, "/phone_own", (255, 150, 40), opacity=0.3)
+        self.truth = sc.add_frame("/truth", show_axes=False, visible=False)
+        _phone_body(sc, "/truth", (60, 200, 90), opacity=0.3)
+        # gravity and field arrows
+        self.grav_expected = sc.add_arrows("/arrows/gravity_expected", _arrow_points(None),
+                                           colors=GREY, position=tuple(GRAV_AT - [0.12, 0, 0]),
+                                           shaft_radius=0.025, head_radius=0.06)
+        self.grav = sc.add_arrows("/arrows/gravity", _arrow_points(None), colors=C_ACC,
+                                  position=tuple(GRAV_AT), shaft_radius=0.025, head_radius=0.06)
+        self.mag_expected = sc.add_arrows("/arrows/field_expected", _arrow_points(None),
+                                          colors=GREY, position=tuple(MAG_AT - [0.12, 0, 0]),
+                                          shaft_radius=0.025, head_radius=0.06)
+        self.mag = sc.add_arrows("/arrows/field", _arrow_points(None), colors=C_MAG,
+                                 position=tuple(MAG_AT), shaft_radius=0.025, head_radius=0.06)
+        sc.add_label("/arrows/gravity_label", "gravity (up: specific force)\ngrey expected, blue measured",
+                     position=tuple(GRAV_AT + [0, -0.25, 0]), anchor="top-center", font_screen_scale=0.8)
+        sc.add_label("/arrows/field_label", "magnetic field\ngrey expected, purple measured",
+                     position=tuple(MAG_AT + [0, -0.25, 0]), anchor="top-center", font_screen_scale=0.8)
+        self.status = sc.add_label("/status", "", position=(0.0, 0.0, 1.25), anchor="bottom-center")
+        self._status_text = ""
+        self._want = {"own": True, "truth": True}
+        self._has = {"own": False, "truth": False}
+        self._shown = {"own": False, "truth": False}
+        self._bad = {"acc": False, "mag": False}
+        server.initial_camera.position = (2.6, -4.2, 3.0)
+        server.initial_camera.look_at = (0.0, 0.0, 0.0)
+
+    # ------------------------------------------------------------------ switches
+    def show(self, what: str, on: bool) -> None:
+        """Switch a part of the scene: ``own``, ``truth``, ``cones``, ``arrows``."""
+        if what == "cones":
+            for c in self.cones:
+                c.visible = on
+        elif what == "arrows":
+            for h in (self.grav, self.grav_expected, self.mag, self.mag_expected):
+                h.visible = on
+        else:
+            self._want[what] = on
+            self._set_visible(what, on and self._has[what])
+
+    def _set_visible(self, what: str, on: bool) -> None:
+        if self._shown[what] != on:
+            getattr(self, what).visible = on
+            self._shown[what] = on
+
+    # ------------------------------------------------------------------ drawing
+    def draw(self, s: Snapshot) -> None:
+        """Update every moving part from the snapshot (one atomic viser update)."""
+        R = Q(s.q)
+        with self.server.atomic():
+            self.phone.wxyz = s.q
+            for what, q in (("own", s.phone_q), ("truth", s.truth_q)):
+                self._has[what] = q is not None
+                if q is not None:
+                    getattr(self, what).wxyz = q
+                self._set_visible(what, self._want[what] and q is not None)
+            self._draw_cones(R, s.cov)
+            self._draw_arrows(R, s)
+            text = indicator_text(s)
+            if text != self._status_text:
+                self.status.text = text
+                self._status_text = text
+
+    def _draw_cones(self, R: np.ndarray, cov: np.ndarray | None) -> None:
+        if cov is None:
+            sig = np.zeros(3)
+        else:
+            cb = R.T @ np.asarray(cov) @ R
+            sig = np.sqrt(np.clip(np.diag(cb), 0.0, None))
+        lim = math.radians(MAX_CONE_DEG)
+        for i, cone in enumerate(self.cones):
+            a, b = _CONE_FRAMES[i][1]
+            cone.scale = (math.tan(min(SIGMA_K * sig[a], lim)) * AXIS_LEN,
+                          math.tan(min(SIGMA_K * sig[b], lim)) * AXIS_LEN, AXIS_LEN)
+
+    def _draw_arrows(self, R: np.ndarray, s: Snapshot) -> None:
+        g0 = np.asarray(s.diag.get("g0") or (0.0, 0.0, 9.81), float)
+        gn = float(np.linalg.norm(g0))
+        self.grav_expected.points = _arrow_points(g0 / gn * ARROW_LEN)
+        if s.acc is not None:
+            self.grav.points = _arrow_points(np.clip(R @ s.acc / gn, -2, 2) * ARROW_LEN)
+            self._color("acc", self.grav, s.acc_flags, C_ACC)
+        m0 = s.diag.get("m0")
+        mn = float(np.linalg.norm(m0)) if m0 is not None else 50.0
+        self.mag_expected.points = _arrow_points(None if m0 is None else np.asarray(m0) / mn * ARROW_LEN)
+        if s.mag is not None:
+            self.mag.points = _arrow_points(np.clip(R @ s.mag / mn, -2, 2) * ARROW_LEN)
+            self._color("mag", self.mag, s.mag_flags, C_MAG)
+
+    def _color(self, sensor: str, handle, flags, good) -> None:
+        """Red while the sensor's last sample was refused by a gate."""
+        bad = flags is not None and getattr(flags, sensor) in REJECTIONS
+        if bad != self._bad[sensor]:
+            handle.colors = C_BAD if bad else good
+            self._bad[sensor] = bad
+
+
+def indicator_text(s: Snapshot) -> str:
+    """OrientationView's indicators as one line: standstill, acc / mag disturbed."""
+    parts = []
+    if s.rest:
+        parts.append("standstill")
+    for sensor, f in (("acc", s.acc_flags), ("mag", s.mag_flags)):
+        if f is None:
+            continue
+        r: Reason = getattr(f, sensor)
+        if r in REJECTIONS:
+            parts.append(f"{sensor.upper()} disturbed: {describe_rejection(sensor, f)}")
+    if not s.initialized:
+        parts.append("aligning…")
+    return " · ".join(parts)
+
+
+def describe_rejection(sensor: str, f) -> str:
+    """'|a| = 12.3 m/s²' and the like: the gate that refused and its value."""
+    r: Reason = getattr(f, sensor)
+    v = getattr(f, f"{sensor}_value")
+    if not math.isfinite(v):
+        return r.label
+    if r == Reason.NORM:
+        return f"|{'a' if sensor == 'acc' else 'm'}| = {v:.1f} {'m/s²' if sensor == 'acc' else 'µT'}"
+    if r == Reason.FIELD:
+        return f"L_k = {v:.1f} µT"
+    if r == Reason.DIP:
+        return f"dip off by {math.degrees(v):.1f}°"
+    if r == Reason.NIS:
+        return f"NIS = {v:.1f}"
+    return f"{r.label} {v:.3g}"

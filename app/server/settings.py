@@ -1,0 +1,55 @@
+"""The dashboard's settings: one typed object, built from the command line."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..params import CONFIG_DIR
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Everything ``orientlab serve`` can be told (see ``orientlab serve --help``).
+
+    ``source`` is ``"demo"`` (the built-in simulated phone), ``"none"`` (wait for a
+    phone) or the path of a Sensor Fusion app log replayed at real-time speed in a loop.
+    """
+    host: str = "0.0.0.0"            # HTTP page and API
+    port: int = 8000
+    viewer_host: str | None = None   # viser; None: same as host
+    viewer_port: int = 8080
+    phone_host: str | None = None    # phone receiver; None: all interfaces
+    phone_port: int = 3400
+    source: str = "demo"
+    config: str | None = None        # a preset file or name (configs/<name>.toml)
+    preset_dir: Path = field(default_factory=lambda: CONFIG_DIR)
+    # receiver
+    max_line_bytes: int = 65536      # a longer line without newline closes the connection
+    phone_idle_s: float = 3.0        # a second phone may take over after this much silence
+    reorder_window_s: float = 0.05   # SampleOrderer window
+    # sources
+    demo_seed: int = 0
+    replay_pause_s: float = 1.0      # pause between two loops of a replayed log
+    # display
+    plot_hz: float = 10.0
+    history_s: float = 20.0
+    verbose: bool = True             # print the start-up banner
+
+    @property
+    def viewer_bind(self) -> str:
+        return self.viewer_host or self.host
+
+    @property
+    def phone_bind(self) -> str:
+        return self.phone_host or "0.0.0.0"
+
+    @classmethod
+    def from_args(cls, args) -> "Settings":
+        """From an argparse namespace with host, port, viewer_port, phone_port, config, source."""
+        kw = {}
+        for name in ("host", "port", "viewer_port", "phone_port", "config", "source"):
+            v = getattr(args, name, None)
+            if v is not None:
+                kw[name] = str(v) if name in ("config", "source") else v
+        return cls(**kw)
