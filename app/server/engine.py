@@ -203,6 +203,7 @@ class Engine:
         self.latency: deque = deque(maxlen=200_000)                 # (seconds, n samples)
         self.backlog_max = 0
         self.batches = 0
+        self.queued = 0                     # samples waiting in the inbox
         self._reset_stream_state()
 
     # ----------------------------------------------------------------- lifecycle
@@ -259,6 +260,7 @@ class Engine:
             s.close_reason = reason
         rest = s.orderer.flush()
         if rest:
+            self.queued += len(rest)
             self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
 
     def feed_lines(self, s: Session, lines: list, t_arrival: float | None = None) -> None:
@@ -272,6 +274,7 @@ class Engine:
         for line in lines:
             released.extend(push_line(line))
         if released:
+            self.queued += len(released)
             self.inbox.put_nowait(("samples", s, released, t_arrival))
 
     def pause_background(self) -> None:
@@ -410,6 +413,7 @@ class Engine:
                     self._start(rest[0])
                 elif kind == "samples":
                     s, samples, t_arr = rest
+                    self.queued -= len(samples)
                     if s is self.session:
                         self._process(s, samples)
                         arrivals.append((t_arr, len(samples)))
@@ -535,6 +539,7 @@ class Engine:
     def counts(self) -> dict[str, Any]:
         c = self.session.counts() if self.session else {"lines": 0, "samples": 0, "malformed": 0}
         c.update({f"total_{k}": v for k, v in self.counts_total.items()})
+        c["queued"] = self.queued
         c["updates"] = {n: {s: {Reason(i).label: int(x) for i, x in enumerate(row) if x}
                             for s, row in zip(SENSORS, arr)}
                         for n, arr in self.reason_counts.items()}
@@ -586,6 +591,7 @@ class Engine:
         """GET /api/stats: backlog and latency figures (for the load benchmark)."""
         lat = np.array([x for x, n in self.latency for _ in range(n)]) if self.latency else np.zeros(0)
         out = {"batches": self.batches, "backlog_now": self.inbox.qsize() if self.inbox else 0,
+               "queued_samples": self.queued,
                "backlog_max_items": self.backlog_max,
                "buffered": self.session.orderer.buffered if self.session else 0,
                "samples": self.counts_total["samples"],

@@ -1,0 +1,137 @@
+"""Run the real dashboard on free loopback ports, and play a phone: for tests and benchmarks.
+
+``with running_server(source="none") as srv:`` starts uvicorn (with viser, the phone
+receiver and the engine) in a thread on 127.0.0.1; ``srv.url``, ``srv.phone_port``,
+``srv.viewer_port`` and ``srv.app`` (the FastAPI app, its ``state`` holds the engine)
+are available; leaving the block stops everything. :class:`Phone` is a TCP client that
+sends lines as the Sensor Fusion app does.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+from .run import make_server
+from .settings import Settings
+
+START_TIMEOUT_S = 300.0   # the first start may compile the estimators (numba)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(pred: Callable[[], object], timeout: float = 30.0, interval: float = 0.05,
+             what: str = "condition"):
+    """Poll ``pred`` until it returns something truthy; that value, or TimeoutError."""
+    deadline = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        time.sleep(interval)
+
+
+@dataclasses.dataclass
+class RunningServer:
+    settings: Settings
+    server: object
+    thread: threading.Thread
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.settings.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://127.0.0.1:{self.settings.port}"
+
+    @property
+    def app(self):
+        return self.server.config.app
+
+    @property
+    def engine(self):
+        return self.app.state.engine
+
+    @property
+    def phone_port(self) -> int:
+        return self.app.state.phone.port
+
+    @property
+    def viewer_port(self) -> int:
+        return self.app.state.viewer.get_port()
+
+
+@contextlib.contextmanager
+def running_server(**overrides) -> Iterator[RunningServer]:
+    """The dashboard on free loopback ports (``source="none"`` unless told)."""
+    kw = dict(host="127.0.0.1", port=free_port(), viewer_host="127.0.0.1",
+              viewer_port=free_port(), phone_host="127.0.0.1", phone_port=free_port(),
+              source="none", verbose=False)
+    kw.update(overrides)
+    settings = Settings(**kw)
+    server = make_server(settings)
+    thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: server.started or not thread.is_alive(), START_TIMEOUT_S, what="server start")
+        if not server.started:
+            raise RuntimeError("the dashboard did not start (see the log above)")
+        yield RunningServer(settings, server, thread)
+    finally:
+        server.should_exit = True
+        thread.join(10.0)
+
+
+class Phone:
+    """A TCP client that plays the Sensor Fusion app (it only sends)."""
+
+    def __init__(self, port: int, host: str = "127.0.0.1"):
+        self.sock = socket.create_connection((host, port), timeout=10.0)
+
+    def send_lines(self, lines, end: str = "\n") -> None:
+        data = "".join(ln + end for ln in lines).encode()
+        self.sock.sendall(data)
+
+    def send_bytes(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def closed_by_server(self, timeout: float = 10.0) -> bool:
+        """True once the server has closed this connection (EOF or reset)."""
+        self.sock.settimeout(timeout)
+        try:
+            while True:
+                chunk = self.sock.recv(4096)
+                if not chunk:
+                    return True
+        except (ConnectionResetError, BrokenPipeError):
+            return True
+        except socket.timeout:
+            return False
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+
+    def __enter__(self) -> "Phone":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def log_lines(path: str | Path) -> list[str]:
+    """The lines of an app log (text, without line ends)."""
+    return Path(path).read_text(errors="replace").splitlines()
