@@ -1,0 +1,429 @@
+"""``complementary``: the DNRF (Drift & Noise Removal Filter) of Ayub, Bahraminisaab and
+Honary, "A Sensor Fusion Method for Smart phone Orientation Estimation", in orientlab's
+conventions. Hold this file beside the paper (``shared/seeds/paper_dnrf-...txt``).
+
+How the paper's matrices map onto ours
+--------------------------------------
+The paper's rotation matrix R (its eq. 5 and 9, elements ``r1..r9`` row by row) has as
+rows "the projections of the ERF axes on the DRF axes": row 1 is east, row 2 north,
+row 3 up, each written in sensor (Android device) coordinates. That is exactly our
+sensor->world matrix ``Q(q)`` (formula 2a of the lab manual): ``v_world = R v_sensor``.
+Its eq. 5, ``R = Rz Rx Ry`` with the paper's (passive) eqs. 1-3, equals our ``Q(q)``
+element by element, and its Euler angles (eqs. 19-21)
+
+    yaw = atan2(r2, r5)      pitch = -asin(r8)      roll = atan2(r7, r9)
+
+are the very angles of the manual's ``q2euler`` (yaw about z, positive clockwise seen
+from above like a compass; pitch about x; roll about y); the tests check both
+agreements. We compute pitch as ``atan2(-r8, hypot(r7, r9))``, the same angle for an
+orthonormal R but accurate near ±90°. In gimbal lock (``cos(pitch) = 0``, eq. 22) roll is
+set to 0 and ``yaw = atan2(-r4, r1)`` (eq. 23).
+
+The gyroscope update (eqs. 6-8) is ``R <- R (I + [ω]× dt)``: for a sensor->world R,
+``dR/dt = R [ω]×`` with ω in sensor coordinates (as in the paper's reference [7],
+Premerlani & Bizard). The paper prints ``Ω(t)`` as the transpose ``-[ω]×``; with its own
+R that would turn the wrong way, so we use ``+[ω]×`` (the tests check the sign against the
+quaternion update 2j). ``gyro_update = "exact"`` uses Rodrigues' ``exp([ω]× dt)`` instead.
+After every update the rows are re-orthonormalised as in Section III-B: the error
+``e = R1·R2`` is split half and half between rows 1 and 2, row 3 is their cross
+product, and each row is normalised by the Taylor step ``(3 - r·r)/2`` (eqs. 12-18; eq. 12
+misprints R2 as ``[r3 r4 r5]``, we use ``[r4 r5 r6]``). A row far from unit length (a
+long step) is divided by its norm instead, where the Taylor step would not converge.
+
+The accelerometer/magnetometer orientation (the "compass", Section III-A) is Android's
+``getRotationMatrix`` (TRIAD): ``up = a/|a|``, ``east = m × up / |m × up|``,
+``north = up × east``; R's rows are east, north, up.
+
+The complementary blend (eqs. 24-25) is made per Euler angle:
+``θ = α θ_gyro + (1 - α) θ_am`` with ``α = τ / (τ + Ts)``, ``Ts`` the time step of the row,
+so the correction rate is 1/τ whatever the row structure. Angles wrap at ±π: the blend
+goes from θ_am by α times the difference. Yaw and roll differences are taken modulo 2π,
+and among their representatives (d, d ± 2π) the pair that is shortest as a rotation is
+chosen (the metric of these Euler angles is ``dy² + dp² + dr² - 2 sin(p) dy dr``). Away
+from ±90° pitch that is the usual wrap to (-π, π]; near gimbal lock, where only one
+combination of yaw and roll is observable, it keeps that combination continuous, so the
+blended angles stay consistent and no jump of (1 - α)·360° appears. The fused angles
+rebuild R (eq. 5), which the next gyroscope update starts from.
+
+Rows, sensors and switches
+--------------------------
+Rows come one sample at a time in a live stream, so the filter holds the latest
+(moving-average filtered, window ``ma_window`` samples) accelerometer and magnetometer
+vectors for up to ``am_hold`` s, and blends on every row after the gyroscope update:
+
+- all sensors: as above;
+- no magnetometer: the compass uses the current estimate's north axis instead of the
+  field, so the heading stays the gyroscope's while the accelerometer corrects the tilt;
+- no accelerometer: the compass uses the current estimate's up axis, so the tilt is the
+  gyroscope's alone and the magnetometer still corrects the heading;
+- no gyroscope (switched off, or nothing within ``gyr_hold``, or a time gap): the compass
+  orientation is taken directly (α = 0).
+
+The orientation starts from the first accelerometer sample together with a magnetometer
+sample (waiting up to :data:`ALIGN_WAIT_S` for one, else heading 0: the phone's top
+pointing north); without any accelerometer it starts level. The filter keeps no
+covariance (``attitude_cov`` is None).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .. import quaternion as qm
+from ..params import CommonParams, ParamError, param
+from .base import F_ACC, F_ACC_VAL, F_GYR, F_MAG, F_MAG_VAL, Estimator, Reason
+
+ALIGN_WAIT_S = 0.5   # how long the first accelerometer sample waits for a magnetometer one
+TWO_PI = 2.0 * np.pi
+GIMBAL_EPS = 1e-9    # cos(pitch) below this is gimbal lock (eq. 22)
+
+
+@dataclass(frozen=True)
+class ComplementaryParams(CommonParams):
+    tau: float = param(1.0, unit="s", lo=0.0, hi=100.0,
+                       doc="time constant τ of the complementary filter: α = τ/(τ+Ts); "
+                           "larger trusts the gyroscope longer, 0 takes the compass only")
+    ma_window: int = param(1, unit="samples", lo=1, hi=200,
+                           doc="moving-average window of the accelerometer and magnetometer "
+                               "pre-filter (1: off)")
+    am_hold: float = param(0.25, unit="s", lo=0.0, hi=5.0,
+                           doc="how long the last accelerometer/magnetometer sample stands in "
+                               "for rows without one")
+    gyro_update: str = param("paper", choices=("paper", "exact"),
+                             doc="gyroscope step: paper's first order R(I+[ω]×dt) "
+                                 "or exact exp([ω]×dt); both re-orthonormalised")
+
+    def check(self) -> None:
+        if self.ma_window != int(self.ma_window):
+            raise ParamError("ma_window", f"must be a whole number, got {self.ma_window!r}")
+
+
+# ------------------------------------------------------------------ the paper's math
+
+@njit(cache=True)
+def wrap_angle(a):
+    """a wrapped to [-π, π)."""
+    return np.mod(a + np.pi, TWO_PI) - np.pi
+
+
+@njit(cache=True)
+def _skew(w):
+    S = np.zeros((3, 3))
+    S[0, 1] = -w[2]
+    S[0, 2] = w[1]
+    S[1, 0] = w[2]
+    S[1, 2] = -w[0]
+    S[2, 0] = -w[1]
+    S[2, 1] = w[0]
+    return S
+
+
+@njit(cache=True)
+def _unit_row(r):
+    """Row scaled to unit length: the paper's Taylor step (eq. 16-18) when it is close to
+    unit length, an exact division otherwise."""
+    n2 = r @ r
+    if abs(n2 - 1.0) < 0.01:
+        return 0.5 * (3.0 - n2) * r
+    return r / np.sqrt(n2)
+
+
+@njit(cache=True)
+def orthonormalize(R):
+    """Section III-B: re-orthonormalise the rows of R (eqs. 12-18)."""
+    r1 = R[0].copy()
+    r2 = R[1].copy()
+    err = r1 @ r2                       # eq. 12
+    r1o = r1 - 0.5 * err * r2           # eq. 13
+    r2o = r2 - 0.5 * err * r1           # eq. 14
+    r3o = np.cross(r1o, r2o)            # eq. 15
+    out = np.empty((3, 3))
+    out[0] = _unit_row(r1o)
+    out[1] = _unit_row(r2o)
+    out[2] = _unit_row(r3o)
+    return out
+
+
+@njit(cache=True)
+def gyro_step(R, w, dt, exact):
+    """Eqs. 6-8 in our convention: R (I + [ω]× dt), or R exp([ω]× dt); then III-B."""
+    if exact:
+        v = w * dt
+        a = np.sqrt(v @ v)
+        K = _skew(v)
+        if a < 1e-8:
+            inc = np.eye(3) + K + 0.5 * (K @ K)
+        else:
+            inc = np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / (a * a)) * (K @ K)
+    else:
+        inc = np.eye(3) + _skew(w) * dt
+    return orthonormalize(R @ inc)
+
+
+@njit(cache=True)
+def euler_from_matrix(R):
+    """Eqs. 19-21 with the gimbal-lock case (22-23): ``[yaw, pitch, roll]`` in rad."""
+    cp = np.sqrt(R[2, 0] * R[2, 0] + R[2, 2] * R[2, 2])
+    out = np.empty(3)
+    out[1] = np.arctan2(-R[2, 1], cp)                 # = -asin(r8)
+    if cp < GIMBAL_EPS:
+        out[0] = np.arctan2(-R[1, 0], R[0, 0])        # eq. 23, roll := 0
+        out[2] = 0.0
+    else:
+        out[0] = np.arctan2(R[0, 1], R[1, 1])         # eq. 19
+        out[2] = np.arctan2(R[2, 0], R[2, 2])         # eq. 21
+    return out
+
+
+@njit(cache=True)
+def matrix_from_euler(e):
+    """Eq. 5: R = Rz Rx Ry of ``[yaw, pitch, roll]``."""
+    cy, sy = np.cos(e[0]), np.sin(e[0])
+    cp, sp = np.cos(e[1]), np.sin(e[1])
+    cr, sr = np.cos(e[2]), np.sin(e[2])
+    R = np.empty((3, 3))
+    R[0, 0] = cr * cy + sr * sp * sy
+    R[0, 1] = cp * sy
+    R[0, 2] = -sr * cy + cr * sp * sy
+    R[1, 0] = -cr * sy + sr * sp * cy
+    R[1, 1] = cp * cy
+    R[1, 2] = sr * sy + cr * sp * cy
+    R[2, 0] = sr * cp
+    R[2, 1] = -sp
+    R[2, 2] = cr * cp
+    return R
+
+
+@njit(cache=True)
+def compass_matrix(up, ref, R_fallback):
+    """The accelerometer/magnetometer rotation matrix (TRIAD, Android's getRotationMatrix):
+    rows east, north, up in sensor coordinates. ``ref`` is the magnetic field (or any
+    vector with a northward horizontal part); if it is (nearly) vertical, the east axis of
+    ``R_fallback`` projected on the horizontal plane is used instead."""
+    u = up / np.sqrt(up @ up)
+    e = np.cross(ref, u)
+    en = np.sqrt(e @ e)
+    if en < 1e-6 * np.sqrt(ref @ ref):
+        e = R_fallback[0] - (R_fallback[0] @ u) * u
+        en = np.sqrt(e @ e)
+        if en < 1e-6:  # fallback east is vertical too: then its north is horizontal
+            e = np.cross(R_fallback[1], u)
+            en = np.sqrt(e @ e)
+    e = e / en
+    R = np.empty((3, 3))
+    R[0] = e
+    R[1] = np.cross(u, e)
+    R[2] = u
+    return R
+
+
+@njit(cache=True)
+def blend_angles(theta_g, theta_am, alpha):
+    """Eq. 24 per angle, θ = θ_am + α (θ_gyro - θ_am), across the ±π wrap (see the module
+    doc: the yaw/roll representatives that are shortest as a rotation)."""
+    dy = wrap_angle(theta_g[0] - theta_am[0])
+    dp = theta_g[1] - theta_am[1]
+    dr = wrap_angle(theta_g[2] - theta_am[2])
+    s = np.sin(0.5 * (theta_g[1] + theta_am[1]))
+    best_y, best_r = dy, dr
+    best = dy * dy + dr * dr - 2.0 * s * dy * dr
+    for a in (-1.0, 0.0, 1.0):
+        for b in (-1.0, 0.0, 1.0):
+            y = dy + a * TWO_PI
+            r = dr + b * TWO_PI
+            c = y * y + r * r - 2.0 * s * y * r
+            if c < best - 1e-12:
+                best, best_y, best_r = c, y, r
+    out = np.empty(3)
+    out[0] = wrap_angle(theta_am[0] + alpha * best_y)
+    out[1] = theta_am[1] + alpha * dp
+    out[2] = wrap_angle(theta_am[2] + alpha * best_r)
+    return out
+
+
+@njit(cache=True)
+def dnrf_row(R, w, dt, has_w, exact, up, has_up, ref, has_ref, tau):
+    """One row of the DNRF after the alignment. ``R`` is the fused matrix of the last row;
+    ``w`` the rate over ``dt`` (``has_w``); ``up``/``ref`` the filtered accelerometer and
+    magnetometer (``has_up``/``has_ref``). Returns ``(R, alpha, theta_am)``; alpha is NaN
+    and theta_am NaN when no compass was available."""
+    if has_w and dt > 0.0:
+        R = gyro_step(R, w, dt, exact)
+    theta_am = np.full(3, np.nan)
+    if not (has_up or has_ref):
+        return R, np.nan, theta_am
+    u = up if has_up else R[2].copy()          # no accelerometer: keep the current tilt
+    m = ref if has_ref else R[1].copy()        # no magnetometer: keep the current heading
+    Ram = compass_matrix(u, m, R)
+    theta_am = euler_from_matrix(Ram)
+    if not has_w:
+        return Ram, 0.0, theta_am              # no gyroscope: the compass directly
+    alpha = tau / (tau + dt) if tau + dt > 0.0 else 0.0
+    if alpha >= 1.0:
+        return R, 1.0, theta_am
+    theta = blend_angles(euler_from_matrix(R), theta_am, alpha)
+    return matrix_from_euler(theta), alpha, theta_am
+
+
+# ------------------------------------------------------------------ pre-filter
+
+class MovingAverage:
+    """Mean of the last ``window`` vectors pushed (the paper's pre-filter, Section II-B)."""
+
+    def __init__(self, window: int):
+        self.buf = np.zeros((max(1, int(window)), 3))
+        self.n = 0        # samples held (<= window)
+        self.i = 0        # next slot
+
+    def resize(self, window: int) -> None:
+        """Keep the newest samples that fit the new window."""
+        window = max(1, int(window))
+        if window == self.buf.shape[0]:
+            return
+        old = self.values()
+        self.buf = np.zeros((window, 3))
+        self.n = self.i = 0
+        for v in old[-window:]:
+            self.push(v)
+
+    def values(self) -> np.ndarray:
+        """The held samples, oldest first."""
+        k = self.buf.shape[0]
+        idx = [(self.i - self.n + j) % k for j in range(self.n)]
+        return self.buf[idx]
+
+    def push(self, v: np.ndarray) -> None:
+        self.buf[self.i] = v
+        self.i = (self.i + 1) % self.buf.shape[0]
+        self.n = min(self.n + 1, self.buf.shape[0])
+
+    def mean(self) -> np.ndarray:
+        """The filtered vector (the slots 0..n-1 are the filled ones)."""
+        if self.buf.shape[0] == 1:
+            return self.buf[0].copy()
+        return self.buf[: self.n].mean(axis=0)
+
+
+# ------------------------------------------------------------------ the estimator
+
+class ComplementaryDNRF(Estimator):
+    name = "complementary"
+    title = "Complementary filter (DNRF)"
+    Params = ComplementaryParams
+
+    def _on_params(self) -> None:
+        w = int(self._params.ma_window)
+        for ma in (getattr(self, "_acc_ma", None), getattr(self, "_mag_ma", None)):
+            if ma is not None:
+                ma.resize(w)
+
+    def _reset_state(self) -> None:
+        w = int(self._params.ma_window)
+        self.R = np.eye(3)
+        self._init = False
+        self._acc_ma = MovingAverage(w)
+        self._mag_ma = MovingAverage(w)
+        self._acc_t = float("nan")      # time of the last accepted sample
+        self._mag_t = float("nan")
+        self._first_t = float("nan")    # first row (waiting for an accelerometer)
+        self._first_acc_t = float("nan")  # first accelerometer sample (waiting for a magnetometer)
+        self._alpha = float("nan")
+        self._theta_am = np.full(3, np.nan)
+
+    # ------------------------------------------------------------------ helpers
+    def _fresh(self, t_sample: float, t: float, enabled: bool) -> bool:
+        return enabled and t - t_sample <= self._params.am_hold  # NaN compares False
+
+    def _take(self, row, t, acc, mag, flags) -> None:
+        """Push the row's valid accelerometer/magnetometer samples into the pre-filters."""
+        if row.acc == Reason.USED:
+            self._acc_ma.push(acc)
+            self._acc_t = t
+            flags[F_ACC_VAL] = float(np.linalg.norm(acc))
+        if row.mag == Reason.USED:
+            self._mag_ma.push(mag)
+            self._mag_t = t
+            flags[F_MAG_VAL] = float(np.linalg.norm(mag))
+
+    def _align(self, t, row, flags) -> None:
+        """Initial orientation from the filtered accelerometer (+ magnetometer) sample."""
+        p = self._params
+        has_acc = self._fresh(self._acc_t, t, p.use_acc)
+        has_mag = self._fresh(self._mag_t, t, p.use_mag)
+        if has_acc:
+            up = self._acc_ma.mean()
+            if has_mag:
+                self.R = compass_matrix(up, self._mag_ma.mean(), np.eye(3))
+            else:  # heading 0: pitch and roll from the accelerometer, yaw 0 (eq. 5)
+                e = euler_from_matrix(compass_matrix(up, np.array([0.0, 1.0, 0.0]), np.eye(3)))
+                e[0] = 0.0
+                self.R = matrix_from_euler(e)
+        elif has_mag:  # no accelerometer: level, heading from the field
+            self.R = compass_matrix(np.array([0.0, 0.0, 1.0]), self._mag_ma.mean(), np.eye(3))
+        else:
+            self.R = np.eye(3)
+        self._theta_am = euler_from_matrix(self.R)
+        self._init = True
+        for col, st in ((F_ACC, row.acc), (F_MAG, row.mag)):
+            if st == Reason.USED:
+                flags[col] = Reason.INIT
+
+    def _try_align(self, t, row, flags) -> None:
+        p = self._params
+        for col, st in ((F_GYR, row.gyr), (F_ACC, row.acc), (F_MAG, row.mag)):
+            if st == Reason.USED:
+                flags[col] = Reason.WAIT
+        if np.isnan(self._first_t):
+            self._first_t = t
+        if row.acc == Reason.USED and np.isnan(self._first_acc_t):
+            self._first_acc_t = t
+        has_acc = self._fresh(self._acc_t, t, p.use_acc)
+        has_mag = self._fresh(self._mag_t, t, p.use_mag)
+        if has_acc and (has_mag or not p.use_mag or t - self._first_acc_t >= ALIGN_WAIT_S):
+            self._align(t, row, flags)
+        elif np.isnan(self._first_acc_t) and (not p.use_acc or t - self._first_t >= ALIGN_WAIT_S) \
+                and (has_mag or row.gyr == Reason.USED):
+            self._align(t, row, flags)  # no accelerometer in sight: start level
+
+    # ------------------------------------------------------------------ one row
+    def _step(self, t, gyr, acc, mag, ori, flags) -> None:
+        row = self._begin_row(t, gyr, acc, mag, flags)
+        if row is None:
+            return
+        self._take(row, t, acc, mag, flags)
+        if not self._init:
+            self._try_align(t, row, flags)
+            return
+        p = self._params
+        has_up = self._fresh(self._acc_t, t, p.use_acc)
+        has_ref = self._fresh(self._mag_t, t, p.use_mag)
+        up = self._acc_ma.mean() if has_up else np.zeros(3)
+        ref = self._mag_ma.mean() if has_ref else np.zeros(3)
+        has_w = row.w is not None
+        w = row.w if has_w else np.zeros(3)
+        self.R, alpha, theta_am = dnrf_row(self.R, w, row.dt, has_w, p.gyro_update == "exact",
+                                           up, has_up, ref, has_ref, float(p.tau))
+        self._alpha = float(alpha)
+        if has_up or has_ref:
+            self._theta_am = theta_am
+
+    # ------------------------------------------------------------------ read-outs
+    @property
+    def initialized(self) -> bool:
+        return self._init
+
+    @property
+    def q(self) -> np.ndarray:
+        return qm.quat_from_matrix(self.R)
+
+    def attitude_cov(self) -> None:
+        return None
+
+    def diagnostics(self) -> dict:
+        """α of the last blend (NaN: none made) and the compass angles (rad)."""
+        y, p, r = (float(v) for v in self._theta_am)
+        return {"alpha": self._alpha, "am_yaw": y, "am_pitch": p, "am_roll": r,
+                "tau": float(self._params.tau), "ma_window": int(self._params.ma_window)}
