@@ -329,3 +329,34 @@ def attitude_cov_from_quat_cov(q: np.ndarray, Pq: np.ndarray) -> np.ndarray:
         basis[i] = 1.0
         T[:, i] = 2.0 * quat_mul(basis, qc)[1:]
     return T @ Pq @ T.T
+
+
+@njit(cache=True)
+def rotate(q, v):
+    """Q(q) v (sensor to world) without forming Q: a few dozen flops, no BLAS call."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    # v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)
+    tx = 2.0 * (y * v[2] - z * v[1])
+    ty = 2.0 * (z * v[0] - x * v[2])
+    tz = 2.0 * (x * v[1] - y * v[0])
+    out = np.empty(3)
+    out[0] = v[0] + w * tx + (y * tz - z * ty)
+    out[1] = v[1] + w * ty + (z * tx - x * tz)
+    out[2] = v[2] + w * tz + (x * ty - y * tx)
+    return out
+
+
+@njit(cache=True)
+def rotate_inv(q, v):
+    """Q(q)ᵀ v (world to sensor)."""
+    qc = np.empty(4)
+    qc[0] = q[0]
+    qc[1] = -q[1]
+    qc[2] = -q[2]
+    qc[3] = -q[3]
+    return rotate(qc, v)
+
+
+@njit(cache=True)
+def norm3(v):
+    return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])

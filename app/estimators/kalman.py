@@ -5,6 +5,10 @@ distance (normalised innovation squared, NIS) computed first, so a gate can refu
 the update before anything changes. The caller owns what the state correction
 means: the lab EKF adds it to the quaternion, the error-state filter injects it
 multiplicatively. Written for numba (no Python objects), run as plain numpy too.
+
+The matrices here are tiny (at most 6x6), so the products are written as plain
+loops: numba compiles them to a few hundred flops, where a BLAS or LAPACK call
+would cost more in overhead than the arithmetic itself.
 """
 
 from __future__ import annotations
@@ -14,41 +18,149 @@ from numba import njit
 
 
 @njit(cache=True)
+def mm(A, B):
+    """A @ B for small matrices."""
+    n, k = A.shape
+    m = B.shape[1]
+    C = np.zeros((n, m))
+    for i in range(n):
+        for l in range(k):
+            a = A[i, l]
+            if a != 0.0:
+                for j in range(m):
+                    C[i, j] += a * B[l, j]
+    return C
+
+
+@njit(cache=True)
+def mmT(A, B):
+    """A @ B.T for small matrices."""
+    n, k = A.shape
+    m = B.shape[0]
+    C = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for l in range(k):
+                acc += A[i, l] * B[j, l]
+            C[i, j] = acc
+    return C
+
+
+@njit(cache=True)
+def inv_small(S):
+    """Inverse of a small symmetric positive definite matrix (closed form up to 2x2,
+    Gauss-Jordan with partial pivoting above). A singular S gives NaNs."""
+    m = S.shape[0]
+    out = np.empty((m, m))
+    if m == 1:
+        out[0, 0] = 1.0 / S[0, 0]
+        return out
+    if m == 2:
+        det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
+        out[0, 0] = S[1, 1] / det
+        out[0, 1] = -S[0, 1] / det
+        out[1, 0] = -S[1, 0] / det
+        out[1, 1] = S[0, 0] / det
+        return out
+    A = S.copy()
+    for i in range(m):
+        for j in range(m):
+            out[i, j] = 1.0 if i == j else 0.0
+    for c in range(m):
+        piv = c
+        for r in range(c + 1, m):
+            if abs(A[r, c]) > abs(A[piv, c]):
+                piv = r
+        if A[piv, c] == 0.0:
+            out[:, :] = np.nan
+            return out
+        if piv != c:
+            for j in range(m):
+                A[c, j], A[piv, j] = A[piv, j], A[c, j]
+                out[c, j], out[piv, j] = out[piv, j], out[c, j]
+        d = 1.0 / A[c, c]
+        for j in range(m):
+            A[c, j] *= d
+            out[c, j] *= d
+        for r in range(m):
+            if r != c:
+                f = A[r, c]
+                if f != 0.0:
+                    for j in range(m):
+                        A[r, j] -= f * A[c, j]
+                        out[r, j] -= f * out[c, j]
+    return out
+
+
+@njit(cache=True)
 def nis_and_gain(P, H, R, innov):
     """Innovation covariance, NIS and Kalman gain for ``z - h(x) = innov``.
 
-    Returns ``(nis, K, S)``; ``nis`` is ``innov' S^-1 innov`` (chi-square with
-    ``len(innov)`` degrees of freedom when the model is honest).
+    Returns ``(nis, K, S, PHt)``; ``nis`` is ``innov' S^-1 innov`` (chi-square with
+    ``len(innov)`` degrees of freedom when the model is honest). Zeros of H (most
+    of it, for these sensor models) are skipped.
     """
-    PHt = P @ H.T
-    S = H @ PHt + R
-    Sinv = np.linalg.inv(S)
-    nis = innov @ (Sinv @ innov)
-    K = PHt @ Sinv
-    return nis, K, S
+    n = P.shape[0]
+    m = H.shape[0]
+    PHt = np.zeros((n, m))
+    for j in range(m):
+        for l in range(n):
+            h = H[j, l]
+            if h != 0.0:
+                for i in range(n):
+                    PHt[i, j] += P[i, l] * h
+    S = R.copy()
+    for a in range(m):
+        for l in range(n):
+            h = H[a, l]
+            if h != 0.0:
+                for b in range(m):
+                    S[a, b] += h * PHt[l, b]
+    Sinv = inv_small(S)
+    nis = 0.0
+    for i in range(m):
+        for j in range(m):
+            nis += innov[i] * Sinv[i, j] * innov[j]
+    K = mm(PHt, Sinv)
+    return nis, K, S, PHt
 
 
 @njit(cache=True)
 def correct(P, H, R, innov, nis_gate, mask=None):
-    """Generic EKF measurement update with an innovation gate.
+    """Generic EKF measurement update with an innovation gate; updates ``P`` in place.
 
     ``nis_gate <= 0`` switches the gate off. ``mask`` (optional, one 0/1 per state)
     names the states the update may change; the gain rows of the others are zeroed
     (a "consider" update: a heading measurement that must not tilt the attitude).
-    Returns ``(accepted, nis, dx, P_new)``; when the gate refuses, ``dx`` is zero
-    and ``P_new`` is ``P`` (unchanged). The covariance update is Joseph's form,
-    which stays right for the masked (sub-optimal) gain and keeps P symmetric.
+    Returns ``(accepted, nis, dx)``; when the gate refuses, ``dx`` is zero and ``P``
+    is left as it was.
+
+    The covariance update is Joseph's form ``(I - K H) P (I - K H)' + K R K'``
+    multiplied out, ``P - K (PH')' - PH' K' + K S K'``: exact for any gain (so it
+    stays right for the masked one), symmetric by construction, and O(n² m).
     """
-    nis, K, S = nis_and_gain(P, H, R, innov)
+    nis, K, S, PHt = nis_and_gain(P, H, R, innov)
     n = P.shape[0]
+    m = innov.shape[0]
     if not np.isfinite(nis) or (nis_gate > 0.0 and nis > nis_gate):
-        return False, nis, np.zeros(n), P
+        return False, nis, np.zeros(n)
     if mask is not None:
         for i in range(n):
             if mask[i] == 0.0:
-                K[i, :] = 0.0
-    dx = K @ innov
-    IKH = np.eye(n) - K @ H
-    P_new = IKH @ P @ IKH.T + K @ R @ K.T
-    P_new = 0.5 * (P_new + P_new.T)
-    return True, nis, dx, P_new
+                for j in range(m):
+                    K[i, j] = 0.0
+    dx = np.zeros(n)
+    for i in range(n):
+        for j in range(m):
+            dx[i] += K[i, j] * innov[j]
+    KS = mm(K, S)
+    for i in range(n):
+        for j in range(i, n):
+            v = 0.0
+            for a in range(m):
+                v += -K[i, a] * PHt[j, a] - PHt[i, a] * K[j, a] + KS[i, a] * K[j, a]
+            P[i, j] += v
+            if j != i:
+                P[j, i] = P[i, j]
+    return True, nis, dx

@@ -140,11 +140,10 @@ class LabEKF(Estimator):
     def _measurement_update(self, y, v0, R, flags, col_reason, col_nis) -> None:
         h = qm.Q(self.x).T @ v0
         H = _jacobian(self.x, v0)
-        ok, nis, dx, P = correct(self.P, H, R, y - h, self._params.nis_gate)
+        ok, nis, dx = correct(self.P, H, R, y - h, self._params.nis_gate)  # P updated in place
         flags[col_nis] = nis
         if ok:
             self.x = qm.normalize(self.x + dx)
-            self.P = P
             flags[col_reason] = Reason.USED
         else:
             flags[col_reason] = Reason.NIS

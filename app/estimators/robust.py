@@ -46,7 +46,7 @@ from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_V
                    F_TIME, NFLAGS, R_DIP, R_DISABLED, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
                    R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator, new_flags,
                    time_step, vector_state)
-from .kalman import correct
+from .kalman import correct, mm, mmT
 
 GRAVITY = 9.81
 ALIGN_WAIT_S = 0.5
@@ -95,6 +95,9 @@ class RobustParams(CommonParams):
                               user_scale=DEG, doc="noise density of the bias measurement at rest")
     rw_noise: float = param(0.5, unit="rad/√s", lo=1e-4, hi=10.0, log=True,
                             doc="attitude random walk without gyroscope")
+    update_rate_hz: float = param(100.0, unit="Hz", lo=0.0, hi=10000.0,
+                                  doc="most measurement updates per second and sensor (the low-passes "
+                                      "and averages see every sample); 0: every sample")
 
 
 # ----------------------------------------------------------------- layouts
@@ -102,7 +105,7 @@ class RobustParams(CommonParams):
 (P_USE_GYR, P_USE_ACC, P_USE_MAG, P_MAX_GAP, P_GYR_HOLD, P_GYR_NOISE, P_BIAS_NOISE, P_BIAS_INIT,
  P_TILT_NOISE, P_ACC_TAU, P_ACC_BAND, P_ACC_NIS, P_HEAD_NOISE, P_MAG_NIS, P_MAG_NORM, P_MAG_DIP,
  P_MAG_REF_TAU, P_MAG_NEW_T, P_MAG_NEW_RATE, P_MAG_MAX_REJ, P_REST_GYR, P_REST_ACC, P_REST_T,
- P_REST_NOISE, P_RW_NOISE, P_B0X, P_B0Y, P_B0Z, NPARAM) = range(29)
+ P_REST_NOISE, P_RW_NOISE, P_B0X, P_B0Y, P_B0Z, P_UPD_DT, NPARAM) = range(30)
 
 # state vector (everything but P)
 S_Q = 0          # 4: nominal attitude
@@ -130,16 +133,22 @@ S_ACC_T = 36     # time of the last accelerometer sample
 S_GLP_OK = 37    # 1 once the rest low-passes are initialised
 S_REST = 38      # 1 at rest
 S_NIS_REJ_T = 39 # s of continuous heading-NIS rejection
-NSTATE = 40
+S_ACC_UPD_T = 40 # s of used accelerometer samples since the last tilt update
+S_REST_UPD_T = 41  # s at rest since the last bias update
+S_MAG_SUM = 42   # 3: sum of world-frame field samples since the last heading update
+S_MAG_CNT = 45   # how many
+S_MAG_UPD_T = 46 # s of used magnetometer samples since the last heading update
+NSTATE = 47
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
 
 
 @njit(cache=True)
 def _lp_coef(dt, tau):
+    """First-order low-pass coefficient (the DNRF form 1 - τ/(τ+Δt))."""
     if tau <= 0.0:
         return 1.0
-    return 1.0 - np.exp(-dt / tau)
+    return dt / (tau + dt)
 
 
 @njit(cache=True)
@@ -150,7 +159,7 @@ def _inject(s, P, dx):
     s[S_Q:S_Q + 4] = qm.normalize(qm.quat_mul(dq, s[S_Q:S_Q + 4]))
     for i in range(3):
         s[S_B + i] += dx[3 + i]
-    s[S_ALP:S_ALP + 3] = qm.Q(dq) @ s[S_ALP:S_ALP + 3]
+    s[S_ALP:S_ALP + 3] = qm.rotate(dq, s[S_ALP:S_ALP + 3])
 
 
 @njit(cache=True)
@@ -158,8 +167,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S_Q:S_Q + 4] = qm.q_from_acc_mag(acc, mag, use_mag)
     for i in range(3):
         s[S_B + i] = p[P_B0X + i]
-    R = qm.Q(s[S_Q:S_Q + 4])
-    s[S_ALP:S_ALP + 3] = R @ acc
+    s[S_ALP:S_ALP + 3] = qm.rotate(s[S_Q:S_Q + 4], acc)
     P[:, :] = 0.0
     tilt0 = 10.0 * np.pi / 180.0
     head0 = (20.0 if use_mag else 180.0) * np.pi / 180.0
@@ -171,12 +179,49 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S_INIT] = 1.0
     s[S_T0] = t
     s[S_WAIT_T] = np.nan
-    s[S_MAG_T] = np.nan
+    s[S_MAG_T] = t
     s[S_ACC_T] = t
+    s[S_ACC_UPD_T] = 0.0
+    s[S_REST_UPD_T] = 0.0
+    s[S_MAG_CNT] = 0.0
+    s[S_MAG_SUM:S_MAG_SUM + 3] = 0.0
+    s[S_MAG_UPD_T] = 0.0
     s[S_REF_OK] = 0.0
     s[S_REJ_T] = 0.0
     s[S_CAND_T] = 0.0
     s[S_NIS_REJ_T] = 0.0
+
+
+@njit(cache=True)
+def _integrate(s, vx, vy, vz):
+    """q <- q ⊗ exp(v) for the body-frame rotation vector v (exact, formula 2j), w >= 0."""
+    a = np.sqrt(vx * vx + vy * vy + vz * vz)
+    c = np.cos(0.5 * a)
+    k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
+    x, y, z = vx * k, vy * k, vz * k
+    q0, q1, q2, q3 = s[S_Q], s[S_Q + 1], s[S_Q + 2], s[S_Q + 3]
+    r0 = q0 * c - q1 * x - q2 * y - q3 * z
+    r1 = q0 * x + q1 * c + q2 * z - q3 * y
+    r2 = q0 * y - q1 * z + q2 * c + q3 * x
+    r3 = q0 * z + q1 * y - q2 * x + q3 * c
+    n = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+    if r0 < 0.0:
+        n = -n
+    s[S_Q], s[S_Q + 1], s[S_Q + 2], s[S_Q + 3] = r0 / n, r1 / n, r2 / n, r3 / n
+
+
+@njit(cache=True)
+def _due(s, idx, dt, p):
+    """Add the sample interval dt of a used sample to the accumulator ``s[idx]``;
+    when it reaches 1/update_rate_hz, reset it and return (True, accumulated s).
+    The accumulated time of *used* samples is what scales R = σ²/Δt, so an update
+    after a long rejection is not mistaken for a long, information-rich average."""
+    s[idx] += min(max(dt, 0.0), 0.1)
+    if s[idx] >= p[P_UPD_DT] and s[idx] > 0.0:
+        acc = s[idx]
+        s[idx] = 0.0
+        return True, acc
+    return False, s[idx]
 
 
 @njit(cache=True)
@@ -190,18 +235,21 @@ def _predict(s, P, p, w, dt):
         for i in range(3, 6):
             P[i, i] += bv
         return
-    q = s[S_Q:S_Q + 4]
-    R = qm.Q(q)
-    wc = w - s[S_B:S_B + 3]
-    s[S_Q:S_Q + 4] = qm.normalize(qm.quat_mul(q, qm.quat_from_rotvec(wc * dt)))
-    # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd
+    R = qm.Q(s[S_Q:S_Q + 4])
+    _integrate(s, (w[0] - s[S_B]) * dt, (w[1] - s[S_B + 1]) * dt, (w[2] - s[S_B + 2]) * dt)
+    # F = [[I, A], [0, I]] with A = -R dt;  P <- F P F' + Qd, written out by blocks:
+    # Ptt += A Pbt + Ptb A' + A Pbb A';  Ptb += A Pbb
     A = -R * dt
-    Ptb = P[0:3, 3:6].copy()
-    Pbb = P[3:6, 3:6].copy()
-    APbb = A @ Pbb
-    P[0:3, 0:3] += A @ Ptb.T + Ptb @ A.T + APbb @ A.T
-    P[0:3, 3:6] = Ptb + APbb
-    P[3:6, 0:3] = P[0:3, 3:6].T
+    APbb = mm(A, P[3:6, 3:6])
+    APbt = mm(A, P[3:6, 0:3])
+    APbbAt = mmT(APbb, A)
+    for i in range(3):
+        for j in range(3):
+            P[i, j] += APbt[i, j] + APbt[j, i] + APbbAt[i, j]
+    for i in range(3):
+        for j in range(3):
+            P[i, 3 + j] += APbb[i, j]
+            P[3 + j, i] = P[i, 3 + j]
     gv = p[P_GYR_NOISE] ** 2 * dt
     bv = p[P_BIAS_NOISE] ** 2 * dt
     for i in range(3):
@@ -210,7 +258,7 @@ def _predict(s, P, p, w, dt):
 
 
 @njit(cache=True)
-def _rest_update(s, P, p, gyr, acc, dt, has_gyr, has_acc, f):
+def _rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
     """Rest detection on the deviation of gyroscope and accelerometer from their
     low-passes; at rest the low-passed gyroscope measures the bias directly."""
     if p[P_REST_T] <= 0.0:
@@ -231,14 +279,14 @@ def _rest_update(s, P, p, gyr, acc, dt, has_gyr, has_acc, f):
         for i in range(3):
             s[S_GLP + i] += k * (gyr[i] - s[S_GLP + i])
         d = gyr - s[S_GLP:S_GLP + 3]
-        if np.sqrt(d @ d) > p[P_REST_GYR]:
+        if qm.norm3(d) > p[P_REST_GYR]:
             quiet = False
     if has_acc:
         k = _lp_coef(dt, tau) if dt > 0 else 0.0
         for i in range(3):
             s[S_AL2 + i] += k * (acc[i] - s[S_AL2 + i])
         d = acc - s[S_AL2:S_AL2 + 3]
-        if np.sqrt(d @ d) > p[P_REST_ACC]:
+        if qm.norm3(d) > p[P_REST_ACC]:
             quiet = False
     if quiet:
         s[S_REST_T] += dt
@@ -246,22 +294,25 @@ def _rest_update(s, P, p, gyr, acc, dt, has_gyr, has_acc, f):
         s[S_REST_T] = 0.0
     s[S_REST] = 1.0 if s[S_REST_T] >= p[P_REST_T] else 0.0
     f[F_REST] = s[S_REST]
-    if s[S_REST] == 1.0 and has_gyr and dt > 0.0:
+    if s[S_REST] == 0.0 or not has_gyr:
+        s[S_REST_UPD_T] = 0.0
+        return
+    due, elapsed = _due(s, S_REST_UPD_T, dt, p)
+    if due:
         H = np.zeros((3, 6))
         for i in range(3):
             H[i, 3 + i] = 1.0
-        Rm = (p[P_REST_NOISE] ** 2 / dt) * np.eye(3)
+        Rm = (p[P_REST_NOISE] ** 2 / elapsed) * np.eye(3)
         innov = s[S_GLP:S_GLP + 3] - s[S_B:S_B + 3]
-        ok, nis, dx, Pn = correct(P, H, Rm, innov, 0.0)
+        ok, nis, dx = correct(P, H, Rm, innov, 0.0)
         if ok:
-            P[:, :] = Pn
             _inject(s, P, dx)
             f[F_GYR] = R_REST
 
 
 @njit(cache=True)
 def _acc_update(s, P, p, t, acc, f):
-    n = np.sqrt(acc @ acc)
+    n = qm.norm3(acc)
     f[F_ACC_VAL] = n
     dt = t - s[S_ACC_T] if np.isfinite(s[S_ACC_T]) else 0.0
     s[S_ACC_T] = t
@@ -275,13 +326,17 @@ def _acc_update(s, P, p, t, acc, f):
     age = t - s[S_T0]
     if age > 0.0 and dt / (age + dt) > k:
         k = dt / (age + dt)
-    aw = qm.Q(s[S_Q:S_Q + 4]) @ acc
+    aw = qm.rotate(s[S_Q:S_Q + 4], acc)
     for i in range(3):
         s[S_ALP + i] += k * (aw[i] - s[S_ALP + i])
+    f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
+    due, elapsed = _due(s, S_ACC_UPD_T, dt, p)
+    if not due:
+        return
+    dt = elapsed
     a = s[S_ALP:S_ALP + 3]
-    an = np.sqrt(a @ a)
+    an = qm.norm3(a)
     if an < 1e-6:
-        f[F_ACC] = R_NORM
         return
     innov = np.empty(2)
     innov[0] = a[0] / an
@@ -290,10 +345,9 @@ def _acc_update(s, P, p, t, acc, f):
     H[0, 1] = -1.0
     H[1, 0] = 1.0
     Rm = (p[P_TILT_NOISE] ** 2 / dt) * np.eye(2)
-    ok, nis, dx, Pn = correct(P, H, Rm, innov, p[P_ACC_NIS])
+    ok, nis, dx = correct(P, H, Rm, innov, p[P_ACC_NIS])
     f[F_ACC_NIS] = nis
     if ok:
-        P[:, :] = Pn
         _inject(s, P, dx)
         f[F_ACC] = R_USED
     else:
@@ -303,8 +357,8 @@ def _acc_update(s, P, p, t, acc, f):
 
 @njit(cache=True)
 def _mag_update(s, P, p, t, mag, w, f):
-    mw = qm.Q(s[S_Q:S_Q + 4]) @ mag
-    n = np.sqrt(mw @ mw)
+    mw = qm.rotate(s[S_Q:S_Q + 4], mag)
+    n = qm.norm3(mw)
     dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
     dt = t - s[S_MAG_T] if np.isfinite(s[S_MAG_T]) else 0.0
     s[S_MAG_T] = t
@@ -319,7 +373,7 @@ def _mag_update(s, P, p, t, mag, w, f):
     cn_dev = abs(n - s[S_CAND_N]) / max(s[S_CAND_N], 1e-6)
     cd_dev = abs(dip - s[S_CAND_D])
     if cn_dev <= max(p[P_MAG_NORM], 0.05) and cd_dev <= max(p[P_MAG_DIP], 0.05):
-        rate = 0.0 if np.isnan(w[0]) else np.sqrt(w @ w)
+        rate = 0.0 if np.isnan(w[0]) else qm.norm3(w)
         if rate >= p[P_MAG_NEW_RATE]:
             s[S_CAND_T] += dt
         s[S_CAND_N] += kc * (n - s[S_CAND_N])
@@ -355,32 +409,40 @@ def _mag_update(s, P, p, t, mag, w, f):
     s[S_REF_N] += kr * (n - s[S_REF_N])
     s[S_REF_D] += kr * (dip - s[S_REF_D])
     f[F_MAG_VAL] = n
-    hn = np.sqrt(mw[0] ** 2 + mw[1] ** 2)
-    if hn < 1e-3 * n:
-        f[F_MAG] = R_DIP  # field (almost) vertical: no heading information
+    f[F_MAG] = R_USED
+    # accepted samples are averaged in the world frame; the heading correction with
+    # their mean runs at most at update_rate_hz
+    for i in range(3):
+        s[S_MAG_SUM + i] += mw[i]
+    s[S_MAG_CNT] += 1.0
+    due, elapsed = _due(s, S_MAG_UPD_T, dt, p)
+    if not due:
         return
+    mx = s[S_MAG_SUM] / s[S_MAG_CNT]
+    my = s[S_MAG_SUM + 1] / s[S_MAG_CNT]
+    s[S_MAG_SUM:S_MAG_SUM + 3] = 0.0
+    s[S_MAG_CNT] = 0.0
+    hn = np.sqrt(mx * mx + my * my)
+    if hn < 1e-3 * n:
+        return  # field (almost) vertical: no heading information
     innov = np.empty(1)
-    innov[0] = np.arctan2(mw[0], mw[1])
+    innov[0] = np.arctan2(mx, my)
     H = np.zeros((1, 6))
     H[0, 2] = 1.0
-    if dt <= 0.0:
-        dt = 0.02
     Rm = np.empty((1, 1))
-    Rm[0, 0] = p[P_HEAD_NOISE] ** 2 / dt
+    Rm[0, 0] = p[P_HEAD_NOISE] ** 2 / elapsed
     gate = p[P_MAG_NIS]
     if s[S_NIS_REJ_T] > 10.0:
         gate = 0.0  # rejected for long with a plausible field: the estimate is what is wrong
-    ok, nis, dx, Pn = correct(P, H, Rm, innov, gate, _MASK_HEADING)
+    ok, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING)
     f[F_MAG_NIS] = nis
     if ok:
-        P[:, :] = Pn
         _inject(s, P, dx)
-        f[F_MAG] = R_USED
         s[S_NIS_REJ_T] = 0.0
     else:
         f[F_MAG] = R_NIS
         f[F_MAG_VAL] = nis
-        s[S_NIS_REJ_T] += dt
+        s[S_NIS_REJ_T] += elapsed
 
 
 @njit(cache=True)
@@ -418,7 +480,7 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
         return
     if dt > 0.0:
         _predict(s, P, p, w, dt)
-    _rest_update(s, P, p, gyr, acc, dt, gs == R_USED, as_ == R_USED, f)
+    _rest_update(s, P, p, t, gyr, acc, dt, gs == R_USED, as_ == R_USED, f)
     if as_ == R_USED:
         _acc_update(s, P, p, t, acc, f)
     if ms == R_USED:
@@ -475,7 +537,7 @@ def robust_run(s, P, p, T, G, A, M, Qout, Fout):
 def new_state() -> np.ndarray:
     s = np.zeros(NSTATE)
     s[S_Q] = 1.0
-    for i in (S_T, S_W_T, S_WAIT_T, S_T0, S_MAG_T, S_ACC_T):
+    for i in (S_T, S_W_T, S_WAIT_T, S_T0, S_MAG_T, S_ACC_T, ):
         s[i] = np.nan
     return s
 
@@ -501,6 +563,7 @@ class RobustEKF(Estimator):
                                                                      p.rest_time, p.rest_noise)
         v[P_RW_NOISE] = p.rw_noise
         v[P_B0X:P_B0X + 3] = p.gyr_bias
+        v[P_UPD_DT] = 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0
         self._p = v
 
     def _reset_state(self) -> None:

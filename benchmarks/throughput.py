@@ -1,0 +1,77 @@
+"""Throughput of every estimator in batch (samples/s on one core), beside VQF.
+
+Runs each estimator's ``run()`` over the same recording (a BROAD trial when
+``../shared/data/broad`` is there, else a generated 285 Hz recording of the same
+length), best of several repeats after a warm-up (so JIT compilation is not
+counted). VQF's compiled core (``vqf.VQF.updateBatch``) runs the same data.
+Usage: ``python benchmarks/throughput.py [--repeat N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from app.estimators import NAMES, make_estimator  # noqa: E402
+
+BROAD = ROOT.parent / "shared" / "data" / "broad" / "21_undisturbed_fast_combined.npz"
+
+
+def recording():
+    if BROAD.is_file():
+        d = np.load(BROAD)
+        fs = float(d["fs"])
+        return (np.arange(len(d["gyr"])) / fs, d["gyr"], d["acc"], d["mag"], fs, BROAD.name)
+    rng = np.random.default_rng(0)
+    n, fs = 40_000, 285.7
+    t = np.arange(n) / fs
+    gyr = 0.5 * np.sin(np.outer(t, [0.3, 0.5, 0.7])) + 0.01 * rng.standard_normal((n, 3))
+    acc = np.array([0, 0, 9.81]) + 0.1 * rng.standard_normal((n, 3))
+    mag = np.array([0, 20, -45]) + 0.5 * rng.standard_normal((n, 3))
+    return t, gyr, acc, mag, fs, "generated"
+
+
+def best_of(fn, repeat):
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--only", nargs="*")
+    args = ap.parse_args(argv)
+    t, gyr, acc, mag, fs, src = recording()
+    n = len(t)
+    print(f"recording: {src}, {n} samples at {fs:.1f} Hz; best of {args.repeat} runs, one core\n")
+    rows = []
+    for name in NAMES:
+        if args.only and name not in args.only:
+            continue
+        make_estimator(name).run(t[:500], gyr[:500], acc[:500], mag[:500])  # warm-up / JIT
+        sec = best_of(lambda: make_estimator(name).run(t, gyr, acc, mag), args.repeat)
+        rows.append((name, n / sec))
+    try:
+        from vqf import VQF
+        g, a, m = (np.ascontiguousarray(x) for x in (gyr, acc, mag))
+        sec = best_of(lambda: VQF(1.0 / fs).updateBatch(g, a, m), args.repeat)
+        rows.append(("VQF (C++)", n / sec))
+    except ImportError:
+        print("!! vqf is not installed (pip install vqf): no VQF figure !!")
+    for name, rate in rows:
+        print(f"{name:<16}{rate:>14,.0f} samples/s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
