@@ -142,6 +142,63 @@ NSTATE = 47
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
 
+# Measurement models in the error state x = [δθ (world), δb]. With q_true = exp(δθ) ⊗ q,
+# a world-frame vector v seen through the estimate is v - δθ × v, so dv/dδθ = [v]×.
+# The Jacobians below follow from that (tested against finite differences).
+H_BIAS = np.hstack((np.zeros((3, 3)), np.eye(3)))  # at rest the low-passed gyroscope measures b
+
+
+@njit(cache=True)
+def tilt_innovation(a_world):
+    """Horizontal components of the (low-passed) specific-force direction in the
+    estimate's world frame: zero when the estimate's 'up' is right."""
+    n = qm.norm3(a_world)
+    out = np.empty(2)
+    out[0] = a_world[0] / n
+    out[1] = a_world[1] / n
+    return out
+
+
+@njit(cache=True)
+def tilt_jacobian(a_world):
+    """d tilt_innovation / dx (2x6): (I - â âᵀ)/|a| [a]× restricted to x, y; for
+    a along +z it is [[0, -1, 0], [1, 0, 0]] (the tilt error, rotated)."""
+    n = qm.norm3(a_world)
+    u0, u1, u2 = a_world[0] / n, a_world[1] / n, a_world[2] / n
+    # [â]× rows
+    C = np.array([[0.0, -u2, u1], [u2, 0.0, -u0], [-u1, u0, 0.0]])
+    H = np.zeros((2, 6))
+    u = (u0, u1, u2)
+    for r in range(2):
+        for c in range(3):
+            v = C[r, c]
+            for k in range(3):
+                v -= u[r] * u[k] * C[k, c]
+            H[r, c] = v
+    return H
+
+
+@njit(cache=True)
+def heading_jacobian(m_world):
+    """d heading_innovation / dx (1x6): (-mx mz, -my mz, mx² + my²) / (mx² + my²).
+    The tilt columns are not zero (a tilt error changes the apparent heading of a
+    dipping field); the update masks them, so heading never tilts the estimate,
+    but S accounts for the tilt uncertainty."""
+    h2 = m_world[0] ** 2 + m_world[1] ** 2
+    H = np.zeros((1, 6))
+    H[0, 0] = -m_world[0] * m_world[2] / h2
+    H[0, 1] = -m_world[1] * m_world[2] / h2
+    H[0, 2] = 1.0
+    return H
+
+
+@njit(cache=True)
+def heading_innovation(m_world):
+    """Angle (rad) of the horizontal field east of north: zero when the heading is right."""
+    out = np.empty(1)
+    out[0] = np.arctan2(m_world[0], m_world[1])
+    return out
+
 
 @njit(cache=True)
 def _lp_coef(dt, tau):
@@ -299,12 +356,9 @@ def _rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
         return
     due, elapsed = _due(s, S_REST_UPD_T, dt, p)
     if due:
-        H = np.zeros((3, 6))
-        for i in range(3):
-            H[i, 3 + i] = 1.0
         Rm = (p[P_REST_NOISE] ** 2 / elapsed) * np.eye(3)
         innov = s[S_GLP:S_GLP + 3] - s[S_B:S_B + 3]
-        ok, nis, dx = correct(P, H, Rm, innov, 0.0)
+        ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0)
         if ok:
             _inject(s, P, dx)
             f[F_GYR] = R_REST
@@ -338,14 +392,8 @@ def _acc_update(s, P, p, t, acc, f):
     an = qm.norm3(a)
     if an < 1e-6:
         return
-    innov = np.empty(2)
-    innov[0] = a[0] / an
-    innov[1] = a[1] / an
-    H = np.zeros((2, 6))
-    H[0, 1] = -1.0
-    H[1, 0] = 1.0
     Rm = (p[P_TILT_NOISE] ** 2 / dt) * np.eye(2)
-    ok, nis, dx = correct(P, H, Rm, innov, p[P_ACC_NIS])
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[P_ACC_NIS])
     f[F_ACC_NIS] = nis
     if ok:
         _inject(s, P, dx)
@@ -420,21 +468,21 @@ def _mag_update(s, P, p, t, mag, w, f):
         return
     mx = s[S_MAG_SUM] / s[S_MAG_CNT]
     my = s[S_MAG_SUM + 1] / s[S_MAG_CNT]
+    mz = s[S_MAG_SUM + 2] / s[S_MAG_CNT]
     s[S_MAG_SUM:S_MAG_SUM + 3] = 0.0
     s[S_MAG_CNT] = 0.0
     hn = np.sqrt(mx * mx + my * my)
     if hn < 1e-3 * n:
         return  # field (almost) vertical: no heading information
-    innov = np.empty(1)
-    innov[0] = np.arctan2(mx, my)
-    H = np.zeros((1, 6))
-    H[0, 2] = 1.0
+    m_mean = np.empty(3)
+    m_mean[0], m_mean[1], m_mean[2] = mx, my, mz
+    innov = heading_innovation(m_mean)
     Rm = np.empty((1, 1))
     Rm[0, 0] = p[P_HEAD_NOISE] ** 2 / elapsed
     gate = p[P_MAG_NIS]
     if s[S_NIS_REJ_T] > 10.0:
         gate = 0.0  # rejected for long with a plausible field: the estimate is what is wrong
-    ok, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING)
+    ok, nis, dx = correct(P, heading_jacobian(m_mean), Rm, innov, gate, _MASK_HEADING)
     f[F_MAG_NIS] = nis
     if ok:
         _inject(s, P, dx)
