@@ -29,6 +29,7 @@ hold (``reorder_window_s`` of stream time) is not part of that figure.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import time
@@ -128,9 +129,13 @@ class History:
         cap = self.data.shape[0]
         if self.n == 0:
             return self.data[:0]
-        rows = self.data[:self.n] if self.n <= cap else np.roll(self.data, -(self.n % cap), axis=0)
-        t_end = rows[-1, H_T]
-        return rows[rows[:, H_T] >= t_end - seconds]
+        end = self.n % cap
+        if self.n <= cap:
+            rows = self.data[:self.n]
+        else:
+            rows = np.concatenate([self.data[end:], self.data[:end]])
+        t = rows[:, H_T]
+        return rows[np.searchsorted(t, t[-1] - seconds):]
 
 
 @dataclass
@@ -471,10 +476,10 @@ class Engine:
                 row[H_P:H_P + 4] = self.phone_q
             hist.append(row)
             if want_ws:
-                records.append({"t": t, "tag": tag, "q": row[H_Q:H_Q + 4].tolist(),
-                                "estimators": {n: e.q.tolist() for n, e in ests}})
+                records.append({"t": t, "tag": tag, "q": row[H_Q:H_Q + 4].tolist()})
         if want_ws and records:
-            msg = {"primary": primary, "source": self.source_kind(), "estimates": records}
+            # encoded once for every subscriber
+            msg = json.dumps({"primary": primary, "source": self.source_kind(), "estimates": records})
             for q in list(self.subscribers):
                 q.put_nowait(msg)
 

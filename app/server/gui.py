@@ -36,7 +36,7 @@ from .scene import Scene, describe_rejection
 log = logging.getLogger("orientlab.gui")
 
 SENSOR_SWITCHES = (("use_gyr", "Gyroscope"), ("use_acc", "Accelerometer"), ("use_mag", "Magnetometer"))
-MAX_POINTS = 500
+MAX_POINTS = 300          # per plot: 15 points/s over 20 s is smooth enough
 EULER_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
 
 
@@ -298,9 +298,10 @@ class Gui:
                                                             ("L_k", "#e377c2", False),
                                                             ("band lo", "#888", True),
                                                             ("band hi", "#888", True)])
-        self.p_nis = plot("NIS and its gate", [("acc NIS", "#1f77b4", False),
-                                              ("mag NIS", "#9467bd", False),
-                                              ("gate", "#d62728", True)])
+        self.p_nis = plot("NIS and its gates", [("acc NIS", "#1f77b4", False),
+                                               ("mag NIS", "#9467bd", False),
+                                               ("acc gate", "#1f77b4", True),
+                                               ("mag gate", "#9467bd", True)])
 
     def refresh_plots(self) -> None:
         rows = self.engine.history.last(self.settings.history_s)
@@ -346,9 +347,10 @@ class Gui:
             self.p_mag.data = (x, sel[:, H_MAG], sel[:, H_LK], const(x, band[0]), const(x, band[1]))
         sel, x = pick(np.isfinite(rows[:, H_NIS_A]) | np.isfinite(rows[:, H_NIS_M]))
         if x.size > 1:
-            gate = diag.get("nis_gate")
+            ga = diag.get("acc_nis_gate", diag.get("nis_gate"))
+            gm = diag.get("mag_nis_gate", diag.get("nis_gate"))
             self.p_nis.data = (x, sel[:, H_NIS_A], sel[:, H_NIS_M],
-                               const(x, gate if gate else None))
+                               const(x, ga or None), const(x, gm or None))
 
     # ------------------------------------------------------------------ read-outs
     def refresh_text(self) -> None:

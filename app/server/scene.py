@@ -146,7 +146,8 @@ class Scene:
         self._has = {"own": False, "truth": False}
         self._shown = {"own": False, "truth": False}
         self._bad = {"acc": False, "mag": False}
-        server.initial_camera.position = (2.6, -4.2, 3.0)
+        self._expected: dict[str, np.ndarray] = {}
+        server.initial_camera.position = (2.0, -3.3, 2.4)
         server.initial_camera.look_at = (0.0, 0.0, 0.0)
 
     # ------------------------------------------------------------------ switches
@@ -200,16 +201,24 @@ class Scene:
     def _draw_arrows(self, R: np.ndarray, s: Snapshot) -> None:
         g0 = np.asarray(s.diag.get("g0") or (0.0, 0.0, 9.81), float)
         gn = float(np.linalg.norm(g0))
-        self.grav_expected.points = _arrow_points(g0 / gn * ARROW_LEN)
+        self._set_expected("grav", self.grav_expected, g0 / gn * ARROW_LEN)
         if s.acc is not None:
             self.grav.points = _arrow_points(np.clip(R @ s.acc / gn, -2, 2) * ARROW_LEN)
             self._color("acc", self.grav, s.acc_flags, C_ACC)
-        m0 = s.diag.get("m0")
+        m0 = expected_field(s.diag)
         mn = float(np.linalg.norm(m0)) if m0 is not None else 50.0
-        self.mag_expected.points = _arrow_points(None if m0 is None else np.asarray(m0) / mn * ARROW_LEN)
+        self._set_expected("mag", self.mag_expected, None if m0 is None else np.asarray(m0) / mn * ARROW_LEN)
         if s.mag is not None:
             self.mag.points = _arrow_points(np.clip(R @ s.mag / mn, -2, 2) * ARROW_LEN)
             self._color("mag", self.mag, s.mag_flags, C_MAG)
+
+    def _set_expected(self, key: str, handle, vec) -> None:
+        """Expected directions rarely change: send them only when they do."""
+        pts = _arrow_points(vec)
+        last = self._expected.get(key)
+        if last is None or not np.allclose(last, pts, atol=1e-3):
+            handle.points = pts
+            self._expected[key] = pts
 
     def _color(self, sensor: str, handle, flags, good) -> None:
         """Red while the sensor's last sample was refused by a gate."""
@@ -217,6 +226,19 @@ class Scene:
         if bad != self._bad[sensor]:
             handle.colors = C_BAD if bad else good
             self._bad[sensor] = bad
+
+
+def expected_field(diag: dict) -> np.ndarray | None:
+    """The reference magnetic field in world coordinates (µT) from an estimator's
+    diagnostics: ``m0`` (lab), or ``mag_ref_norm``/``mag_ref_dip`` (robust: field
+    towards north, dipping down), else None."""
+    m0 = diag.get("m0")
+    if m0 is not None:
+        return np.asarray(m0, float)
+    n, dip = diag.get("mag_ref_norm"), diag.get("mag_ref_dip")
+    if n is not None and dip is not None and math.isfinite(n) and math.isfinite(dip):
+        return n * np.array([0.0, math.cos(dip), -math.sin(dip)])
+    return None
 
 
 def indicator_text(s: Snapshot) -> str:

@@ -35,7 +35,7 @@ async def resume(engine: Engine = Depends(get_engine)) -> dict:
 @router.websocket("/ws/state")
 async def ws_state(ws: WebSocket) -> None:
     """Every estimate, as it is made: one JSON message per processed batch,
-    ``{"primary", "source", "estimates": [{"t", "tag", "q", "estimators": {name: q}}]}``;
+    ``{"primary", "source", "estimates": [{"t", "tag", "q"}]}`` (q of the primary, [w,x,y,z]);
     no estimate is skipped. The first message is the full state (as GET /api/state)."""
     engine: Engine = ws.app.state.engine
     await ws.accept()
@@ -57,7 +57,7 @@ async def ws_state(ws: WebSocket) -> None:
             msg = await q.get()
             if msg is None:
                 break
-            await ws.send_json(msg)
+            await ws.send_text(msg)
     except (WebSocketDisconnect, RuntimeError, asyncio.QueueFull):
         pass
     finally:

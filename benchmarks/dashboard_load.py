@@ -1,0 +1,189 @@
+"""Dashboard under load: a phone streaming 500 Hz per sensor with 5 browsers connected.
+
+What it does
+------------
+- starts ``orientlab serve --source none`` (``app.server.run.serve``) as a **separate
+  process** on free loopback ports, so its CPU time can be read from ``/proc``;
+- connects **5 viser WebSocket clients** (what a browser tab of the viewer opens: they
+  receive every scene, GUI and plot update) **and 5 ``WS /ws/state`` clients** (every
+  estimate); all ten read everything they are sent;
+- plays a phone over TCP on loopback: ACC, GYR and MAG at **500 Hz each** (1500 lines/s,
+  simulated with :mod:`app.simulate`), sent in 10 ms chunks at real-time speed, for
+  ``--seconds`` (default 20) after a 3 s warm-up;
+- polls ``GET /api/stats`` once a second.
+
+What it prints
+--------------
+- **backlog**: samples queued for the engine and its inbox length, first vs. last
+  third of the run (a growing queue means the server does not keep up);
+- **latency** from the arrival of the chunk holding a line to the moment the viser
+  scene update for it has been queued (engine instrumentation, every sample):
+  median and 99th percentile (target p99 < 5 ms). The reorder buffer's deliberate
+  hold (50 ms of stream time) is not included;
+- **CPU** of the server process (user + system) in % of one core (target < 25 %).
+
+Run: ``.venv/bin/python benchmarks/dashboard_load.py [--seconds 20]``. Only loopback
+addresses are used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import websockets
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from app.server.harness import free_port, wait_for  # noqa: E402
+from app.simulate import SimConfig, format_line, simulate  # noqa: E402
+
+RATE_HZ = 500
+CHUNK_S = 0.01
+N_VIEWERS = 5
+N_STATE = 5
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    tck = os.sysconf("SC_CLK_TCK")
+    return (int(fields[11]) + int(fields[12])) / tck   # utime + stime
+
+
+def start_server(port: int, viewer_port: int, phone_port: int) -> subprocess.Popen:
+    code = ("import types, sys; from app.server.run import serve; "
+            f"sys.exit(serve(types.SimpleNamespace(host='127.0.0.1', port={port}, "
+            f"viewer_port={viewer_port}, phone_port={phone_port}, config=None, source='none')))")
+    return subprocess.Popen([sys.executable, "-c", code], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+async def reader(url: str, counter: list, stop: asyncio.Event) -> None:
+    import viser
+    proto = [f"viser-v{viser.__version__}"] if "/ws/state" not in url else None
+    async with websockets.connect(url, max_size=None, subprotocols=proto) as ws:
+        while not stop.is_set():
+            try:
+                msg = await asyncio.wait_for(ws.recv(), 0.5)
+            except asyncio.TimeoutError:
+                continue
+            counter[0] += len(msg)
+
+
+def clients_thread(urls: list[str], counters: list, stop_flag: threading.Event) -> threading.Thread:
+    async def main():
+        stop = asyncio.Event()
+        tasks = [asyncio.create_task(reader(u, c, stop)) for u, c in zip(urls, counters)]
+        while not stop_flag.is_set():
+            await asyncio.sleep(0.1)
+        stop.set()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    th = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
+    th.start()
+    return th
+
+
+def phone_lines(seconds: float) -> list[tuple[int, str]]:
+    cfg = SimConfig(acc_period_ms=1000 // RATE_HZ, gyr_period_ms=1000 // RATE_HZ,
+                    mag_period_ms=1000 // RATE_HZ, ori_period_ms=10_000)
+    sim = simulate(duration_s=seconds, config=cfg, seed=0)
+    return [(s[0], format_line(*s)) for s in sim.samples if s[1] != "ORI"]
+
+
+def play(port: int, lines: list[tuple[int, str]], stop: threading.Event) -> None:
+    with socket.create_connection(("127.0.0.1", port)) as sock:
+        t0_ms = lines[0][0]
+        t0 = time.monotonic()
+        i = 0
+        while i < len(lines) and not stop.is_set():
+            due = t0_ms + (time.monotonic() - t0) * 1000.0
+            j = i
+            while j < len(lines) and lines[j][0] <= due:
+                j += 1
+            if j > i:
+                sock.sendall(("\n".join(ln for _, ln in lines[i:j]) + "\n").encode())
+                i = j
+            time.sleep(CHUNK_S)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    args = ap.parse_args()
+    warm = 3.0
+    port, vport, pport = free_port(), free_port(), free_port()
+    proc = start_server(port, vport, pport)
+    base = f"http://127.0.0.1:{port}"
+    http = httpx.Client(base_url=base, timeout=10.0)
+    try:
+        wait_for(lambda: _ok(http), 300.0, 0.2, "server start")
+        urls = [f"ws://127.0.0.1:{vport}"] * N_VIEWERS + [f"ws://127.0.0.1:{port}/ws/state"] * N_STATE
+        counters = [[0] for _ in urls]
+        stop_clients = threading.Event()
+        clients = clients_thread(urls, counters, stop_clients)
+        lines = phone_lines(warm + args.seconds + 1.0)
+        stop_phone = threading.Event()
+        phone = threading.Thread(target=play, args=(pport, lines, stop_phone), daemon=True)
+        phone.start()
+        time.sleep(warm)
+        http.get("/api/stats", params={"reset": True})
+        cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+        samples0 = http.get("/api/stats").json()["samples"]
+        backlog = []
+        while time.monotonic() - wall0 < args.seconds:
+            time.sleep(1.0)
+            s = http.get("/api/stats").json()
+            backlog.append((s["queued_samples"], s["backlog_now"]))
+        cpu1, wall1 = cpu_seconds(proc.pid), time.monotonic()
+        stats = http.get("/api/stats").json()
+        stop_phone.set()
+        stop_clients.set()
+        phone.join(5)
+        clients.join(5)
+    finally:
+        http.close()
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    wall = wall1 - wall0
+    rate = (stats["samples"] - samples0) / wall
+    b = np.array(backlog)
+    third = max(1, len(b) // 3)
+    lat = stats["latency_ms"]
+    print(f"dashboard load: phone {RATE_HZ} Hz x ACC/GYR/MAG on loopback, "
+          f"{N_VIEWERS} viser clients + {N_STATE} /ws/state clients, {wall:.1f} s")
+    print(f"  processed        {rate:8.0f} samples/s (sent {3 * RATE_HZ}/s)")
+    print(f"  backlog          queued samples first third mean {b[:third, 0].mean():.1f}, "
+          f"last third mean {b[-third:, 0].mean():.1f}, max {b[:, 0].max()}; "
+          f"inbox max {stats['backlog_max_items']} items")
+    print(f"  latency          median {lat['median']:.2f} ms, p99 {lat['p99']:.2f} ms, "
+          f"max {lat['max']:.2f} ms over {lat['n']} samples (target p99 < 5 ms)")
+    print(f"  server CPU       {100 * (cpu1 - cpu0) / wall:.1f} % of one core (target < 25 %)")
+    print(f"  received         viser clients {sum(c[0] for c in counters[:N_VIEWERS]) / wall / 1e3:.0f} kB/s, "
+          f"/ws/state clients {sum(c[0] for c in counters[N_VIEWERS:]) / wall / 1e3:.0f} kB/s (all)")
+    return 0
+
+
+def _ok(http: httpx.Client) -> bool:
+    try:
+        return http.get("/api/health").json().get("status") == "ok"
+    except httpx.HTTPError:
+        return False
+
+
+if __name__ == "__main__":
+    sys.exit(main())

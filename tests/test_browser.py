@@ -1,0 +1,54 @@
+"""A real headless Chromium opens the landing page, sees the 3D canvas and the controls
+inside the embedded viewer, and switches the magnetometer off by clicking it."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import httpx
+import pytest
+
+from app.server.harness import running_server, wait_for
+
+CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
+                             shutil.which("chromium-browser") or "") if p and Path(p).exists()), None)
+ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(CHROMIUM is None,
+                       reason="NO CHROMIUM FOUND: the browser test is SKIPPED "
+                              "(install Debian's chromium to run it)"),
+]
+
+
+def test_page_shows_viewer_and_magnetometer_switch_works(tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    ARTIFACTS.mkdir(exist_ok=True)
+    with running_server(source="demo", preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, \
+            sync_api.sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=ARGS,
+            viewport={"width": 1600, "height": 900})
+        try:
+            page = ctx.new_page()
+            page.goto(srv.url + "/")
+            frame = page.frame_locator("iframe#viewer")
+            frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
+            mag = frame.get_by_label("Magnetometer", exact=True)
+            mag.wait_for(state="visible", timeout=60_000)
+            assert frame.get_by_label("Gyroscope", exact=True).is_visible()
+            assert frame.get_by_label("Accelerometer", exact=True).is_visible()
+            assert page.locator("#phone-port").inner_text() == str(srv.phone_port)
+            assert api.get("/api/params").json()["use_mag"] is True
+            mag.click()
+            wait_for(lambda: api.get("/api/params").json()["use_mag"] is False, 30.0,
+                     what="use_mag false after the click")
+            page.wait_for_timeout(2500)    # let the plots fill for the screenshot
+            page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
+        finally:
+            ctx.close()
