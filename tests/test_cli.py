@@ -1,0 +1,280 @@
+"""The ``orientlab`` command end to end, in a subprocess (``python -m app.cli``)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app import quaternion as qm
+from app.cli import main
+from app.estimators import FLAG_COLUMNS, NAMES, Reason, TimeIssue
+
+REPO = Path(__file__).resolve().parents[1]
+THROUGHPUT = re.compile(r"^(\d+) samples in (\d+\.\d+) s \((\d+) samples/s\)$")
+REASONS = {r.label for r in Reason}
+TIME_ISSUES = {r.name.lower() for r in TimeIssue}
+
+
+def run_cli(*args, check_rc: int | None = 0) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, "-m", "app.cli", *map(str, args)], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    if check_rc is not None:
+        assert proc.returncode == check_rc, proc.stderr
+    return proc
+
+
+def read_output(path: Path) -> tuple[list[str], list[list[str]]]:
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], rows[1:]
+
+
+def check_output(path: Path, n_expected: int) -> np.ndarray:
+    """Header, row count, unit quaternions, no NaN anywhere; returns q (N, 4)."""
+    header, rows = read_output(path)
+    assert header == ["t", "qw", "qx", "qy", "qz", *FLAG_COLUMNS]
+    assert len(rows) == n_expected
+    assert "nan" not in path.read_text().lower()
+    q = np.array([[float(v) for v in r[1:5]] for r in rows]).reshape(-1, 4)
+    assert np.all(np.isfinite(q))
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+    col = {name: i for i, name in enumerate(header)}
+    for r in rows:
+        assert r[col["gyr"]] in REASONS and r[col["acc"]] in REASONS and r[col["mag"]] in REASONS
+        assert r[col["time"]] in TIME_ISSUES and r[col["rest"]] in ("0", "1")
+        for k in ("acc_value", "acc_nis", "mag_value", "mag_nis"):
+            assert r[col[k]] == "" or math.isfinite(float(r[col[k]]))
+    return q
+
+
+def throughput(stderr: str) -> tuple[int, float, int]:
+    last = stderr.strip().splitlines()[-1]
+    m = THROUGHPUT.match(last)
+    assert m, f"last stderr line is not the throughput line: {last!r}"
+    return int(m.group(1)), float(m.group(2)), int(m.group(3))
+
+
+def motion(n: int = 600, fs: float = 100.0, seed: int = 0):
+    """Rotation about a slowly changing axis; acc/mag consistent with it plus noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    w = np.stack([0.5 * np.sin(0.7 * t), 0.3 * np.cos(0.5 * t), 0.4 * np.ones(n)], axis=1)
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    acc, mag = np.empty((n, 3)), np.empty((n, 3))
+    for k in range(n):
+        R = qm.Q(q)
+        acc[k] = R.T @ [0.0, 0.0, 9.81]
+        mag[k] = R.T @ [0.0, 15.0, -45.0]
+        q = qm.normalize(qm.quat_mul(q, qm.quat_from_rotvec(w[k] / fs)))
+    return (t, w + rng.normal(0, 0.002, (n, 3)), acc + rng.normal(0, 0.05, (n, 3)),
+            mag + rng.normal(0, 0.3, (n, 3)))
+
+
+def write_csv(path: Path, t, gyr, acc, mag, extra_lines=()):
+    lines = ["t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z"]
+    for k in range(len(t)):
+        vals = [t[k], *gyr[k], *acc[k], *mag[k]]
+        lines.append(",".join("" if (isinstance(v, float) and v != v and k % 2) else repr(float(v))
+                              for v in vals))
+    lines[5:5] = list(extra_lines)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def bad_rows(t, gyr, acc, mag):
+    """NaN, inf, zero vectors and time going backwards in the middle of good data."""
+    t, gyr, acc, mag = t.copy(), gyr.copy(), acc.copy(), mag.copy()
+    gyr[50] = np.nan
+    acc[51] = [np.inf, 0.0, 9.8]
+    mag[52] = 0.0
+    acc[53] = np.nan
+    gyr[54] = [np.nan, 1.0, np.nan]
+    t[60] = t[40]                # backwards
+    t[61] = t[60]                # repeated
+    t[100:] += 5.0               # a gap
+    return t, gyr, acc, mag
+
+
+# ---------------------------------------------------------------- estimate
+
+@pytest.mark.parametrize("name", NAMES)
+def test_estimate_csv_one_row_per_input_row_even_with_bad_rows(tmp_path, name):
+    t, gyr, acc, mag = bad_rows(*motion())
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    out = tmp_path / "out.csv"
+    proc = run_cli("estimate", src, "--out", out, "--filter", name)
+    check_output(out, len(t))
+    _, rows = read_output(out)
+    np.testing.assert_allclose([float(r[0]) for r in rows], t, atol=1e-6)
+    assert throughput(proc.stderr)[0] == len(t)
+
+
+def test_estimate_follows_the_motion(tmp_path):
+    """Not just any unit quaternion: the default filter tracks the true rotation."""
+    t, gyr, acc, mag = motion(n=1500)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    out = tmp_path / "out.csv"
+    run_cli("estimate", src, "--out", out)
+    q = check_output(out, len(t))
+    # the true gravity direction in the sensor frame is acc without noise: compare "up"
+    up_est = np.array([qm.Q(qk).T @ [0, 0, 1] for qk in q[-200:]])
+    up_true = acc[-200:] / np.linalg.norm(acc[-200:], axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(np.sum(up_est * up_true, axis=1), -1, 1)))
+    assert np.median(angle) < 5.0
+
+
+def test_malformed_csv_rows_are_skipped_and_counted(tmp_path):
+    t, gyr, acc, mag = motion(n=100)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag,
+                    extra_lines=["0.033,1,2", "0.034,a,b,c,d,e,f,g,h,i"])
+    out = tmp_path / "out.csv"
+    proc = run_cli("estimate", src, "--out", out, "--filter", "lab")
+    check_output(out, len(t))
+    assert "2 malformed lines skipped" in proc.stderr
+    quiet = run_cli("estimate", src, "--out", out, "--filter", "lab", "--quiet")
+    assert len(quiet.stderr.strip().splitlines()) == 1
+    throughput(quiet.stderr)
+
+
+@pytest.mark.parametrize("timebase", ["t", "fs"])
+def test_estimate_npz(tmp_path, timebase):
+    t, gyr, acc, mag = bad_rows(*motion(n=300))
+    src = tmp_path / "in.npz"
+    extra = {"t": t} if timebase == "t" else {"fs": 100.0}
+    np.savez(src, gyr=gyr, acc=acc, mag=mag, opt_quat=np.zeros((len(t), 4)), **extra)
+    out = tmp_path / "out.csv"
+    proc = run_cli("estimate", src, "--out", out, "--chunk", "70")
+    check_output(out, len(t))
+    assert throughput(proc.stderr)[0] == len(t)
+
+
+def test_chunked_run_equals_one_run(tmp_path):
+    """Estimator state carries over from chunk to chunk."""
+    t, gyr, acc, mag = motion(n=400)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    run_cli("estimate", src, "--out", a, "--chunk", "37")
+    run_cli("estimate", src, "--out", b, "--chunk", "100000")
+    assert a.read_text() == b.read_text()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_estimate_real_logs(real_log, name, tmp_path, capsys):
+    """Every real log with every estimator. In-process (``app.cli.main``, the very code
+    the console script runs) to spare 36 interpreter starts; the tests above cover the
+    process boundary."""
+    out = tmp_path / "out.csv"
+    assert main(["estimate", str(real_log), "--out", str(out), "--filter", name]) == 0
+    stderr = capsys.readouterr().err
+    n, seconds, rate = throughput(stderr)
+    check_output(out, n)
+    _, rows = read_output(out)
+    ts = np.array([float(r[0]) for r in rows])
+    assert np.all(np.diff(ts) >= 0)
+    if "standstill" in real_log.name:
+        assert "2 malformed lines skipped (wrong_count: 2)" in stderr
+
+
+def test_set_and_config(tmp_path):
+    t, gyr, acc, mag = motion(n=200)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    out = tmp_path / "out.csv"
+    # JSON values (number, list) and a plain string value
+    run_cli("estimate", src, "--out", out, "--filter", "lab", "--set", "gyr_noise=0.02",
+            "--set", "time_update=approx", "--set", "g0=[0,0,9.8]")
+    check_output(out, len(t))
+    preset = tmp_path / "p.toml"
+    preset.write_text('primary = "lab"\n[lab]\nacc_noise = 0.3\n')
+    proc = run_cli("estimate", src, "--out", out, "--config", preset)
+    check_output(out, len(t))
+
+
+@pytest.mark.parametrize("setting, field", [
+    ("gyr_noise=5", "gyr_noise"),            # out of range
+    ("acc_noise=abc", "acc_noise"),          # not a number
+    ("no_such_param=1", "no_such_param"),    # unknown
+    ("time_update=fast", "time_update"),     # not a choice
+])
+def test_bad_set_exits_2_naming_the_field(tmp_path, setting, field):
+    t, gyr, acc, mag = motion(n=20)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    out = tmp_path / "out.csv"
+    proc = run_cli("estimate", src, "--out", out, "--filter", "lab", "--set", setting,
+                   check_rc=2)
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert field in proc.stderr and proc.stderr.startswith("orientlab: error:")
+    assert not out.exists()
+
+
+def test_bad_config_exits_2(tmp_path):
+    preset = tmp_path / "p.toml"
+    preset.write_text("[lab]\nacc_noise = -1\n")
+    proc = run_cli("estimate", "x.csv", "--out", tmp_path / "o.csv", "--config", preset,
+                   check_rc=2)
+    assert "acc_noise" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("content", ["just some text\nnothing else\n", "t,foo\n1,2\n", None])
+def test_unknown_format_missing_columns_or_file_exit_2(tmp_path, content):
+    src = tmp_path / "in.txt"
+    if content is not None:
+        src.write_text(content)
+    out = tmp_path / "out.csv"
+    proc = run_cli("estimate", src, "--out", out, check_rc=2)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("orientlab: error:") and str(src) in lines[0]
+    assert not out.exists()
+    assert not list(tmp_path.glob(".orientlab-*"))     # no temporary file left behind
+
+
+# ---------------------------------------------------------------- calibrate, help
+
+def test_calibrate_writes_a_preset_estimate_accepts(tmp_path):
+    rng = np.random.default_rng(1)
+    n = 1000
+    q = qm.normalize(np.array([0.9, 0.3, -0.2, 0.1]))
+    R = qm.Q(q)
+    t = np.arange(n) / 100.0
+    acc = R.T @ [0, 0, 9.81] + rng.normal(0, 0.05, (n, 3))
+    gyr = np.array([0.01, -0.02, 0.003]) + rng.normal(0, 0.002, (n, 3))
+    mag = R.T @ [0, 15.0, -45.0] + rng.normal(0, 0.3, (n, 3))
+    src = write_csv(tmp_path / "still.csv", t, gyr, acc, mag)
+    preset = tmp_path / "preset.toml"
+    proc = run_cli("calibrate", src, "--out", preset)
+    assert "accelerometer (m/s²)" in proc.stdout and "stationary: yes" in proc.stdout
+    text = preset.read_text(encoding="utf-8")
+    assert "[lab]" in text and "[robust]" in text
+    m0 = re.search(r"^m0 = \[(.*)\]$", text, re.M).group(1)
+    np.testing.assert_allclose([float(v) for v in m0.split(",")], [0, 15, -45], atol=0.3)
+    out = tmp_path / "out.csv"
+    run_cli("estimate", src, "--out", out, "--filter", "lab", "--config", preset)
+    check_output(out, n)
+
+
+def test_help_texts():
+    top = run_cli("--help")
+    for cmd in ("estimate", "calibrate", "serve"):
+        assert cmd in top.stdout
+    est = run_cli("estimate", "--help").stdout
+    for opt in ("--out", "--filter", "--config", "--set", "--quiet"):
+        assert opt in est
+    serve = run_cli("serve", "--help").stdout
+    for opt in ("--host", "--port", "--viewer-port", "--phone-port", "--config", "--source"):
+        assert opt in serve
+    run_cli("calibrate", "--help")
+    assert run_cli(check_rc=2).returncode == 2          # no command: usage error
+
+
+def test_console_script_is_installed():
+    exe = REPO / ".venv" / "bin" / "orientlab"
+    if not exe.exists():
+        pytest.skip("console script not installed in .venv")
+    proc = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "estimate" in proc.stdout
