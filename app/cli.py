@@ -18,7 +18,7 @@
     Rows: for CSV and npz input exactly one output row per input row, in order; a CSV
     line that cannot be parsed at all (wrong number of cells, text in a number cell) is
     skipped and counted, but a row with NaN, inf or empty cells is kept (the estimator
-    flags it). ``t`` is copied from the input. For an app log, one row per ACC, GYR,
+    flags it). ``t`` is copied from the input (to the microsecond). For an app log, one row per ACC, GYR,
     MAG or ORI sample in time order, ``t`` on the log's reference clock.
 
     The output is written to a temporary file renamed to OUT at the end, so a failed

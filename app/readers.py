@@ -62,8 +62,9 @@ class ReaderError(ValueError):
 class Recording:
     """Rows of sensor data. ``gyr``/``acc``/``mag`` are (N, 3) with NaN where missing,
     ``ori`` (N, 4) or None, ``t`` (N,) s. ``counts`` says what was skipped or noticed:
-    ``malformed`` (reason -> lines), and for app logs ``tags``, ``late``, ``clamped``
-    and ``offsets_s`` (see :mod:`app.stream`). In a chunk from :func:`iter_chunks`,
+    ``malformed`` (reason -> lines); for app logs also ``lines``, ``tags``, ``late``,
+    ``clamped``, ``offsets_s`` and ``rates_hz`` (see :mod:`app.stream`); for CSV and
+    npz ``rows`` and ``columns`` (the sensors present). In a chunk from :func:`iter_chunks`,
     ``counts`` are totals up to the end of that chunk (the last chunk holds the file's
     totals) and ``done`` is the fraction of the input consumed."""
     t: np.ndarray
