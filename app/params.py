@@ -33,13 +33,15 @@ class ParamError(ValueError):
 def param(default, *, unit: str = "", lo: float | None = None, hi: float | None = None,
       doc: str = "", user_unit: str | None = None, user_scale: float = 1.0,
       choices: tuple | None = None, log: bool = False, tunable: bool = True,
-      length: int | None = None, optional: bool = False):
+      length: int | None = None, optional: bool = False, integer: bool | None = None):
     """A parameter field. ``user_unit``/``user_scale`` give the unit shown to users:
     ``user_value = value * user_scale`` (for example rad/s shown as deg/s).
     ``log`` marks a quantity tuned over decades (noise levels)."""
     meta = dict(unit=unit, lo=lo, hi=hi, doc=doc, user_unit=user_unit or unit,
                 user_scale=user_scale, choices=choices, log=log, tunable=tunable,
-                length=length, optional=optional)
+                length=length, optional=optional,
+                integer=isinstance(default, int) and not isinstance(default, bool)
+                if integer is None else integer)
     if isinstance(default, list):
         default = tuple(default)
     if isinstance(default, tuple):
@@ -141,7 +143,8 @@ def describe(params_cls) -> list[dict[str, Any]]:
         rows.append(dict(name=f.name, default=list(v) if isinstance(v, tuple) else v,
                          unit=m.get("unit", ""), lo=m.get("lo"), hi=m.get("hi"),
                          user_unit=m.get("user_unit", ""), user_scale=m.get("user_scale", 1.0),
-                         choices=m.get("choices"), log=m.get("log", False), doc=m.get("doc", "")))
+                         choices=m.get("choices"), log=m.get("log", False), doc=m.get("doc", ""),
+                         tunable=m.get("tunable", True), integer=m.get("integer", False)))
     return rows
 
 

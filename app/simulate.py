@@ -8,7 +8,7 @@ through the lab manual's experiments one scene after the other:
 ``turn_x``       a slow turn to 90° about the sensor's x axis and back
 ``turn_y``       likewise about y
 ``turn_z``       likewise about z (heading only: the magnetometer's job)
-``shake``        shaken along the world's east axis (specific force ±6 m/s²)
+``shake``        shaken by hand: ±12 m/s² along east and ±6 m/s² up and down
 ``magnet``       a magnet passes by (up to +80 µT towards east, for ~2 s)
 ``gyro_dropout`` a turn about z and back while the gyroscope sends nothing
 ========== =================================================================
@@ -130,7 +130,9 @@ def _scene_motion(name: str, tau: np.ndarray, T: float):
     elif name == "shake":
         env = np.sin(np.pi * u) ** 2
         f = 2.5
-        a_lin[:, 0] = 6.0 * env * np.sin(2 * np.pi * f * tau)
+        # a hand's shake: strong enough that |a| leaves report A's 0.75 g - 1.25 g band
+        a_lin[:, 0] = 12.0 * env * np.sin(2 * np.pi * f * tau)
+        a_lin[:, 2] = 6.0 * env * np.sin(2 * np.pi * f * tau + np.pi / 3)
         wob = math.radians(4.0)
         rv[:, 1] = wob * env * np.sin(2 * np.pi * f * tau)
         denv = 2 * np.sin(np.pi * u) * np.cos(np.pi * u) * np.pi / T

@@ -65,8 +65,11 @@ class LabParams(CommonParams):
     mag_alpha: float = param(0.01, lo=0.0, hi=1.0, doc="α of the field-strength filter L_k")
     nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
                             doc="innovation gate on NIS (χ², 3 dof) for both updates; 0: off")
-    p0: float = param(0.01, lo=1e-8, hi=10.0, log=True, tunable=False,
+    p0: float = param(0.1, lo=1e-8, hi=10.0, log=True, tunable=False,
                       doc="initial P = p0 I after alignment")
+    m0_learn_time: float = param(2.0, unit="s", lo=0.0, hi=60.0, tunable=False,
+                                 doc="when m0 is not given: learn it by (7) from the mean field of "
+                                     "this long after alignment (the accelerometer levels it meanwhile)")
 
     def check(self) -> None:
         if np.linalg.norm(self.g0) < 1.0:
@@ -111,6 +114,10 @@ class LabEKF(Estimator):
         self._acc_wait = None   # (t, acc) waiting for a magnetometer sample to align
         self._m0 = None if self._params.m0 is None else np.array(self._params.m0, dtype=float)
         self.L = float("nan")
+        self._m_mean = np.zeros(3)  # world-frame field averaged while m0 is learned
+        self._m_n = 0
+        self._m_t = float("nan")
+        self._t_align = float("nan")
 
     # ------------------------------------------------------------------ helpers
     def _align(self, acc, mag) -> None:
@@ -118,13 +125,35 @@ class LabEKF(Estimator):
         use_mag = mag is not None
         self.x = qm.q_from_acc_mag(acc, mag if use_mag else np.zeros(3), use_mag)
         self.P = p.p0 * np.eye(4)
-        if use_mag and self._m0 is None:
-            mw = qm.Q(self.x) @ mag  # formula (7) after levelling
-            self._m0 = np.array([0.0, np.hypot(mw[0], mw[1]), mw[2]])
         if self._m0 is not None:
             self.L = float(np.linalg.norm(self._m0))
         self._init = True
         self._acc_wait = None
+        self._t_align = self.t
+
+    def _learn_m0(self, mag, flags) -> bool:
+        """Formula (7) on the mean field levelled by the current estimate over
+        ``m0_learn_time`` (exponentially weighted, so the samples taken while the
+        accelerometer was still levelling count little); the heading is then aligned
+        with that mean field, as the initial alignment would have done with it.
+        True once m0 is known."""
+        if self._m0 is not None:
+            return True
+        mw = qm.Q(self.x) @ mag
+        tau = max(self._params.m0_learn_time / 4.0, 1e-3)
+        k = 1.0 if self._m_n == 0 else min(1.0, max(self.t - self._m_t, 0.0) / tau)
+        self._m_mean += k * (mw - self._m_mean)
+        self._m_n += 1
+        self._m_t = self.t
+        flags[F_MAG] = Reason.WAIT
+        if self.t - self._t_align >= self._params.m0_learn_time:
+            m = self._m_mean
+            psi = np.arctan2(m[0], m[1])  # the mean field's heading east of north
+            self.x = qm.normalize(qm.quat_mul(qm.quat_from_rotvec(np.array([0.0, 0.0, psi])), self.x))
+            self._m0 = np.array([0.0, np.hypot(m[0], m[1]), m[2]])
+            self.L = float(np.linalg.norm(self._m0))
+            flags[F_MAG] = Reason.INIT
+        return False
 
     def _time_update(self, w, T) -> None:
         p = self._params
@@ -169,11 +198,7 @@ class LabEKF(Estimator):
             else:
                 self._measurement_update(acc, self._g0, self._Ra, flags, F_ACC, F_ACC_NIS)
 
-        if row.mag == Reason.USED:
-            if self._m0 is None:  # aligned without a magnetometer: learn m0 now
-                mw = qm.Q(self.x) @ mag
-                self._m0 = np.array([0.0, np.hypot(mw[0], mw[1]), mw[2]])
-                self.L = float(np.linalg.norm(self._m0))
+        if row.mag == Reason.USED and self._learn_m0(mag, flags):
             a = p.mag_alpha
             self.L = (1.0 - a) * self.L + a * float(np.linalg.norm(mag))
             m0n = float(np.linalg.norm(self._m0))
@@ -206,11 +231,7 @@ class LabEKF(Estimator):
         if not p.use_acc and (row.mag == Reason.USED or row.gyr == Reason.USED):
             # no accelerometer: start level and let the updates (or the gyro) take over
             self._init = True
-            if row.mag == Reason.USED:
-                self._m0 = self._m0 if self._m0 is not None else np.array(
-                    [0.0, np.hypot(mag[0], mag[1]), mag[2]])
-                self.L = float(np.linalg.norm(self._m0))
-                flags[F_MAG] = Reason.INIT
+            self._t_align = t
 
     # ------------------------------------------------------------------ read-outs
     @property

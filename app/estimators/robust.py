@@ -56,27 +56,27 @@ ALIGN_WAIT_S = 0.5
 class RobustParams(CommonParams):
     gyr_noise: float = param(0.005, unit="rad/√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/√s",
                              user_scale=DEG, doc="gyroscope noise density (attitude random walk)")
-    bias_noise: float = param(1e-4, unit="rad/s/√s", lo=0.0, hi=0.1, log=True, user_unit="deg/s/√s",
+    bias_noise: float = param(3e-5, unit="rad/s/√s", lo=0.0, hi=0.1, log=True, user_unit="deg/s/√s",
                               user_scale=DEG, doc="gyroscope bias random walk")
-    bias_init: float = param(0.02, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
+    bias_init: float = param(0.05, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="initial gyroscope bias (calibration)")
-    tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+    tilt_noise: float = param(0.02, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                               user_scale=DEG, doc="noise density of the low-passed gravity direction")
-    acc_tau: float = param(3.0, unit="s", lo=0.0, hi=60.0,
+    acc_tau: float = param(1.0, unit="s", lo=0.0, hi=60.0,
                            doc="time constant of the inertial low-pass of the accelerometer")
     acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
                                 doc="accelerometer used only while | |a| - g | <= this × g; 0: off")
-    acc_nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
+    acc_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
-    heading_noise: float = param(0.05, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+    heading_noise: float = param(0.1, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                                  user_scale=DEG, doc="noise density of the magnetometer heading")
-    mag_nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
+    mag_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the heading update (χ², 1 dof); 0: off")
-    mag_norm_gate_rel: float = param(0.1, lo=0.0, hi=2.0,
+    mag_norm_gate_rel: float = param(0.06, lo=0.0, hi=2.0,
                                      doc="field strength may differ from the reference by this fraction; 0: off")
-    mag_dip_gate: float = param(10.0 / DEG, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
+    mag_dip_gate: float = param(15.0 / DEG, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
                                 doc="dip angle may differ from the reference by this much; 0: off")
     mag_ref_tau: float = param(30.0, unit="s", lo=0.1, hi=3600.0,
                                doc="time constant of learning the field reference while undisturbed")
@@ -130,7 +130,7 @@ S_REJ_T = 33     # s of continuous magnetic rejection
 S_T0 = 34        # time of the alignment
 S_MAG_T = 35     # time of the last magnetometer update attempt
 S_ACC_T = 36     # time of the last accelerometer sample
-S_GLP_OK = 37    # 1 once the rest low-passes are initialised
+S_GLP_T = 37     # time of the last gyroscope sample in the rest low-pass (NaN: none yet)
 S_REST = 38      # 1 at rest
 S_NIS_REJ_T = 39 # s of continuous heading-NIS rejection
 S_ACC_UPD_T = 40 # s of used accelerometer samples since the last tilt update
@@ -138,7 +138,8 @@ S_REST_UPD_T = 41  # s at rest since the last bias update
 S_MAG_SUM = 42   # 3: sum of world-frame field samples since the last heading update
 S_MAG_CNT = 45   # how many
 S_MAG_UPD_T = 46 # s of used magnetometer samples since the last heading update
-NSTATE = 47
+S_AL2_T = 47     # likewise for the accelerometer
+NSTATE = 48
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
 
@@ -273,8 +274,10 @@ def _due(s, idx, dt, p):
     when it reaches 1/update_rate_hz, reset it and return (True, accumulated s).
     The accumulated time of *used* samples is what scales R = σ²/Δt, so an update
     after a long rejection is not mistaken for a long, information-rich average."""
-    s[idx] += min(max(dt, 0.0), 0.1)
-    if s[idx] >= p[P_UPD_DT] and s[idx] > 0.0:
+    dt = min(max(dt, 0.0), 0.1)
+    s[idx] += dt
+    # half a sample of tolerance: 100 Hz data with jittery stamps still updates at 100 Hz
+    if s[idx] >= p[P_UPD_DT] - 0.5 * dt and s[idx] > 0.0:
         acc = s[idx]
         s[idx] = 0.0
         return True, acc
@@ -315,53 +318,52 @@ def _predict(s, P, p, w, dt):
 
 
 @njit(cache=True)
+def _lp_sensor(s, idx, idx_t, v, t, tau):
+    """Low-pass ``s[idx:idx+3]`` towards v with the time since that sensor's last
+    sample (a phone sends one sensor per row); returns |v - low-pass|."""
+    if np.isnan(s[idx_t]):
+        s[idx:idx + 3] = v
+        s[idx_t] = t
+        return 0.0
+    k = _lp_coef(min(t - s[idx_t], 0.1), tau)
+    s[idx_t] = t
+    d2 = 0.0
+    for i in range(3):
+        s[idx + i] += k * (v[i] - s[idx + i])
+        d2 += (v[i] - s[idx + i]) ** 2
+    return np.sqrt(d2)
+
+
+@njit(cache=True)
 def _rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
     """Rest detection on the deviation of gyroscope and accelerometer from their
     low-passes; at rest the low-passed gyroscope measures the bias directly."""
     if p[P_REST_T] <= 0.0:
         s[S_REST] = 0.0
         return
-    tau = 0.5
-    if s[S_GLP_OK] == 0.0:
-        if has_gyr:
-            s[S_GLP:S_GLP + 3] = gyr
-        if has_acc:
-            s[S_AL2:S_AL2 + 3] = acc
-        if has_gyr and has_acc:
-            s[S_GLP_OK] = 1.0
-        return
     quiet = True
-    if has_gyr:
-        k = _lp_coef(dt, tau) if dt > 0 else 0.0
-        for i in range(3):
-            s[S_GLP + i] += k * (gyr[i] - s[S_GLP + i])
-        d = gyr - s[S_GLP:S_GLP + 3]
-        if qm.norm3(d) > p[P_REST_GYR]:
-            quiet = False
-    if has_acc:
-        k = _lp_coef(dt, tau) if dt > 0 else 0.0
-        for i in range(3):
-            s[S_AL2 + i] += k * (acc[i] - s[S_AL2 + i])
-        d = acc - s[S_AL2:S_AL2 + 3]
-        if qm.norm3(d) > p[P_REST_ACC]:
-            quiet = False
-    if quiet:
-        s[S_REST_T] += dt
-    else:
-        s[S_REST_T] = 0.0
+    if has_gyr and _lp_sensor(s, S_GLP, S_GLP_T, gyr, t, 0.5) > p[P_REST_GYR]:
+        quiet = False
+    if has_acc and _lp_sensor(s, S_AL2, S_AL2_T, acc, t, 0.5) > p[P_REST_ACC]:
+        quiet = False
+    s[S_REST_T] = s[S_REST_T] + dt if quiet else 0.0
     s[S_REST] = 1.0 if s[S_REST_T] >= p[P_REST_T] else 0.0
     f[F_REST] = s[S_REST]
-    if s[S_REST] == 0.0 or not has_gyr:
+    if s[S_REST] == 0.0:
         s[S_REST_UPD_T] = 0.0
         return
-    due, elapsed = _due(s, S_REST_UPD_T, dt, p)
-    if due:
-        Rm = (p[P_REST_NOISE] ** 2 / elapsed) * np.eye(3)
-        innov = s[S_GLP:S_GLP + 3] - s[S_B:S_B + 3]
-        ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0)
-        if ok:
-            _inject(s, P, dx)
-            f[F_GYR] = R_REST
+    # time at rest since the last bias update; the update runs on a gyroscope row
+    s[S_REST_UPD_T] += min(dt, 0.1)
+    if not has_gyr or s[S_REST_UPD_T] < p[P_UPD_DT] - 0.5 * dt or s[S_REST_UPD_T] <= 0.0:
+        return
+    elapsed = s[S_REST_UPD_T]
+    s[S_REST_UPD_T] = 0.0
+    Rm = (p[P_REST_NOISE] ** 2 / elapsed) * np.eye(3)
+    innov = s[S_GLP:S_GLP + 3] - s[S_B:S_B + 3]
+    ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0)
+    if ok:
+        _inject(s, P, dx)
+        f[F_GYR] = R_REST
 
 
 @njit(cache=True)
@@ -370,9 +372,6 @@ def _acc_update(s, P, p, t, acc, f):
     f[F_ACC_VAL] = n
     dt = t - s[S_ACC_T] if np.isfinite(s[S_ACC_T]) else 0.0
     s[S_ACC_T] = t
-    if p[P_ACC_BAND] > 0.0 and abs(n - GRAVITY) > p[P_ACC_BAND] * GRAVITY:
-        f[F_ACC] = R_NORM
-        return
     if dt <= 0.0:
         dt = 1e-3
     # inertial low-pass, with a running mean while younger than acc_tau (fast start)
@@ -384,6 +383,12 @@ def _acc_update(s, P, p, t, acc, f):
     for i in range(3):
         s[S_ALP + i] += k * (aw[i] - s[S_ALP + i])
     f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
+    # Every valid sample enters the low-pass: the specific force only averages out if
+    # none is left out (refusing the peaks of a movement would bias the mean). The norm
+    # band gates the *correction* instead: no tilt update while |a| is far from g.
+    if p[P_ACC_BAND] > 0.0 and abs(n - GRAVITY) > p[P_ACC_BAND] * GRAVITY:
+        f[F_ACC] = R_NORM
+        return
     due, elapsed = _due(s, S_ACC_UPD_T, dt, p)
     if not due:
         return
