@@ -95,7 +95,7 @@ class RobustParams(CommonParams):
                               user_scale=DEG, doc="noise density of the bias measurement at rest")
     rw_noise: float = param(0.5, unit="rad/√s", lo=1e-4, hi=10.0, log=True,
                             doc="attitude random walk without gyroscope")
-    update_rate_hz: float = param(100.0, unit="Hz", lo=0.0, hi=10000.0,
+    update_rate_hz: float = param(50.0, unit="Hz", lo=0.0, hi=10000.0,
                                   doc="most measurement updates per second and sensor (the low-passes "
                                       "and averages see every sample); 0: every sample")
 
@@ -139,7 +139,8 @@ S_MAG_SUM = 42   # 3: sum of world-frame field samples since the last heading up
 S_MAG_CNT = 45   # how many
 S_MAG_UPD_T = 46 # s of used magnetometer samples since the last heading update
 S_AL2_T = 47     # likewise for the accelerometer
-NSTATE = 48
+S_WCUR = 48      # 3: scratch: the rate integrated over the current row
+NSTATE = 51
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
 
@@ -297,18 +298,27 @@ def _predict(s, P, p, w, dt):
         return
     R = qm.Q(s[S_Q:S_Q + 4])
     _integrate(s, (w[0] - s[S_B]) * dt, (w[1] - s[S_B + 1]) * dt, (w[2] - s[S_B + 2]) * dt)
-    # F = [[I, A], [0, I]] with A = -R dt;  P <- F P F' + Qd, written out by blocks:
-    # Ptt += A Pbt + Ptb A' + A Pbb A';  Ptb += A Pbb
-    A = -R * dt
-    APbb = mm(A, P[3:6, 3:6])
-    APbt = mm(A, P[3:6, 0:3])
-    APbbAt = mmT(APbb, A)
+    # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
+    # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]
+    T = np.zeros((3, 6))
+    for i in range(3):
+        for k in range(3):
+            r = R[i, k]
+            for j in range(3):
+                T[i, j] += r * P[3 + k, 3 + j]      # R Pbb
+                T[i, 3 + j] += r * P[3 + k, j]      # R Pbt
+    dt2 = dt * dt
+    for i in range(3):
+        for j in range(i, 3):
+            v = -dt * (T[i, 3 + j] + T[j, 3 + i])
+            for l in range(3):
+                v += dt2 * T[i, l] * R[j, l]
+            P[i, j] += v
+            if j != i:
+                P[j, i] = P[i, j]
     for i in range(3):
         for j in range(3):
-            P[i, j] += APbt[i, j] + APbt[j, i] + APbbAt[i, j]
-    for i in range(3):
-        for j in range(3):
-            P[i, 3 + j] += APbb[i, j]
+            P[i, 3 + j] -= dt * T[i, j]
             P[3 + j, i] = P[i, 3 + j]
     gv = p[P_GYR_NOISE] ** 2 * dt
     bv = p[P_BIAS_NOISE] ** 2 * dt
@@ -515,7 +525,8 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
     f[F_ACC] = as_
     f[F_MAG] = ms
     s[S_T] = t
-    w = np.full(3, np.nan)
+    w = s[S_WCUR:S_WCUR + 3]  # the rate integrated over this row (a slot of the state)
+    w[:] = np.nan
     if p[P_USE_GYR] > 0.5:
         if gs == R_USED:
             w[:] = gyr
