@@ -149,6 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="'demo' (simulated phone), 'none' (wait for a phone) or a "
                         "recording to replay (default demo)")
     s.set_defaults(func=cmd_serve)
+
+    m = sub.add_parser(
+        "params", help="list every estimator's parameters (units, ranges, defaults)",
+        description="Print the parameter table, or with --toml the defaults as a preset.")
+    m.add_argument("--toml", action="store_true", help="print configs/default.toml")
+    m.set_defaults(func=cmd_params)
     return p
 
 
@@ -341,6 +347,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except ImportError as e:
         raise CliError(f"serve is not available ({e})") from None
     return int(serve(args) or 0)
+
+
+def cmd_params(args) -> int:
+    from .config import defaults_toml, params_table
+    print(defaults_toml() if args.toml else params_table(), end="")
+    return 0
 
 
 # ---------------------------------------------------------------- entry point

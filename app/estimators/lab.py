@@ -62,6 +62,9 @@ class LabParams(CommonParams):
                                 doc="accelerometer used only while | |a| - |g0| | <= this × |g0|; 0: off")
     mag_band_rel: float = param(0.2, lo=0.0, hi=1.0,
                                 doc="magnetometer used only while | L_k - |m0| | <= this × |m0|; 0: off")
+    mag_band_uT: tuple | None = param(None, unit="µT", length=2, lo=0.0, hi=1000.0, optional=True,
+                                      tunable=False, doc="absolute band (lo, hi) for L_k, as report A's "
+                                      "35-55 µT; overrides mag_band_rel when given")
     mag_alpha: float = param(0.01, lo=0.0, hi=1.0, doc="α of the field-strength filter L_k")
     nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
                             doc="innovation gate on NIS (χ², 3 dof) for both updates; 0: off")
@@ -74,6 +77,8 @@ class LabParams(CommonParams):
     def check(self) -> None:
         if np.linalg.norm(self.g0) < 1.0:
             raise ParamError("g0", "must be a gravity vector (|g0| >= 1 m/s²)")
+        if self.mag_band_uT is not None and not self.mag_band_uT[0] < self.mag_band_uT[1]:
+            raise ParamError("mag_band_uT", "must be (lo, hi) with lo < hi")
         for name in ("gyr_cov", "acc_cov", "mag_cov"):
             c = getattr(self, name)
             if c is not None:
@@ -201,12 +206,22 @@ class LabEKF(Estimator):
         if row.mag == Reason.USED and self._learn_m0(mag, flags):
             a = p.mag_alpha
             self.L = (1.0 - a) * self.L + a * float(np.linalg.norm(mag))
-            m0n = float(np.linalg.norm(self._m0))
             flags[F_MAG_VAL] = self.L
-            if p.mag_band_rel > 0.0 and abs(self.L - m0n) > p.mag_band_rel * m0n:
+            band = self._mag_band()
+            if band is not None and not band[0] <= self.L <= band[1]:
                 flags[F_MAG] = Reason.FIELD
             else:
                 self._measurement_update(mag, self._m0, self._Rm, flags, F_MAG, F_MAG_NIS)
+
+    def _mag_band(self) -> tuple[float, float] | None:
+        """The band L_k must stay in (µT), or None when the gate is off."""
+        p = self._params
+        if p.mag_band_uT is not None:
+            return float(p.mag_band_uT[0]), float(p.mag_band_uT[1])
+        if p.mag_band_rel > 0.0 and self._m0 is not None:
+            m0n = float(np.linalg.norm(self._m0))
+            return m0n * (1 - p.mag_band_rel), m0n * (1 + p.mag_band_rel)
+        return None
 
     def _try_align(self, t, row, acc, mag, flags) -> None:
         """Initial alignment from the first accelerometer (+ magnetometer) sample."""
@@ -252,10 +267,9 @@ class LabEKF(Estimator):
     def diagnostics(self) -> dict:
         p = self._params
         g = float(np.linalg.norm(self._g0))
-        m0n = float(np.linalg.norm(self._m0)) if self._m0 is not None else float("nan")
         return {
             "acc_band": (g * (1 - p.acc_band_rel), g * (1 + p.acc_band_rel)) if p.acc_band_rel > 0 else None,
-            "mag_band": (m0n * (1 - p.mag_band_rel), m0n * (1 + p.mag_band_rel)) if p.mag_band_rel > 0 else None,
+            "mag_band": self._mag_band(),
             "L_k": self.L,
             "m0": None if self._m0 is None else self._m0.tolist(),
             "g0": self._g0.tolist(),

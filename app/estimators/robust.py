@@ -67,7 +67,8 @@ class RobustParams(CommonParams):
     acc_tau: float = param(1.0, unit="s", lo=0.0, hi=60.0,
                            doc="time constant of the inertial low-pass of the accelerometer")
     acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
-                                doc="accelerometer used only while | |a| - g | <= this × g; 0: off")
+                                doc="tilt corrections pause while | |a| - g | > this × g (every sample "
+                                    "still enters the low-pass); 0: off")
     acc_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
     heading_noise: float = param(0.1, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",

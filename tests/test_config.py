@@ -1,0 +1,70 @@
+"""Presets: configs/default.toml mirrors the parameter definitions, the shipped presets
+load and run, and a bad preset is refused with the section and key named."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.config import ConfigError, defaults_toml, estimator_params, load_config, params_table
+from app.estimators import NAMES, estimator_class, make_estimator
+from app.params import CONFIG_DIR, DEFAULT_CONFIG, load_toml, to_dict
+from app.simulate import simulate
+
+
+def test_default_toml_is_the_parameter_definitions():
+    """The file users read is generated from the dataclasses; regenerate it with
+    `orientlab params --toml > configs/default.toml` when a default changes."""
+    assert DEFAULT_CONFIG.read_text() == defaults_toml()
+    raw = load_toml(DEFAULT_CONFIG)
+    for name in NAMES:
+        defaults = to_dict(estimator_class(name).Params())
+        given = {k: v for k, v in defaults.items() if v is not None}
+        assert raw[name] == given, name
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in CONFIG_DIR.glob("*.toml")))
+def test_every_shipped_preset_loads_and_runs(preset):
+    cfg = load_config(preset)
+    res = simulate(("still", "turn_x", "shake"), seed=1)
+    from app.protocol import Sample
+    from app.stream import samples_to_rows
+    rows = samples_to_rows([Sample(m, t, tuple(v)) for m, t, v in res.samples])
+    for name in NAMES:
+        est = make_estimator(name, estimator_params(cfg, name))
+        out = est.run(rows.t, rows.gyr, rows.acc, rows.mag, rows.ori)
+        assert np.all(np.isfinite(out.q))
+
+
+def test_galaxy_s7_preset_is_report_a():
+    cfg = load_config("galaxy_s7")
+    assert cfg["primary"] == "lab"
+    lab = make_estimator("lab", cfg["lab"])
+    assert lab.diagnostics()["mag_band"] == (35.0, 55.0)
+    np.testing.assert_allclose(np.diag(lab._Rw), [2.285e-06, 1.231e-06, 1.729e-06])
+    assert lab.params.time_update == "approx"
+
+
+@pytest.mark.parametrize("text,words", [
+    ('[robust]\nno_such_key = 1\n', ["[robust]", "no_such_key"]),
+    ('[robust]\ngyr_noise = -1.0\n', ["[robust]", "gyr_noise", "minimum"]),
+    ('[kalman]\nx = 1\n', ["[kalman]", "not an estimator"]),
+    ('primary = "best"\n', ["primary", "best"]),
+    ('[lab]\ntime_update = "euler"\n', ["time_update", "exact"]),
+    ('[lab\n', ["not valid TOML"]),
+])
+def test_a_bad_preset_is_refused_naming_what_is_wrong(tmp_path, text, words):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_params_table_lists_every_parameter_with_its_unit():
+    table = params_table()
+    for name in NAMES:
+        for f in estimator_class(name).Params.__dataclass_fields__:
+            assert f"`{f}`" in table
+    assert "deg/s" in table  # user units shown beside SI ones
