@@ -254,10 +254,18 @@ def q2euler(q):
     return e
 
 
+@njit(cache=True)
+def _q2euler_rows(qs):
+    out = np.empty((qs.shape[0], 3))
+    for k in range(qs.shape[0]):
+        out[k] = q2euler(qs[k])
+    return out
+
+
 def q2euler_many(qs: np.ndarray) -> np.ndarray:
-    """q2euler for an (N, 4) array; returns (N, 3)."""
-    qs = np.atleast_2d(np.asarray(qs, dtype=float))
-    return np.array([q2euler(q) for q in qs]).reshape(-1, 3)
+    """q2euler for an (N, 4) array; returns (N, 3) (one compiled loop)."""
+    qs = np.ascontiguousarray(np.atleast_2d(np.asarray(qs, dtype=float)))
+    return _q2euler_rows(qs)
 
 
 def error_angles(q_est: np.ndarray, q_ref: np.ndarray):

@@ -681,7 +681,11 @@ class RobustEKF(Estimator):
             "mag_band": (ref_n * (1 - p.mag_norm_gate_rel), ref_n * (1 + p.mag_norm_gate_rel))
             if p.mag_norm_gate_rel > 0 and s[S_REF_OK] else None,
             "mag_ref_norm": ref_n,
+            # elevation of the field (rad): negative where it points down (north)
             "mag_ref_dip": s[S_REF_D] if s[S_REF_OK] else float("nan"),
+            # the expected field in world coordinates (µT): north and the learned dip
+            "m0": [0.0, ref_n * np.cos(s[S_REF_D]), ref_n * np.sin(s[S_REF_D])]
+            if s[S_REF_OK] else None,
             "acc_lp_world": s[S_ALP:S_ALP + 3].tolist(),
             "gyr_bias": s[S_B:S_B + 3].tolist(),
             "rest": bool(s[S_REST]),

@@ -230,15 +230,9 @@ class Scene:
 
 def expected_field(diag: dict) -> np.ndarray | None:
     """The reference magnetic field in world coordinates (µT) from an estimator's
-    diagnostics: ``m0`` (lab), or ``mag_ref_norm``/``mag_ref_dip`` (robust: field
-    towards north, dipping down), else None."""
+    diagnostics (``m0``: lab's nominal field, robust's learned reference), else None."""
     m0 = diag.get("m0")
-    if m0 is not None:
-        return np.asarray(m0, float)
-    n, dip = diag.get("mag_ref_norm"), diag.get("mag_ref_dip")
-    if n is not None and dip is not None and math.isfinite(n) and math.isfinite(dip):
-        return n * np.array([0.0, math.cos(dip), -math.sin(dip)])
-    return None
+    return None if m0 is None else np.asarray(m0, float)
 
 
 def indicator_text(s: Snapshot) -> str:
