@@ -76,6 +76,9 @@ class TimeIssue(IntEnum):
     FIRST = 4       # first row
 
 
+_REASONS = tuple(Reason)          # code -> member, without Enum's slow constructor
+_TIME_ISSUES = tuple(TimeIssue)
+
 # Plain int copies of the codes for numba-compiled code (it cannot cast IntEnum to float)
 R_USED, R_ABSENT, R_DISABLED, R_INVALID, R_NORM, R_NIS, R_DIP, R_FIELD, R_INIT, R_WAIT, R_GAP, \
     R_REST, R_LATE = (int(r) for r in Reason)
@@ -170,11 +173,12 @@ class StepFlags:
 
     @classmethod
     def from_row(cls, t: float, f: np.ndarray) -> "StepFlags":
-        return cls(t=float(t), gyr=Reason(int(f[F_GYR])), acc=Reason(int(f[F_ACC])),
-                   acc_value=float(f[F_ACC_VAL]), acc_nis=float(f[F_ACC_NIS]),
-                   mag=Reason(int(f[F_MAG])), mag_value=float(f[F_MAG_VAL]),
-                   mag_nis=float(f[F_MAG_NIS]), rest=bool(f[F_REST] > 0.5),
-                   time=TimeIssue(int(f[F_TIME])))
+        v = f.tolist()
+        return cls(t=float(t), gyr=_REASONS[int(v[F_GYR])], acc=_REASONS[int(v[F_ACC])],
+                   acc_value=v[F_ACC_VAL], acc_nis=v[F_ACC_NIS],
+                   mag=_REASONS[int(v[F_MAG])], mag_value=v[F_MAG_VAL],
+                   mag_nis=v[F_MAG_NIS], rest=v[F_REST] > 0.5,
+                   time=_TIME_ISSUES[int(v[F_TIME])])
 
     @property
     def acc_rejected(self) -> bool:

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, ParamError, param
@@ -91,10 +92,35 @@ def _cov(full, sigma) -> np.ndarray:
     return np.array(full, dtype=float).reshape(3, 3) if full is not None else sigma ** 2 * np.eye(3)
 
 
-def _jacobian(q: np.ndarray, v0: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _jacobian(q, v0):
     """d/dq of Q(q)ᵀ v0: column i is dQ/dq_i ᵀ v0 (the manual's mu_g / mu_m)."""
     D = qm.dQdq(q)
-    return np.stack([D[i].T @ v0 for i in range(4)], axis=1)
+    H = np.empty((3, 4))
+    for i in range(4):
+        H[:, i] = D[i].T @ v0
+    return H
+
+
+@njit(cache=True)
+def tu_qw(x, P, omega, T, Rw, exact):
+    """The manual's time update (Section 4.1): x <- F x, P <- F P Fᵀ + G Rw Gᵀ with
+    F from (2j) or (2k) and G = T/2 S̄(x); x normalised (4.4)."""
+    F = qm.F_exact(omega, T) if exact else qm.F_approx(omega, T)
+    G = 0.5 * T * qm.S_bar(x)
+    return qm.normalize(F @ x), F @ P @ F.T + G @ Rw @ G.T
+
+
+@njit(cache=True)
+def mu_h(x, P, y, v0, R, nis_gate):
+    """The manual's measurement updates mu_g (v0 = g0) and mu_m (v0 = m0):
+    h(x) = Q(x)ᵀ v0 through the shared ``correct`` (P in place), then normalised.
+    Returns (accepted, NIS, x)."""
+    h = qm.Q(x).T @ v0
+    ok, nis, dx = correct(P, _jacobian(x, v0), R, y - h, nis_gate)
+    if ok:
+        x = qm.normalize(x + dx)
+    return ok, nis, x
 
 
 class LabEKF(Estimator):
@@ -165,19 +191,13 @@ class LabEKF(Estimator):
         if w is None:
             self.P = self.P + p.rw_noise ** 2 * T * np.eye(4)
             return
-        w = w - self._bias
-        F = qm.F_exact(w, T) if p.time_update == "exact" else qm.F_approx(w, T)
-        G = 0.5 * T * qm.S_bar(self.x)
-        self.x = qm.normalize(F @ self.x)
-        self.P = F @ self.P @ F.T + G @ self._Rw @ G.T
+        self.x, self.P = tu_qw(self.x, self.P, w - self._bias, T, self._Rw,
+                               p.time_update == "exact")
 
     def _measurement_update(self, y, v0, R, flags, col_reason, col_nis) -> None:
-        h = qm.Q(self.x).T @ v0
-        H = _jacobian(self.x, v0)
-        ok, nis, dx = correct(self.P, H, R, y - h, self._params.nis_gate)  # P updated in place
+        ok, nis, self.x = mu_h(self.x, self.P, y, v0, R, self._params.nis_gate)  # P in place
         flags[col_nis] = nis
         if ok:
-            self.x = qm.normalize(self.x + dx)
             flags[col_reason] = Reason.USED
         else:
             flags[col_reason] = Reason.NIS
