@@ -172,6 +172,9 @@ def main() -> int:
           f"inbox max {stats['backlog_max_items']} items")
     print(f"  latency          median {lat['median']:.2f} ms, p99 {lat['p99']:.2f} ms, "
           f"max {lat['max']:.2f} ms over {lat['n']} samples (target p99 < 5 ms)")
+    w = stats["wait_ms"]
+    print(f"  of which waiting median {w['median']:.2f} ms, p99 {w['p99']:.2f} ms, max {w['max']:.2f} ms "
+          "(arrival -> the engine task took the chunk)")
     print(f"  server CPU       {100 * (cpu1 - cpu0) / wall:.1f} % of one core (target < 25 %)")
     print(f"  received         viser clients {sum(c[0] for c in counters[:N_VIEWERS]) / wall / 1e3:.0f} kB/s, "
           f"/ws/state clients {sum(c[0] for c in counters[N_VIEWERS:]) / wall / 1e3:.0f} kB/s (all)")

@@ -78,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             st.scene = Scene(st.viewer)
             st.gui = Gui(st.viewer, engine, st.scene, settings)
+            engine.pose_listeners.append(st.scene.draw_pose)
             engine.listeners.append(st.scene.draw)
             st.phone = PhoneServer(engine, settings)
             await st.phone.start()

@@ -29,6 +29,7 @@ hold (``reorder_window_s`` of stream time) is not part of that figure.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import json
 import logging
 import math
@@ -50,9 +51,12 @@ log = logging.getLogger("orientlab.engine")
 
 SENSOR_OF_TAG = {"GYR": "gyr", "ACC": "acc", "MAG": "mag"}
 SENSORS = ("gyr", "acc", "mag")
-# history columns (one row per processed motion sample)
-H_T, H_Q, H_P, H_ACC, H_MAG, H_LK, H_NIS_A, H_NIS_M = 0, 1, 5, 9, 10, 11, 12, 13
-H_COLS = 14
+# history columns: pose ring (every motion sample), acc ring, mag ring; column 0 is t
+H_T = 0
+H_Q, H_P, P_COLS = 1, 5, 9                  # pose: t, q (primary), phone q
+H_NORM = 1                                  # acc and mag: |v|
+H_NIS_A, A_COLS = 2, 3                      # acc: t, |acc|, NIS
+H_LK, H_NIS_M, M_COLS = 2, 3, 4             # mag: t, |mag|, L_k, NIS
 
 
 class PatchError(ValueError):
@@ -71,6 +75,41 @@ class Change:
     primary: str | None = None
     reset: bool = False
     done: asyncio.Future | None = None      # resolved with the new parameters once applied
+
+
+class Throttle:
+    """Run ``fn`` on the event loop at most once per ``interval`` seconds.
+
+    :meth:`poke` asks for a run; it happens in a later loop turn (never inside the
+    caller, so the caller is not delayed), as soon as ``interval`` has passed since
+    the last run. Pokes before that run are merged into it."""
+
+    def __init__(self, interval: float, fn: Callable[[], None],
+                 loop: asyncio.AbstractEventLoop | None = None):
+        self.interval = float(interval)
+        self.fn = fn
+        self.loop = loop
+        self._last = -math.inf
+        self._handle: asyncio.TimerHandle | None = None
+
+    def poke(self) -> None:
+        if self._handle is None:
+            due = max(self._last + self.interval, self.loop.time())
+            self._handle = self.loop.call_at(due, self._run)
+
+    def cancel(self) -> None:
+        """Drop a pending run."""
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+    def _run(self) -> None:
+        self._handle = None
+        self._last = self.loop.time()
+        try:
+            self.fn()
+        except Exception:  # a display bug must not stop the filter
+            log.exception("%s failed", getattr(self.fn, "__name__", "throttled call"))
 
 
 class Session:
@@ -109,33 +148,56 @@ class Session:
                 "tags": dict(c.tags), "buffered": self.orderer.buffered}
 
 
-class History:
-    """A ring of the last ``capacity`` processed motion samples, for the plots."""
+class Ring:
+    """The last ``capacity`` rows of ``cols`` floats, column 0 the stream time (s).
 
-    def __init__(self, capacity: int):
-        self.data = np.full((capacity, H_COLS), np.nan)
+    Written by the engine on the event loop, read by the plots on the same loop:
+    :meth:`window` costs O(``max_points``), whatever the capacity, and returns a copy.
+    """
+
+    def __init__(self, capacity: int, cols: int):
+        self.data = np.full((capacity, cols), np.nan)
         self.n = 0                  # rows written in total
 
     def clear(self) -> None:
         self.data[:] = np.nan
         self.n = 0
 
-    def append(self, row: np.ndarray) -> None:
-        self.data[self.n % self.data.shape[0]] = row
+    def next_row(self) -> np.ndarray:
+        """The row to fill next (a view, NaN-filled); it counts as written."""
+        row = self.data[self.n % self.data.shape[0]]
+        row[:] = np.nan
         self.n += 1
+        return row
 
-    def last(self, seconds: float) -> np.ndarray:
-        """The rows of the last ``seconds`` s of stream time, oldest first."""
+    def window(self, seconds: float, max_points: int) -> np.ndarray:
+        """At most ``max_points`` rows, evenly spread over the last ``seconds`` s of
+        stream time, oldest first (the newest row always included)."""
         cap = self.data.shape[0]
-        if self.n == 0:
-            return self.data[:0]
-        end = self.n % cap
-        if self.n <= cap:
-            rows = self.data[:self.n]
-        else:
-            rows = np.concatenate([self.data[end:], self.data[:end]])
-        t = rows[:, H_T]
-        return rows[np.searchsorted(t, t[-1] - seconds):]
+        first = max(0, self.n - cap)
+        if self.n == first:
+            return self.data[:0].copy()
+        t = self.data[:, 0]
+        t_from = t[(self.n - 1) % cap] - seconds
+        # the first logical index whose time is >= t_from (times rise with the index)
+        lo = bisect.bisect_left(range(first, self.n), t_from, key=lambda i: t[i % cap]) + first
+        k = min(self.n - lo, max_points)
+        idx = np.linspace(lo, self.n - 1, k).astype(np.int64) % cap
+        return self.data[idx]
+
+
+class History:
+    """The plots' rings of processed motion samples: ``pose`` (every motion sample:
+    t, q, phone q), ``acc`` (t, |acc|, NIS) and ``mag`` (t, |mag|, L_k, NIS)."""
+
+    def __init__(self, capacity: int):
+        self.pose = Ring(capacity, P_COLS)
+        self.acc = Ring(capacity, A_COLS)
+        self.mag = Ring(capacity, M_COLS)
+
+    def clear(self) -> None:
+        for r in (self.pose, self.acc, self.mag):
+            r.clear()
 
 
 @dataclass
@@ -201,14 +263,21 @@ class Engine:
         self.session: Session | None = None
         self.background_allowed: asyncio.Event | None = None
         self.history = History(int(settings.history_s * 2000) + 1)
-        self.listeners: list[Callable[[Snapshot], None]] = []       # after every batch
+        self.pose_listeners: list[Callable[[np.ndarray], None]] = []  # after every batch
+        self.listeners: list[Callable[[Snapshot], None]] = []       # at most scene_hz
         self.param_listeners: list[Callable[[], None]] = []         # after every change
         self.subscribers: set[asyncio.Queue] = set()                # WS /ws/state
         self.counts_total = {"sessions": 0, "refused": 0, "too_long": 0, "samples": 0}
-        self.latency: deque = deque(maxlen=200_000)                 # (seconds, n samples)
+        # per processed chunk: (arrival -> pose queued, arrival -> engine took it, n samples)
+        self.latency: deque = deque(maxlen=200_000)
         self.backlog_max = 0
         self.batches = 0
         self.queued = 0                     # samples waiting in the inbox
+        self._t_taken = 0.0                 # when the engine took the current batch
+        self._ws_pending: list[tuple[float, str, list[float]]] = []
+        self._scene_timer = Throttle(1.0 / settings.scene_hz, self._draw_scene)
+        self._ws_timer = Throttle(1.0 / settings.ws_hz, self._flush_ws)
+        self._has_lk = {n: "L_k" in e.diagnostics() for n, e in self.estimators.items()}
         self._reset_stream_state()
 
     # ----------------------------------------------------------------- lifecycle
@@ -216,6 +285,7 @@ class Engine:
         """Attach to the running loop (called in the FastAPI lifespan)."""
         self.loop = loop
         self.inbox = asyncio.Queue()
+        self._scene_timer.loop = self._ws_timer.loop = loop
         self.background_allowed = asyncio.Event()
         self.background_allowed.set()
 
@@ -403,12 +473,22 @@ class Engine:
     # ----------------------------------------------------------------- the task
     async def run(self) -> None:
         """The engine task: forever take what is queued and process it."""
+        try:
+            await self._loop_forever()
+        finally:  # nothing is drawn after the task has stopped (viser stops next)
+            self._scene_timer.cancel()
+            self._ws_timer.cancel()
+
+    async def _loop_forever(self) -> None:
         inbox = self.inbox
         while True:
             items = [await inbox.get()]
+            self._t_taken = time.perf_counter()
             while not inbox.empty():
                 items.append(inbox.get_nowait())
             self.backlog_max = max(self.backlog_max, len(items))
+            if any(it[0] != "samples" for it in items):
+                self._flush_ws()    # what was estimated before goes out under the old settings
             for kind, *rest in items:
                 if kind == "change":
                     self._apply(rest[0])
@@ -431,70 +511,101 @@ class Engine:
         self._reset_stream_state()
 
     def _process(self, s: Session, samples: list[Sample]) -> None:
+        """Step every estimator on each sample, in order; record the plots' rows and the
+        WebSocket's estimates (sent later, batched: :meth:`_flush_ws`)."""
         ests = list(self.estimators.items())
         primary = self.primary
-        hist = self.history
-        want_ws = bool(self.subscribers)
-        records = [] if want_ws else None
+        pose, acc_ring, mag_ring = self.history.pose, self.history.acc, self.history.mag
+        records = self._ws_pending if self.subscribers else None
+        n = 0
         for smp in samples:
-            s.samples += 1
-            self.counts_total["samples"] += 1
-            self.t_sent = smp.time_ms / 1000.0
             tag = smp.tag
+            t = smp.time_ms / 1000.0
+            self.t_sent = t
+            n += 1
             sensor = SENSOR_OF_TAG.get(tag)
             if sensor is not None:
                 v = np.array(smp.values, dtype=float)
-                self.last_vec[sensor] = v if sensor != "gyr" else None
+                if sensor != "gyr":
+                    self.last_vec[sensor] = v
                 kw = {sensor: v}
+                si = SENSORS.index(sensor)
             elif tag == "ORI":
                 self.phone_q = normalize(np.array(smp.values, dtype=float))
                 kw = {"ori": self.phone_q}
             else:
                 continue
-            t = self.t_sent
-            row = np.full(H_COLS, np.nan)
             for name, est in ests:
                 f = est.step(t, **kw)
-                counts = self.reason_counts[name]
                 if sensor is not None:
-                    counts[SENSORS.index(sensor), int(getattr(f, sensor))] += 1
-                    self.last_flags[name][sensor] = f
+                    self.reason_counts[name][si, int(getattr(f, sensor))] += 1
+                    lf = self.last_flags[name]
+                    lf[sensor] = f
                     if sensor == "gyr":
-                        self.last_flags[name]["rest"] = f
+                        lf["rest"] = f
                 if name == primary:
-                    row[H_Q:H_Q + 4] = est.q
+                    q = est.q
                     if sensor == "acc":
-                        row[H_ACC] = math.sqrt(float(v @ v))
-                        row[H_NIS_A] = f.acc_nis
+                        row = acc_ring.next_row()
+                        row[0], row[H_NORM], row[H_NIS_A] = t, math.sqrt(float(v @ v)), f.acc_nis
                     elif sensor == "mag":
-                        row[H_MAG] = math.sqrt(float(v @ v))
-                        row[H_NIS_M] = f.mag_nis
-                        lk = _num(est.diagnostics().get("L_k"))
-                        row[H_LK] = np.nan if lk is None else lk
-            row[H_T] = t
+                        row = mag_ring.next_row()
+                        lk = est.diagnostics().get("L_k") if self._has_lk[name] else None
+                        row[0], row[H_NORM], row[H_NIS_M] = t, math.sqrt(float(v @ v)), f.mag_nis
+                        if lk is not None:
+                            row[H_LK] = lk
+            row = pose.next_row()
+            row[0] = t
+            row[H_Q:H_Q + 4] = q
             if self.phone_q is not None:
                 row[H_P:H_P + 4] = self.phone_q
-            hist.append(row)
-            if want_ws:
-                records.append({"t": t, "tag": tag, "q": row[H_Q:H_Q + 4].tolist()})
-        if want_ws and records:
-            # encoded once for every subscriber
-            msg = json.dumps({"primary": primary, "source": self.source_kind(), "estimates": records})
-            for q in list(self.subscribers):
-                q.put_nowait(msg)
+            if records is not None:
+                records.append((t, tag, q.tolist()))
+        s.samples += n
+        self.counts_total["samples"] += n
 
     def _publish(self, arrivals: list[tuple[float, int]]) -> None:
+        """Hand the primary's new pose to the scene (every batch: that moment ends the
+        latency measurement), then let the rest follow at display rate."""
         self.batches += 1
-        if self.listeners:
-            snap = self.snapshot()
-            for cb in self.listeners:
+        if self.pose_listeners:
+            q = self.estimators[self.primary].q
+            for cb in self.pose_listeners:
                 try:
-                    cb(snap)
+                    cb(q)
                 except Exception:
-                    log.exception("scene listener failed")
+                    log.exception("pose listener failed")
         now = time.perf_counter()
         for t_arr, n in arrivals:
-            self.latency.append((now - t_arr, n))
+            self.latency.append((now - t_arr, self._t_taken - t_arr, n))
+        self._scene_timer.poke()
+        if self._ws_pending:
+            self._ws_timer.poke()
+
+    def _draw_scene(self) -> None:
+        """Everything else in the scene (cones, arrows, other phones, indicators)."""
+        if not self.listeners:
+            return
+        snap = self.snapshot()
+        for cb in self.listeners:
+            try:
+                cb(snap)
+            except Exception:
+                log.exception("scene listener failed")
+
+    def _flush_ws(self) -> None:
+        """Send the estimates made since the last flush, one message encoded once for
+        every subscriber (none is skipped)."""
+        pending = self._ws_pending
+        if not pending:
+            return
+        self._ws_pending = []
+        if not self.subscribers:
+            return
+        msg = json.dumps({"primary": self.primary, "source": self.source_kind(),
+                          "estimates": [{"t": t, "tag": tag, "q": q} for t, tag, q in pending]})
+        for sub in list(self.subscribers):
+            sub.put_nowait(msg)
 
     # ----------------------------------------------------------------- read-outs
     def truth_q(self) -> np.ndarray | None:
@@ -594,20 +705,29 @@ class Engine:
 
     def stats(self, reset: bool = False) -> dict[str, Any]:
         """GET /api/stats: backlog and latency figures (for the load benchmark)."""
-        lat = np.array([x for x, n in self.latency for _ in range(n)]) if self.latency else np.zeros(0)
+        rows = np.array([(x, w) for x, w, n in self.latency for _ in range(n)]).reshape(-1, 2)
         out = {"batches": self.batches, "backlog_now": self.inbox.qsize() if self.inbox else 0,
                "queued_samples": self.queued,
                "backlog_max_items": self.backlog_max,
                "buffered": self.session.orderer.buffered if self.session else 0,
                "samples": self.counts_total["samples"],
-               "latency_ms": {"n": int(lat.size),
-                              "median": _num(np.median(lat) * 1e3) if lat.size else None,
-                              "p99": _num(np.percentile(lat, 99) * 1e3) if lat.size else None,
-                              "max": _num(lat.max() * 1e3) if lat.size else None}}
+               # arrival of the chunk -> the primary's pose handed to viser (every sample)
+               "latency_ms": _percentiles(rows[:, 0]),
+               # of which: arrival -> the engine task took the chunk (the loop was busy)
+               "wait_ms": _percentiles(rows[:, 1])}
         if reset:
             self.latency.clear()
             self.backlog_max = 0
         return out
+
+
+def _percentiles(x: np.ndarray) -> dict[str, Any]:
+    """Median, 99th percentile and max of durations in seconds, in ms."""
+    if not x.size:
+        return {"n": 0, "median": None, "p99": None, "max": None}
+    ms = x * 1e3
+    return {"n": int(ms.size), "median": _num(np.median(ms)), "p99": _num(np.percentile(ms, 99)),
+            "max": _num(ms.max())}
 
 
 def _json_safe(x):

@@ -29,7 +29,7 @@ import numpy as np
 from ..estimators import Reason, REJECTIONS
 from ..params import describe, fields_of
 from ..quaternion import q2euler_many
-from .engine import (H_ACC, H_LK, H_MAG, H_NIS_A, H_NIS_M, H_P, H_Q, H_T, Engine, PatchError)
+from .engine import H_LK, H_NIS_A, H_NIS_M, H_NORM, H_P, H_Q, H_T, Engine, PatchError
 from .presets import list_presets, load_preset, save_preset
 from .scene import Scene, describe_rejection
 
@@ -304,53 +304,55 @@ class Gui:
                                                ("mag gate", "#9467bd", True)])
 
     def refresh_plots(self) -> None:
-        rows = self.engine.history.last(self.settings.history_s)
-        if rows.shape[0] < 2:
+        """Send the plots the last ``history_s`` seconds, at most :data:`MAX_POINTS` points
+        each: O(MAX_POINTS) work, whatever the sample rate (see :class:`Ring`)."""
+        hist, span = self.engine.history, self.settings.history_s
+        pose = hist.pose.window(span, MAX_POINTS)
+        if pose.shape[0] < 2:
             return
-        t_end = rows[-1, H_T]
+        t_end = pose[-1, H_T]
         diag = self.engine.estimators[self.engine.primary].diagnostics()
-
-        def pick(mask):
-            sel = rows[mask]
-            if sel.shape[0] > MAX_POINTS:
-                sel = sel[np.linspace(0, sel.shape[0] - 1, MAX_POINTS).astype(int)]
-            return sel, sel[:, H_T] - t_end
 
         def const(x, v):
             return np.full(x.shape, np.nan if v is None else float(v))
 
-        sel, x = pick(np.isfinite(rows[:, H_Q]))
-        if x.size > 1:
-            ours = np.degrees(q2euler_many(sel[:, H_Q:H_Q + 4]))
-            has_p = np.isfinite(sel[:, H_P])
-            phone = np.full_like(ours, np.nan)
-            if np.any(has_p):
-                phone[has_p] = np.degrees(q2euler_many(sel[has_p, H_P:H_P + 4]))
-            self.p_euler.data = (x, *ours.T, *phone.T)
-            err_p = np.full(x.shape, np.nan)
-            if np.any(has_p):
-                qa, qb = sel[has_p, H_Q:H_Q + 4], sel[has_p, H_P:H_P + 4]
-                err_p[has_p] = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(qa * qb, 1)), 0, 1)))
-            err_t = np.full(x.shape, np.nan)
-            truth = self.engine.session.truth if self.engine.session else None
-            if truth is not None:
-                tq = truth(sel[:, H_T] * 1000.0)
-                err_t = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(sel[:, H_Q:H_Q + 4] * tq, 1)), 0, 1)))
-            self.p_err.data = (x, err_p, err_t)
-        band = diag.get("acc_band") or (None, None)
-        sel, x = pick(np.isfinite(rows[:, H_ACC]))
-        if x.size > 1:
-            self.p_acc.data = (x, sel[:, H_ACC], const(x, band[0]), const(x, band[1]))
-        band = diag.get("mag_band") or (None, None)
-        sel, x = pick(np.isfinite(rows[:, H_MAG]))
-        if x.size > 1:
-            self.p_mag.data = (x, sel[:, H_MAG], sel[:, H_LK], const(x, band[0]), const(x, band[1]))
-        sel, x = pick(np.isfinite(rows[:, H_NIS_A]) | np.isfinite(rows[:, H_NIS_M]))
-        if x.size > 1:
+        x = pose[:, H_T] - t_end
+        q_ours, q_phone = pose[:, H_Q:H_Q + 4], pose[:, H_P:H_P + 4]
+        ours = np.degrees(q2euler_many(q_ours))
+        has_p = np.isfinite(q_phone[:, 0])
+        phone = np.full_like(ours, np.nan)
+        err_p = np.full(x.shape, np.nan)
+        if np.any(has_p):
+            phone[has_p] = np.degrees(q2euler_many(q_phone[has_p]))
+            err_p[has_p] = _angle_deg(q_ours[has_p], q_phone[has_p])
+        self.p_euler.data = (x, *ours.T, *phone.T)
+        err_t = np.full(x.shape, np.nan)
+        truth = self.engine.session.truth if self.engine.session else None
+        if truth is not None:
+            err_t = _angle_deg(q_ours, truth(pose[:, H_T] * 1000.0))
+        self.p_err.data = (x, err_p, err_t)
+        rows = hist.acc.window(span, MAX_POINTS)
+        if rows.shape[0] > 1:
+            band = diag.get("acc_band") or (None, None)
+            x = rows[:, H_T] - t_end
+            self.p_acc.data = (x, rows[:, H_NORM], const(x, band[0]), const(x, band[1]))
+        mags = hist.mag.window(span, MAX_POINTS)
+        if mags.shape[0] > 1:
+            band = diag.get("mag_band") or (None, None)
+            x = mags[:, H_T] - t_end
+            self.p_mag.data = (x, mags[:, H_NORM], mags[:, H_LK], const(x, band[0]), const(x, band[1]))
+        rows, mags = rows[-(MAX_POINTS // 2):], mags[-(MAX_POINTS // 2):]
+        if rows.shape[0] + mags.shape[0] > 1:
+            # acc and mag NIS on one time axis: each series NaN (a gap) at the other's times
+            x = np.concatenate([rows[:, H_T], mags[:, H_T]])
+            order = np.argsort(x, kind="stable")
+            na, nm = rows.shape[0], mags.shape[0]
+            nis_a = np.concatenate([rows[:, H_NIS_A], np.full(nm, np.nan)])[order]
+            nis_m = np.concatenate([np.full(na, np.nan), mags[:, H_NIS_M]])[order]
+            x = x[order] - t_end
             ga = diag.get("acc_nis_gate", diag.get("nis_gate"))
             gm = diag.get("mag_nis_gate", diag.get("nis_gate"))
-            self.p_nis.data = (x, sel[:, H_NIS_A], sel[:, H_NIS_M],
-                               const(x, ga or None), const(x, gm or None))
+            self.p_nis.data = (x, nis_a, nis_m, const(x, ga or None), const(x, gm or None))
 
     # ------------------------------------------------------------------ read-outs
     def refresh_text(self) -> None:
@@ -367,6 +369,11 @@ class Gui:
     def refresh(self) -> None:
         self.refresh_text()
         self.refresh_plots()
+
+
+def _angle_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+    """Row-wise angle between two arrays of unit quaternions (deg): formula 2c."""
+    return np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(qa * qb, 1)), 0, 1)))
 
 
 def _pill(on: bool, text: str, color: str) -> str:

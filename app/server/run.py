@@ -16,7 +16,10 @@ def make_server(settings: Settings, log_level: str = "warning") -> uvicorn.Serve
     """A uvicorn server for the dashboard (not started)."""
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
-                            timeout_graceful_shutdown=0.5, ws_ping_interval=None)
+                            timeout_graceful_shutdown=0.5, ws_ping_interval=None,
+                            # /ws/state carries small JSON batches on a LAN: compressing
+                            # them for every subscriber costs more CPU than it saves
+                            ws_per_message_deflate=False)
     return uvicorn.Server(config)
 
 

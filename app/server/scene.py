@@ -169,6 +169,10 @@ class Scene:
             self._shown[what] = on
 
     # ------------------------------------------------------------------ drawing
+    def draw_pose(self, q: np.ndarray) -> None:
+        """Only the estimate's pose (cheap: called after every processed batch)."""
+        self.phone.wxyz = q
+
     def draw(self, s: Snapshot) -> None:
         """Update every moving part from the snapshot (one atomic viser update)."""
         R = Q(s.q)
@@ -224,7 +228,8 @@ class Scene:
         """Red while the sensor's last sample was refused by a gate."""
         bad = flags is not None and getattr(flags, sensor) in REJECTIONS
         if bad != self._bad[sensor]:
-            handle.colors = C_BAD if bad else good
+            # an array: viser's property setter does not convert a tuple of colours
+            handle.colors = np.array(C_BAD if bad else good, dtype=np.uint8)
             self._bad[sensor] = bad
 
 

@@ -33,6 +33,8 @@ class Settings:
     replay_pause_s: float = 1.0      # pause between two loops of a replayed log
     # display
     plot_hz: float = 10.0
+    scene_hz: float = 30.0           # cones, arrows, other phones, indicators (the pose: every batch)
+    ws_hz: float = 20.0              # WS /ws/state messages (each holds every estimate since the last)
     history_s: float = 20.0
     verbose: bool = True             # print the start-up banner
 
