@@ -148,6 +148,31 @@ def time_step(t_prev, t, max_gap):
     return dt, T_OK
 
 
+@njit(cache=True)
+def row_mask(gyr, acc, mag):
+    """Bit mask of the sensors present in a row (1 gyr, 2 acc, 4 mag)."""
+    m = 0
+    if not np.isnan(gyr[0]) or not np.isnan(gyr[1]) or not np.isnan(gyr[2]):
+        m |= 1
+    if not np.isnan(acc[0]) or not np.isnan(acc[1]) or not np.isnan(acc[2]):
+        m |= 2
+    if not np.isnan(mag[0]) or not np.isnan(mag[1]) or not np.isnan(mag[2]):
+        m |= 4
+    return m
+
+
+@njit(cache=True)
+def repeated_time(issue, seen, mask):
+    """A row at the same time as the previous one is REPEATED only if it brings a
+    sensor already seen at that time (a phone stamps ACC and GYR with the same ms,
+    one row each: that is normal). Returns (issue, sensors seen at this time)."""
+    if issue != T_REPEATED:
+        return issue, mask
+    if seen & mask:
+        return T_REPEATED, seen | mask
+    return T_OK, seen | mask
+
+
 def _as_vec(v) -> np.ndarray:
     if v is None:
         return np.full(3, np.nan)
@@ -271,6 +296,7 @@ class Estimator:
         self.t = float("nan")
         self._w = None
         self._w_t = float("nan")
+        self._seen = 0  # sensors seen at the time of the last row
         self.last_flags = StepFlags.from_row(np.nan, new_flags())
         self._reset_state()
 
@@ -304,6 +330,8 @@ class Estimator:
         Uses ``self.t`` (time of the last row) and ``self._w``/``self._w_t`` (held rate)."""
         p = self._params
         dt, issue = time_step(self.t, t, p.max_gap)
+        if issue != T_BACKWARD:
+            issue, self._seen = repeated_time(issue, self._seen, row_mask(gyr, acc, mag))
         flags[F_TIME] = issue
         gs = vector_state(gyr, p.use_gyr)
         as_ = vector_state(acc, p.use_acc)

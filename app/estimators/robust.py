@@ -45,7 +45,7 @@ from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
                    F_TIME, NFLAGS, R_DIP, R_DISABLED, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
                    R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator, new_flags,
-                   time_step, vector_state)
+                   repeated_time, row_mask, time_step, vector_state)
 from .kalman import correct, mm, mmT
 
 GRAVITY = 9.81
@@ -141,7 +141,8 @@ S_MAG_CNT = 45   # how many
 S_MAG_UPD_T = 46 # s of used magnetometer samples since the last heading update
 S_AL2_T = 47     # likewise for the accelerometer
 S_WCUR = 48      # 3: scratch: the rate integrated over the current row
-NSTATE = 51
+S_SEEN = 51      # sensors seen at the time of the last row (bit mask)
+NSTATE = 52
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
 
@@ -513,6 +514,9 @@ def _mag_update(s, P, p, t, mag, w, f):
 def robust_step(s, P, p, t, gyr, acc, mag, f):
     """Process one row: time update, rest detection, tilt update, heading update."""
     dt, issue = time_step(s[S_T], t, p[P_MAX_GAP])
+    if issue != T_BACKWARD:
+        issue, seen = repeated_time(issue, int(s[S_SEEN]), row_mask(gyr, acc, mag))
+        s[S_SEEN] = seen
     f[F_TIME] = issue
     gs = vector_state(gyr, p[P_USE_GYR] > 0.5)
     as_ = vector_state(acc, p[P_USE_ACC] > 0.5)
