@@ -54,11 +54,12 @@ N_VIEWERS = 5
 N_STATE = 5
 
 
-def cpu_seconds(pid: int) -> float:
+def cpu_seconds(pid: int) -> np.ndarray:
+    """[user, system] CPU seconds of a process (all its threads)."""
     with open(f"/proc/{pid}/stat") as f:
         fields = f.read().rsplit(")", 1)[1].split()
     tck = os.sysconf("SC_CLK_TCK")
-    return (int(fields[11]) + int(fields[12])) / tck   # utime + stime
+    return np.array([int(fields[11]), int(fields[12])]) / tck   # utime, stime
 
 
 def start_server(port: int, viewer_port: int, phone_port: int) -> subprocess.Popen:
@@ -175,7 +176,9 @@ def main() -> int:
     w = stats["wait_ms"]
     print(f"  of which waiting median {w['median']:.2f} ms, p99 {w['p99']:.2f} ms, max {w['max']:.2f} ms "
           "(arrival -> the engine task took the chunk)")
-    print(f"  server CPU       {100 * (cpu1 - cpu0) / wall:.1f} % of one core (target < 25 %)")
+    cpu = 100 * (cpu1 - cpu0) / wall
+    print(f"  server CPU       {cpu.sum():.1f} % of one core (user {cpu[0]:.1f} %, system {cpu[1]:.1f} %; "
+          "target < 25 %)")
     print(f"  received         viser clients {sum(c[0] for c in counters[:N_VIEWERS]) / wall / 1e3:.0f} kB/s, "
           f"/ws/state clients {sum(c[0] for c in counters[N_VIEWERS:]) / wall / 1e3:.0f} kB/s (all)")
     return 0

@@ -705,7 +705,9 @@ class Engine:
 
     def stats(self, reset: bool = False) -> dict[str, Any]:
         """GET /api/stats: backlog and latency figures (for the load benchmark)."""
-        rows = np.array([(x, w) for x, w, n in self.latency for _ in range(n)]).reshape(-1, 2)
+        # vectorised: this runs on the event loop, it must not hold it up
+        chunks = np.array(self.latency, dtype=float).reshape(-1, 3)
+        rows = np.repeat(chunks[:, :2], chunks[:, 2].astype(np.int64), axis=0)
         out = {"batches": self.batches, "backlog_now": self.inbox.qsize() if self.inbox else 0,
                "queued_samples": self.queued,
                "backlog_max_items": self.backlog_max,

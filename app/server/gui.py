@@ -428,10 +428,17 @@ def _readouts_html(st: dict) -> str:
 
 
 async def run_gui(gui: Gui, hz: float) -> None:
-    """Refresh the read-outs and plots at ``hz``."""
+    """Refresh the read-outs and plots at ``hz``. The read-outs and the plots go in two
+    loop turns, so the filter task (and its latency) never waits for both at once."""
+    loop = asyncio.get_running_loop()
+    period = 1.0 / hz
+    due = loop.time()
     while True:
-        try:
-            gui.refresh()
-        except Exception:
-            log.exception("GUI refresh failed")
-        await asyncio.sleep(1.0 / hz)
+        for part in (gui.refresh_text, gui.refresh_plots):
+            try:
+                part()
+            except Exception:
+                log.exception("GUI refresh failed")
+            await asyncio.sleep(0)
+        due = max(due + period, loop.time())      # a steady hz, no catching up after a stall
+        await asyncio.sleep(due - loop.time())
