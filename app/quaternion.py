@@ -278,10 +278,8 @@ def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
     q_est = np.atleast_2d(q_est)
     q_ref = np.atleast_2d(q_ref)
     w = q_est[:, 0] * q_ref[:, 0] + np.sum(q_est[:, 1:] * q_ref[:, 1:], axis=1)
-    # e = q_est * conj(q_ref)
+    # e = q_est * conj(q_ref): its scalar part and its part about the world's z
     e0 = w
-    ex = -q_est[:, 0] * q_ref[:, 1] + q_est[:, 1] * q_ref[:, 0] - q_est[:, 2] * q_ref[:, 3] + q_est[:, 3] * q_ref[:, 2]
-    ey = -q_est[:, 0] * q_ref[:, 2] + q_est[:, 1] * q_ref[:, 3] + q_est[:, 2] * q_ref[:, 0] - q_est[:, 3] * q_ref[:, 1]
     ez = -q_est[:, 0] * q_ref[:, 3] - q_est[:, 1] * q_ref[:, 2] + q_est[:, 2] * q_ref[:, 1] + q_est[:, 3] * q_ref[:, 0]
     total = 2.0 * np.arccos(np.clip(np.abs(e0), 0.0, 1.0))
     heading = 2.0 * np.arctan2(np.abs(ez), np.abs(e0))

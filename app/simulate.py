@@ -34,7 +34,6 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .quaternion import Q, angle_between
 
 SCENES = ("still", "turn_x", "turn_y", "turn_z", "shake", "magnet", "gyro_dropout")
 SCENE_DURATION_S = {"still": 4.0, "turn_x": 6.0, "turn_y": 6.0, "turn_z": 6.0, "shake": 4.0,

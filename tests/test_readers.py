@@ -34,7 +34,7 @@ def app_log_lines() -> tuple[list[str], dict]:
     lines.insert(20, f"{500_100}\tGYR\t0.1\tabc\t0.3")
     lines.insert(30, f"{500_150}\tWHAT\t1\t2\t3")
     lines.insert(40, f"{500_205}\tORI\t0.1\t0.2\t0.3")           # 3 values: w computed
-    lines.insert(41, f"1666000000000\tGPS\t58.4\t15.6\t80.0")     # Unix-epoch clock
+    lines.insert(41, "1666000000000\tGPS\t58.4\t15.6\t80.0")     # Unix-epoch clock
     lines.insert(50, f"{500_300}\tPRX\t5.0")
     expect = dict(acc=n, gyr=n, mag=len(range(0, n, 3)), ori=1,
                   malformed={"wrong_count": 2, "empty": 1, "not_numeric": 1, "unknown_tag": 1})

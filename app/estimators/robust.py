@@ -43,10 +43,9 @@ from numba import njit
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
-                   F_TIME, NFLAGS, R_DIP, R_DISABLED, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
-                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator, new_flags,
-                   repeated_time, row_mask, time_step, vector_state)
-from .kalman import correct, mm, mmT
+                   F_TIME, NFLAGS, R_DIP, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
+                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator, repeated_time, row_mask, time_step, vector_state)
+from .kalman import correct
 
 GRAVITY = 9.81
 ALIGN_WAIT_S = 0.5
