@@ -192,8 +192,15 @@ def test_set_and_config(tmp_path):
     check_output(out, len(t))
     preset = tmp_path / "p.toml"
     preset.write_text('primary = "lab"\n[lab]\nacc_noise = 0.3\n')
-    proc = run_cli("estimate", src, "--out", out, "--config", preset)
+    run_cli("estimate", src, "--out", out, "--config", preset)
     check_output(out, len(t))
+    # the preset's primary and parameter were used: same as saying them explicitly
+    explicit = tmp_path / "explicit.csv"
+    run_cli("estimate", src, "--out", explicit, "--filter", "lab", "--set", "acc_noise=0.3")
+    assert out.read_text() == explicit.read_text()
+    default = tmp_path / "default.csv"
+    run_cli("estimate", src, "--out", default)
+    assert out.read_text() != default.read_text()
 
 
 @pytest.mark.parametrize("setting, field", [
