@@ -176,6 +176,9 @@ def main() -> int:
     w = stats["wait_ms"]
     print(f"  of which waiting median {w['median']:.2f} ms, p99 {w['p99']:.2f} ms, max {w['max']:.2f} ms "
           "(arrival -> the engine task took the chunk)")
+    g = stats["loop_lag_ms"]
+    print(f"  event-loop lag   median {g['median']:.2f} ms, p99 {g['p99']:.2f} ms, max {g['max']:.2f} ms "
+          f"over {g['n']} timer runs (data waiting in the socket meanwhile is not in the latency)")
     cpu = 100 * (cpu1 - cpu0) / wall
     print(f"  server CPU       {cpu.sum():.1f} % of one core (user {cpu[0]:.1f} %, system {cpu[1]:.1f} %; "
           "target < 25 %)")

@@ -85,17 +85,19 @@ class Throttle:
     the last run. Pokes before that run are merged into it."""
 
     def __init__(self, interval: float, fn: Callable[[], None],
-                 loop: asyncio.AbstractEventLoop | None = None):
+                 loop: asyncio.AbstractEventLoop | None = None, lag: deque | None = None):
         self.interval = float(interval)
         self.fn = fn
         self.loop = loop
+        self.lag = lag              # if given: how late each run started (s), the loop's lag
         self._last = -math.inf
+        self._due = 0.0
         self._handle: asyncio.TimerHandle | None = None
 
     def poke(self) -> None:
         if self._handle is None:
-            due = max(self._last + self.interval, self.loop.time())
-            self._handle = self.loop.call_at(due, self._run)
+            self._due = max(self._last + self.interval, self.loop.time())
+            self._handle = self.loop.call_at(self._due, self._run)
 
     def cancel(self) -> None:
         """Drop a pending run."""
@@ -106,6 +108,8 @@ class Throttle:
     def _run(self) -> None:
         self._handle = None
         self._last = self.loop.time()
+        if self.lag is not None:
+            self.lag.append(self._last - self._due)
         try:
             self.fn()
         except Exception:  # a display bug must not stop the filter
@@ -275,8 +279,11 @@ class Engine:
         self.queued = 0                     # samples waiting in the inbox
         self._t_taken = 0.0                 # when the engine took the current batch
         self._ws_pending: list[tuple[float, str, list[float]]] = []
-        self._scene_timer = Throttle(1.0 / settings.scene_hz, self._draw_scene)
-        self._ws_timer = Throttle(1.0 / settings.ws_hz, self._flush_ws)
+        # how late the display timers ran: the event loop's lag, which also delays the
+        # receiver's reads (a chunk waiting in the socket is not in the latency figure)
+        self.loop_lag: deque = deque(maxlen=100_000)
+        self._scene_timer = Throttle(1.0 / settings.scene_hz, self._draw_scene, lag=self.loop_lag)
+        self._ws_timer = Throttle(1.0 / settings.ws_hz, self._flush_ws, lag=self.loop_lag)
         self._has_lk = {n: "L_k" in e.diagnostics() for n, e in self.estimators.items()}
         self._reset_stream_state()
 
@@ -311,8 +318,8 @@ class Engine:
         self.last_vec: dict[str, np.ndarray | None] = {"acc": None, "mag": None}
         self.last_flags: dict[str, dict[str, StepFlags | None]] = {
             name: {s: None for s in SENSORS} for name in self.estimators}
-        self.reason_counts = {name: np.zeros((3, len(Reason)), dtype=np.int64)
-                              for name in self.estimators}
+        # per estimator: [sensor][reason] -> count (plain lists: cheap to bump per sample)
+        self.reason_counts = {name: [[0] * len(Reason) for _ in SENSORS] for name in self.estimators}
         self.history.clear()
 
     # ----------------------------------------------------------------- sessions
@@ -513,8 +520,11 @@ class Engine:
     def _process(self, s: Session, samples: list[Sample]) -> None:
         """Step every estimator on each sample, in order; record the plots' rows and the
         WebSocket's estimates (sent later, batched: :meth:`_flush_ws`)."""
-        ests = list(self.estimators.items())
         primary = self.primary
+        # per estimator, looked up once per batch: (is primary, estimator, its counts,
+        # its last flags, whether it reports L_k)
+        ests = [(name == primary, est, self.reason_counts[name], self.last_flags[name],
+                 self._has_lk[name]) for name, est in self.estimators.items()]
         pose, acc_ring, mag_ring = self.history.pose, self.history.acc, self.history.mag
         records = self._ws_pending if self.subscribers else None
         n = 0
@@ -535,23 +545,22 @@ class Engine:
                 kw = {"ori": self.phone_q}
             else:
                 continue
-            for name, est in ests:
+            for is_primary, est, counts, lf, has_lk in ests:
                 f = est.step(t, **kw)
                 if sensor is not None:
-                    self.reason_counts[name][si, int(getattr(f, sensor))] += 1
-                    lf = self.last_flags[name]
+                    counts[si][getattr(f, sensor)] += 1
                     lf[sensor] = f
-                    if sensor == "gyr":
+                    if si == 0:
                         lf["rest"] = f
-                if name == primary:
+                if is_primary:
                     q = est.q
                     if sensor == "acc":
                         row = acc_ring.next_row()
                         row[0], row[H_NORM], row[H_NIS_A] = t, math.sqrt(float(v @ v)), f.acc_nis
                     elif sensor == "mag":
                         row = mag_ring.next_row()
-                        lk = est.diagnostics().get("L_k") if self._has_lk[name] else None
                         row[0], row[H_NORM], row[H_NIS_M] = t, math.sqrt(float(v @ v)), f.mag_nis
+                        lk = _num(est.diagnostics().get("L_k")) if has_lk else None
                         if lk is not None:
                             row[H_LK] = lk
             row = pose.next_row()
@@ -716,9 +725,11 @@ class Engine:
                # arrival of the chunk -> the primary's pose handed to viser (every sample)
                "latency_ms": _percentiles(rows[:, 0]),
                # of which: arrival -> the engine task took the chunk (the loop was busy)
-               "wait_ms": _percentiles(rows[:, 1])}
+               "wait_ms": _percentiles(rows[:, 1]),
+               "loop_lag_ms": _percentiles(np.array(self.loop_lag, dtype=float))}
         if reset:
             self.latency.clear()
+            self.loop_lag.clear()
             self.backlog_max = 0
         return out
 

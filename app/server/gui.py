@@ -22,7 +22,7 @@ import logging
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -303,56 +303,67 @@ class Gui:
                                                ("acc gate", "#1f77b4", True),
                                                ("mag gate", "#9467bd", True)])
 
-    def refresh_plots(self) -> None:
-        """Send the plots the last ``history_s`` seconds, at most :data:`MAX_POINTS` points
-        each: O(MAX_POINTS) work, whatever the sample rate (see :class:`Ring`)."""
+    def plot_steps(self) -> Iterator[None]:
+        """Update the plots one by one, yielding after each (the caller may give the
+        event loop a turn in between). They show the last ``history_s`` seconds, at most
+        :data:`MAX_POINTS` points each, read once at the start (copies: the filter may
+        run in between): O(MAX_POINTS) work, whatever the sample rate."""
         hist, span = self.engine.history, self.settings.history_s
         pose = hist.pose.window(span, MAX_POINTS)
         if pose.shape[0] < 2:
             return
-        t_end = pose[-1, H_T]
+        acc = hist.acc.window(span, MAX_POINTS)
+        mag = hist.mag.window(span, MAX_POINTS)
+        session = self.engine.session
+        truth = session.truth if session is not None else None
         diag = self.engine.estimators[self.engine.primary].diagnostics()
+        t_end = pose[-1, H_T]
 
         def const(x, v):
             return np.full(x.shape, np.nan if v is None else float(v))
 
         x = pose[:, H_T] - t_end
         q_ours, q_phone = pose[:, H_Q:H_Q + 4], pose[:, H_P:H_P + 4]
-        ours = np.degrees(q2euler_many(q_ours))
         has_p = np.isfinite(q_phone[:, 0])
+        ours = np.degrees(q2euler_many(q_ours))
         phone = np.full_like(ours, np.nan)
-        err_p = np.full(x.shape, np.nan)
         if np.any(has_p):
             phone[has_p] = np.degrees(q2euler_many(q_phone[has_p]))
-            err_p[has_p] = _angle_deg(q_ours[has_p], q_phone[has_p])
         self.p_euler.data = (x, *ours.T, *phone.T)
-        err_t = np.full(x.shape, np.nan)
-        truth = self.engine.session.truth if self.engine.session else None
-        if truth is not None:
-            err_t = _angle_deg(q_ours, truth(pose[:, H_T] * 1000.0))
+        yield
+        err_p = np.full(x.shape, np.nan)
+        if np.any(has_p):
+            err_p[has_p] = _angle_deg(q_ours[has_p], q_phone[has_p])
+        err_t = np.full(x.shape, np.nan) if truth is None else \
+            _angle_deg(q_ours, truth(pose[:, H_T] * 1000.0))
         self.p_err.data = (x, err_p, err_t)
-        rows = hist.acc.window(span, MAX_POINTS)
-        if rows.shape[0] > 1:
+        yield
+        if acc.shape[0] > 1:
             band = diag.get("acc_band") or (None, None)
-            x = rows[:, H_T] - t_end
-            self.p_acc.data = (x, rows[:, H_NORM], const(x, band[0]), const(x, band[1]))
-        mags = hist.mag.window(span, MAX_POINTS)
-        if mags.shape[0] > 1:
+            x = acc[:, H_T] - t_end
+            self.p_acc.data = (x, acc[:, H_NORM], const(x, band[0]), const(x, band[1]))
+            yield
+        if mag.shape[0] > 1:
             band = diag.get("mag_band") or (None, None)
-            x = mags[:, H_T] - t_end
-            self.p_mag.data = (x, mags[:, H_NORM], mags[:, H_LK], const(x, band[0]), const(x, band[1]))
-        rows, mags = rows[-(MAX_POINTS // 2):], mags[-(MAX_POINTS // 2):]
-        if rows.shape[0] + mags.shape[0] > 1:
+            x = mag[:, H_T] - t_end
+            self.p_mag.data = (x, mag[:, H_NORM], mag[:, H_LK], const(x, band[0]), const(x, band[1]))
+            yield
+        acc, mag = acc[-(MAX_POINTS // 2):], mag[-(MAX_POINTS // 2):]
+        if acc.shape[0] + mag.shape[0] > 1:
             # acc and mag NIS on one time axis: each series NaN (a gap) at the other's times
-            x = np.concatenate([rows[:, H_T], mags[:, H_T]])
+            x = np.concatenate([acc[:, H_T], mag[:, H_T]])
             order = np.argsort(x, kind="stable")
-            na, nm = rows.shape[0], mags.shape[0]
-            nis_a = np.concatenate([rows[:, H_NIS_A], np.full(nm, np.nan)])[order]
-            nis_m = np.concatenate([np.full(na, np.nan), mags[:, H_NIS_M]])[order]
+            nis_a = np.concatenate([acc[:, H_NIS_A], np.full(mag.shape[0], np.nan)])[order]
+            nis_m = np.concatenate([np.full(acc.shape[0], np.nan), mag[:, H_NIS_M]])[order]
             x = x[order] - t_end
             ga = diag.get("acc_nis_gate", diag.get("nis_gate"))
             gm = diag.get("mag_nis_gate", diag.get("nis_gate"))
             self.p_nis.data = (x, nis_a, nis_m, const(x, ga or None), const(x, gm or None))
+
+    def refresh_plots(self) -> None:
+        """Update every plot at once (see :meth:`plot_steps`)."""
+        for _ in self.plot_steps():
+            pass
 
     # ------------------------------------------------------------------ read-outs
     def refresh_text(self) -> None:
@@ -428,17 +439,19 @@ def _readouts_html(st: dict) -> str:
 
 
 async def run_gui(gui: Gui, hz: float) -> None:
-    """Refresh the read-outs and plots at ``hz``. The read-outs and the plots go in two
-    loop turns, so the filter task (and its latency) never waits for both at once."""
+    """Refresh the read-outs and plots at ``hz``, giving the event loop a turn between
+    the read-outs and each plot: the filter task (and its latency) never waits for a
+    whole refresh."""
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
     due = loop.time()
     while True:
-        for part in (gui.refresh_text, gui.refresh_plots):
-            try:
-                part()
-            except Exception:
-                log.exception("GUI refresh failed")
+        try:
+            gui.refresh_text()
             await asyncio.sleep(0)
+            for _ in gui.plot_steps():
+                await asyncio.sleep(0)
+        except Exception:
+            log.exception("GUI refresh failed")
         due = max(due + period, loop.time())      # a steady hz, no catching up after a stall
         await asyncio.sleep(due - loop.time())
