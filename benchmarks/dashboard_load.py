@@ -9,17 +9,23 @@ What it does
   estimate); all ten read everything they are sent;
 - plays a phone over TCP on loopback: ACC, GYR and MAG at **500 Hz each** (1500 lines/s,
   simulated with :mod:`app.simulate`), sent in 10 ms chunks at real-time speed, for
-  ``--seconds`` (default 20) after a 3 s warm-up;
+  ``--seconds`` (default 20) after a 3 s warm-up; Nagle's algorithm stays on, as in a
+  phone app that does not set ``TCP_NODELAY`` (the receiver acknowledges at once so
+  the chunks are not held back);
 - polls ``GET /api/stats`` once a second.
 
 What it prints
 --------------
 - **backlog**: samples queued for the engine and its inbox length, first vs. last
   third of the run (a growing queue means the server does not keep up);
-- **latency** from the arrival of the chunk holding a line to the moment the viser
-  scene update for it has been queued (engine instrumentation, every sample):
-  median and 99th percentile (target p99 < 5 ms). The reorder buffer's deliberate
-  hold (50 ms of stream time) is not included;
+- **latency** from the arrival of the chunk holding a line (the receiver's read
+  returned) to the moment the primary's pose after processing it has been queued on
+  viser (engine instrumentation, every sample; see :mod:`app.server.engine`): median
+  and 99th percentile (target p99 < 5 ms). The reorder buffer's deliberate hold
+  (50 ms of stream time) is not included: a sample is timed from the chunk that
+  released it. Also printed: the part before the engine task took the chunk, and the
+  event loop's lag (how late the display timers ran): a chunk arriving while the loop
+  is busy waits in the socket that long, unseen by the latency figure;
 - **CPU** of the server process (user + system) in % of one core (target < 25 %).
 
 Run: ``.venv/bin/python benchmarks/dashboard_load.py [--seconds 20]``. Only loopback

@@ -16,14 +16,26 @@ posted, from three kinds of producers:
 
 The engine task takes everything queued at once, applies the changes first (so a
 change is in effect from the next sample on), then steps every estimator on each
-sample in order, and finally publishes one snapshot to the listeners (the viser scene)
-and one message to the WebSocket subscribers. The estimators' parameters are the one
-source of truth: the API reads them, the GUI is synchronised from them after a change.
+sample in order, and finally hands the primary's new pose to the viser scene (every
+batch: viser merges poses and sends at most 60 a second). The rest of the scene
+(cones, arrows, the other phones, indicators) follows at most ``scene_hz`` times a
+second and the WebSocket subscribers get one message at most ``ws_hz`` times a second
+holding every estimate since the last (none is skipped); both run from timers in their
+own loop turns (:class:`Throttle`), so they never delay a pose. The plots read
+:class:`Ring` buffers at ``plot_hz`` (see :mod:`app.server.gui`). The estimators'
+parameters are the one source of truth: the API reads them, the GUI is synchronised
+from them after a change.
 
-Latency instrumentation: for every processed sample, the time from the arrival of the
-chunk holding the line that released it to the moment the scene update for it has been
-queued on viser is recorded (:meth:`Engine.stats`). The reorder buffer's deliberate
-hold (``reorder_window_s`` of stream time) is not part of that figure.
+Latency instrumentation (:meth:`Engine.stats`, printed by ``benchmarks/dashboard_load.py``):
+for every processed sample, the time from the **arrival** of the chunk holding the line
+that released it (``time.perf_counter()`` when the receiver's read returned) to the
+moment the primary's pose after the batch has been **queued on viser**
+(``handle.wxyz = q`` returned). The reorder buffer's deliberate hold
+(``reorder_window_s`` of stream time) is not part of that figure: a sample is timed from
+the chunk that released it. Also recorded: the part spent before the engine task took
+the chunk (``wait_ms``) and how late the display timers ran (``loop_lag_ms``), an
+estimate of how long a chunk can sit in the socket while the loop is busy, which the
+latency cannot see.
 """
 
 from __future__ import annotations

@@ -147,6 +147,7 @@ class Scene:
         self._shown = {"own": False, "truth": False}
         self._bad = {"acc": False, "mag": False}
         self._expected: dict[str, np.ndarray] = {}
+        self._cone_scale: list[tuple[float, ...]] = [()] * 3
         server.initial_camera.position = (2.0, -3.3, 2.4)
         server.initial_camera.look_at = (0.0, 0.0, 0.0)
 
@@ -199,8 +200,12 @@ class Scene:
         lim = math.radians(MAX_CONE_DEG)
         for i, cone in enumerate(self.cones):
             a, b = _CONE_FRAMES[i][1]
-            cone.scale = (math.tan(min(SIGMA_K * sig[a], lim)) * AXIS_LEN,
-                          math.tan(min(SIGMA_K * sig[b], lim)) * AXIS_LEN, AXIS_LEN)
+            scale = (math.tan(min(SIGMA_K * sig[a], lim)) * AXIS_LEN,
+                     math.tan(min(SIGMA_K * sig[b], lim)) * AXIS_LEN, AXIS_LEN)
+            # σ settles within seconds: send a cone only when it visibly changes
+            if not _close(scale, self._cone_scale[i], 1e-3):
+                cone.scale = scale
+                self._cone_scale[i] = scale
 
     def _draw_arrows(self, R: np.ndarray, s: Snapshot) -> None:
         g0 = np.asarray(s.diag.get("g0") or (0.0, 0.0, 9.81), float)
@@ -220,7 +225,7 @@ class Scene:
         """Expected directions rarely change: send them only when they do."""
         pts = _arrow_points(vec)
         last = self._expected.get(key)
-        if last is None or not np.allclose(last, pts, atol=1e-3):
+        if last is None or not _close(pts.ravel().tolist(), last.ravel().tolist(), 1e-3):
             handle.points = pts
             self._expected[key] = pts
 
@@ -231,6 +236,12 @@ class Scene:
             # an array: viser's property setter does not convert a tuple of colours
             handle.colors = np.array(C_BAD if bad else good, dtype=np.uint8)
             self._bad[sensor] = bad
+
+
+def _close(a, b, atol: float) -> bool:
+    """Same length and every element within ``atol`` (plain floats: cheaper than
+    numpy for a handful of numbers)."""
+    return len(a) == len(b) and all(abs(x - y) <= atol for x, y in zip(a, b))
 
 
 def expected_field(diag: dict) -> np.ndarray | None:

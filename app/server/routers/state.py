@@ -34,7 +34,8 @@ async def resume(engine: Engine = Depends(get_engine)) -> dict:
 
 @router.websocket("/ws/state")
 async def ws_state(ws: WebSocket) -> None:
-    """Every estimate, as it is made: one JSON message per processed batch,
+    """Every estimate: JSON messages (at most ``ws_hz``, default 20, a second) each
+    holding the estimates made since the previous one,
     ``{"primary", "source", "estimates": [{"t", "tag", "q"}]}`` (q of the primary, [w,x,y,z]);
     no estimate is skipped. The first message is the full state (as GET /api/state)."""
     engine: Engine = ws.app.state.engine
