@@ -269,3 +269,38 @@ def test_busy_port_is_reported():
         args = types.SimpleNamespace(host="127.0.0.1", port=port, viewer_port=free_port(),
                                      phone_port=free_port(), config=None, source="none")
         assert serve(args) != 0
+
+
+def test_ring_window_spans_the_time_window_across_the_wrap():
+    from app.server.engine import Ring
+    ring = Ring(100, 2)
+    for k in range(250):                      # wrapped twice; times 0.00 .. 2.49 s
+        row = ring.next_row()
+        row[0], row[1] = k / 100.0, k
+    w = ring.window(0.505, 1000)              # every row of the last ~0.5 s, oldest first
+    assert w[:, 1].tolist() == list(range(199, 250))
+    w = ring.window(10.0, 7)                  # longer than held: the whole ring, thinned
+    assert w.shape == (7, 2) and w[0, 1] == 150 and w[-1, 1] == 249
+    assert np.all(np.diff(w[:, 0]) > 0)
+    w[:] = -1                                 # a copy: the ring is untouched
+    assert ring.window(0.0, 5)[:, 1].tolist() == [249]
+    ring.clear()
+    assert ring.window(1.0, 5).shape == (0, 2)
+
+
+def test_scene_draws_a_rejected_sensor(srv):
+    """A refused magnetometer sample turns its arrow red (viser takes the colour as an
+    array) and names the gate in the indicator line."""
+    from app.estimators.base import F_MAG, F_MAG_VAL, R_NORM, StepFlags, new_flags
+    f = new_flags()
+    f[F_MAG], f[F_MAG_VAL] = R_NORM, 80.0
+    flags = StepFlags.from_row(1.0, f)
+    eng, scene = srv.engine, srv.app.state.scene
+    snap = eng.snapshot()
+    snap.mag, snap.mag_flags, snap.initialized = np.array([0.0, 20.0, -75.0]), flags, True
+    scene.draw(snap)
+    assert scene.mag.colors.tolist() == [230, 30, 30]
+    assert "MAG disturbed: |m| = 80.0 µT" in scene.status.text
+    snap.mag_flags = StepFlags.from_row(1.0, new_flags())
+    scene.draw(snap)
+    assert scene.mag.colors.tolist() != [230, 30, 30]
