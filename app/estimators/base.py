@@ -173,9 +173,25 @@ def repeated_time(issue, seen, mask):
     return T_OK, seen | mask
 
 
+@njit(cache=True)
+def row_prologue(t_prev, t, max_gap, seen, gyr, acc, mag, use_gyr, use_acc, use_mag):
+    """Everything a row needs before any estimator's own work, in one compiled call:
+    ``(dt, time issue, sensors seen at this time, gyr/acc/mag state)``."""
+    dt, issue = time_step(t_prev, t, max_gap)
+    if issue != T_BACKWARD:
+        issue, seen = repeated_time(issue, seen, row_mask(gyr, acc, mag))
+    return (dt, issue, seen, vector_state(gyr, use_gyr), vector_state(acc, use_acc),
+            vector_state(mag, use_mag))
+
+
+_NAN3 = np.full(3, np.nan)
+
+
 def _as_vec(v) -> np.ndarray:
     if v is None:
-        return np.full(3, np.nan)
+        return _NAN3.copy()
+    if type(v) is np.ndarray and v.shape == (3,) and v.dtype == np.float64:
+        return v
     a = np.asarray(v, dtype=float).reshape(-1)
     if a.size != 3:
         raise ValueError(f"a sensor sample has 3 values, got {a.size}")
@@ -329,14 +345,10 @@ class Estimator:
         Returns None (row skipped, samples flagged LATE) for a backward timestamp.
         Uses ``self.t`` (time of the last row) and ``self._w``/``self._w_t`` (held rate)."""
         p = self._params
-        dt, issue = time_step(self.t, t, p.max_gap)
-        if issue != T_BACKWARD:
-            issue, self._seen = repeated_time(issue, self._seen, row_mask(gyr, acc, mag))
+        dt, issue, self._seen, gs, as_, ms = row_prologue(
+            self.t, t, p.max_gap, self._seen, gyr, acc, mag, p.use_gyr, p.use_acc, p.use_mag)
         flags[F_TIME] = issue
-        gs = vector_state(gyr, p.use_gyr)
-        as_ = vector_state(acc, p.use_acc)
-        ms = vector_state(mag, p.use_mag)
-        if issue == TimeIssue.BACKWARD:
+        if issue == T_BACKWARD:
             for col, st in ((F_GYR, gs), (F_ACC, as_), (F_MAG, ms)):
                 flags[col] = Reason.LATE if st == Reason.USED else st
             return None
@@ -353,8 +365,8 @@ class Estimator:
             if gs == Reason.USED:
                 flags[F_GYR] = Reason.GAP
             w = None
-        return Row(dt=dt, issue=TimeIssue(issue), gyr=Reason(gs), acc=Reason(as_),
-                   mag=Reason(ms), w=w)
+        return Row(dt=dt, issue=_TIME_ISSUES[issue], gyr=_REASONS[gs], acc=_REASONS[as_],
+                   mag=_REASONS[ms], w=w)
 
     def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
         """Process rows in order; the estimate and flags after each. Arrays are (N,)

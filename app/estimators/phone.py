@@ -25,6 +25,8 @@ def ori_quaternion(ori) -> np.ndarray | None:
     if ori is None:
         return None
     v = np.asarray(ori, dtype=float).reshape(-1)
+    if v.size and np.isnan(v[0]) and np.isnan(v).all():  # the common case: no ORI in this row
+        return None
     if v.size == 3:
         if not np.all(np.isfinite(v)):
             return None

@@ -44,7 +44,8 @@ from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
                    F_TIME, NFLAGS, R_DIP, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
-                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator, repeated_time, row_mask, time_step, vector_state)
+                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator,
+                   row_prologue)
 from .kalman import correct
 
 GRAVITY = 9.81
@@ -512,14 +513,11 @@ def _mag_update(s, P, p, t, mag, w, f):
 @njit(cache=True)
 def robust_step(s, P, p, t, gyr, acc, mag, f):
     """Process one row: time update, rest detection, tilt update, heading update."""
-    dt, issue = time_step(s[S_T], t, p[P_MAX_GAP])
-    if issue != T_BACKWARD:
-        issue, seen = repeated_time(issue, int(s[S_SEEN]), row_mask(gyr, acc, mag))
-        s[S_SEEN] = seen
+    dt, issue, seen, gs, as_, ms = row_prologue(s[S_T], t, p[P_MAX_GAP], int(s[S_SEEN]), gyr, acc,
+                                                mag, p[P_USE_GYR] > 0.5, p[P_USE_ACC] > 0.5,
+                                                p[P_USE_MAG] > 0.5)
+    s[S_SEEN] = seen
     f[F_TIME] = issue
-    gs = vector_state(gyr, p[P_USE_GYR] > 0.5)
-    as_ = vector_state(acc, p[P_USE_ACC] > 0.5)
-    ms = vector_state(mag, p[P_USE_MAG] > 0.5)
     if issue == T_BACKWARD:
         f[F_GYR] = R_LATE if gs == R_USED else gs
         f[F_ACC] = R_LATE if as_ == R_USED else as_
