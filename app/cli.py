@@ -346,7 +346,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
         from .server.run import serve
     except ImportError as e:
         raise CliError(f"serve is not available ({e})") from None
-    return int(serve(args) or 0)
+    try:
+        return int(serve(args) or 0)
+    except KeyboardInterrupt:  # Ctrl-C: uvicorn re-raises it after its graceful shutdown
+        return 0
 
 
 def cmd_params(args) -> int:

@@ -285,3 +285,43 @@ def test_console_script_is_installed():
         pytest.skip("console script not installed in .venv")
     proc = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and "estimate" in proc.stdout
+
+
+def test_serve_starts_prints_the_addresses_and_stops_cleanly_on_ctrl_c():
+    """`orientlab serve` as a user runs it: the banner names the page and the phone port,
+    the API answers, and Ctrl-C (SIGINT) ends the process with status 0."""
+    import signal
+    import socket
+    import time
+    import urllib.request
+
+    def free_port() -> int:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    port, viewer, phone = free_port(), free_port(), free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--host", "127.0.0.1",
+                             "--port", str(port), "--viewer-port", str(viewer),
+                             "--phone-port", str(phone), "--source", "demo"],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            assert proc.poll() is None, proc.stdout.read()
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline, "the server did not come up"
+            time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    assert f"http://127.0.0.1:{port}/" in out
+    assert f"port {phone}" in out
