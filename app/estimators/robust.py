@@ -13,7 +13,9 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
   the phone's accelerations, which average to zero, cancel, while gravity stays. The
   filtered direction is the measurement (2 components, ``h = (-δθy, δθx)``); the
   filter state is rotated with every correction, so it always lives in the current
-  estimate's world frame. A norm band and an innovation (NIS) gate refuse what is left.
+  estimate's world frame. Every valid sample enters the low-pass (leaving out the
+  peaks of a movement would bias its mean); an innovation (NIS) gate, and optionally
+  a norm band (off by default: it costs accuracy on real data), hold the correction.
 - **Heading only from the magnetometer.** The field is rotated into the world frame
   with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
   the gain is masked so this update can never tilt the attitude.
