@@ -185,6 +185,7 @@ def row_prologue(t_prev, t, max_gap, seen, gyr, acc, mag, use_gyr, use_acc, use_
 
 
 _NAN3 = np.full(3, np.nan)
+_FLAGS0 = new_flags()  # the record of a row before anything happened (copied per row)
 
 
 def _as_vec(v) -> np.ndarray:
@@ -329,7 +330,7 @@ class Estimator:
     # ----------------------------------------------------------- processing
     def step(self, t: float, gyr=None, acc=None, mag=None, ori=None) -> StepFlags:
         """Process one row (see the module doc) and return its flag record."""
-        f = new_flags()
+        f = _FLAGS0.copy()
         self._step(float(t), _as_vec(gyr), _as_vec(acc), _as_vec(mag),
                    None if ori is None else np.asarray(ori, dtype=float), f)
         self.last_flags = StepFlags.from_row(t, f)

@@ -73,6 +73,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -350,11 +352,11 @@ class ComplementaryDNRF(Estimator):
         if row.acc == Reason.USED:
             self._acc_ma.push(acc)
             self._acc_t = t
-            flags[F_ACC_VAL] = float(np.linalg.norm(acc))
+            flags[F_ACC_VAL] = math.hypot(acc[0], acc[1], acc[2])
         if row.mag == Reason.USED:
             self._mag_ma.push(mag)
             self._mag_t = t
-            flags[F_MAG_VAL] = float(np.linalg.norm(mag))
+            flags[F_MAG_VAL] = math.hypot(mag[0], mag[1], mag[2])
 
     def _align(self, t, row, flags) -> None:
         """Initial orientation from the filtered accelerometer (+ magnetometer) sample."""

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -134,6 +136,7 @@ class LabEKF(Estimator):
         self._Ra = _cov(p.acc_cov, p.acc_noise)
         self._Rm = _cov(p.mag_cov, p.mag_noise)
         self._g0 = np.array(p.g0, dtype=float)
+        self._g0_norm = float(np.linalg.norm(self._g0))
         self._bias = np.array(p.gyr_bias, dtype=float)
         if getattr(self, "_init", False) and p.m0 is not None:
             self._m0 = np.array(p.m0, dtype=float)
@@ -215,8 +218,8 @@ class LabEKF(Estimator):
             self._time_update(row.w, row.dt)
 
         if row.acc == Reason.USED:
-            n = float(np.linalg.norm(acc))
-            g = float(np.linalg.norm(self._g0))
+            n = math.hypot(acc[0], acc[1], acc[2])
+            g = self._g0_norm
             flags[F_ACC_VAL] = n
             if p.acc_band_rel > 0.0 and abs(n - g) > p.acc_band_rel * g:
                 flags[F_ACC] = Reason.NORM
@@ -225,7 +228,7 @@ class LabEKF(Estimator):
 
         if row.mag == Reason.USED and self._learn_m0(mag, flags):
             a = p.mag_alpha
-            self.L = (1.0 - a) * self.L + a * float(np.linalg.norm(mag))
+            self.L = (1.0 - a) * self.L + a * math.hypot(mag[0], mag[1], mag[2])
             flags[F_MAG_VAL] = self.L
             band = self._mag_band()
             if band is not None and not band[0] <= self.L <= band[1]:
