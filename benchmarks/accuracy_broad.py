@@ -100,12 +100,26 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--only", nargs="*", help="methods to run (default: all)")
     ap.add_argument("--per-trial", action="store_true", help="also print every trial")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME:KEY=VALUE",
+                    help="change a parameter of one of our estimators, e.g. "
+                         "robust:mag_norm_gate_rel=0.05 (VALUE as JSON; repeatable)")
     args = ap.parse_args(argv)
     if not (args.data / "trials.json").is_file():
         print(f"BROAD data not found at {args.data}: nothing to benchmark.")
         return 0
     trials = load_trials(args.data)
-    methods = {n: run_orientlab(n) for n in NAMES if n != "phone"}  # BROAD has no phone estimate
+    overrides: dict[str, dict] = {}
+    for item in args.set:
+        name, _, kv = item.partition(":")
+        key, _, value = kv.partition("=")
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError:
+            pass
+        overrides.setdefault(name, {})[key] = value
+    methods = {n: run_orientlab(n, overrides.get(n)) for n in NAMES if n != "phone"}  # no ORI in BROAD
+    if overrides:
+        print("changed parameters: " + "; ".join(f"{n}: {p}" for n, p in overrides.items()))
     try:
         import vqf  # noqa: F401
         methods["VQF"] = run_vqf
