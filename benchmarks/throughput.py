@@ -3,7 +3,8 @@
 Runs each estimator's ``run()`` over the same recording (a BROAD trial when
 ``../shared/data/broad`` is there, else a generated 285 Hz recording of the same
 length), best of several repeats after a warm-up (so JIT compilation is not
-counted). VQF's compiled core (``vqf.VQF.updateBatch``) runs the same data.
+counted). VQF's compiled core (``vqf.VQF.updateBatch``) runs the same data, and the robust
+filter's own code once more uncompiled (``NUMBA_DISABLE_JIT=1``), to show what numba buys.
 Usage: ``python benchmarks/throughput.py [--repeat N]``.
 """
 
@@ -68,9 +69,34 @@ def main(argv=None) -> int:
         rows.append(("VQF (C++)", n / sec))
     except ImportError:
         print("!! vqf is not installed (pip install vqf): no VQF figure !!")
+    rows.append(("robust, uncompiled", uncompiled_rate()))
     for name, rate in rows:
-        print(f"{name:<16}{rate:>14,.0f} samples/s")
+        print(f"{name:<20}{rate:>14,.0f} samples/s")
     return 0
+
+
+_UNCOMPILED = r"""
+import sys, time
+sys.path.insert(0, sys.argv[1])
+sys.path.insert(0, sys.argv[1] + '/benchmarks')
+from throughput import recording
+from app.estimators import make_estimator
+t, gyr, acc, mag, fs, src = recording()
+n = 5000
+t0 = time.perf_counter()
+make_estimator('robust').run(t[:n], gyr[:n], acc[:n], mag[:n])
+print(n / (time.perf_counter() - t0))
+"""
+
+
+def uncompiled_rate() -> float:
+    """The same robust code run by the plain interpreter (NUMBA_DISABLE_JIT=1: every
+    @njit function is ordinary numpy), on 5000 samples: what numba buys."""
+    import os
+    import subprocess
+    out = subprocess.run([sys.executable, "-c", _UNCOMPILED, str(ROOT)], capture_output=True,
+                         text=True, env=dict(os.environ, NUMBA_DISABLE_JIT="1"), check=True)
+    return float(out.stdout.strip().splitlines()[-1])
 
 
 if __name__ == "__main__":
