@@ -141,6 +141,20 @@ def test_robust_learns_a_phone_sized_gyro_bias_at_rest():
     assert np.sum(res.flags[:, F_GYR] == Reason.REST) > 500  # bias updates made and flagged
 
 
+def test_robust_detects_rest_as_soon_as_it_has_been_quiet_for_rest_time():
+    """The rest low-passes start at their first sample (not at zero): a phone lying
+    still from the first row is at rest after rest_time plus a few low-pass settling
+    steps, well before 2 x rest_time."""
+    q_true = qm.normalize(np.array([0.9, 0.1, -0.3, 0.2]))
+    t, gyr, acc, mag = still_rows(q_true, seconds=6.0)
+    est = make_estimator("robust")
+    res = est.run(t, gyr, acc, mag)
+    first_rest = t[np.argmax(res.flags[:, F_REST] > 0.5)]
+    assert res.flags[:, F_REST].any()
+    rest_time = est.params.rest_time
+    assert rest_time <= first_rest < 2 * rest_time, first_rest
+
+
 def test_exact_and_approximate_time_updates_agree_for_small_steps_and_differ_for_large():
     rng = np.random.default_rng(3)
     q0 = random_q(rng)

@@ -605,7 +605,7 @@ def robust_run(s, P, p, T, G, A, M, Qout, Fout):
 def new_state() -> np.ndarray:
     s = np.zeros(NSTATE)
     s[S_Q] = 1.0
-    for i in (S_T, S_W_T, S_WAIT_T, S_T0, S_MAG_T, S_ACC_T, ):
+    for i in (S_T, S_W_T, S_WAIT_T, S_T0, S_MAG_T, S_ACC_T, S_GLP_T, S_AL2_T):
         s[i] = np.nan
     return s
 
