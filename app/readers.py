@@ -79,10 +79,6 @@ class Recording:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
-    @property
-    def n_malformed(self) -> int:
-        return int(sum(self.counts.get("malformed", {}).values()))
-
 
 # ---------------------------------------------------------------- public API
 

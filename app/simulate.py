@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 
@@ -168,9 +168,6 @@ class Simulation:
         tt = np.mod(np.atleast_1d(np.asarray(t, float)), self.period)
         return np.clip(np.searchsorted(self.starts, tt, side="right") - 1, 0, len(self.scenes) - 1)
 
-    def scene_name(self, t: float) -> str:
-        return self.scenes[int(self.scene_at(t)[0])]
-
     def motion(self, t):
         """(q (N,4), ω body (N,3), linear acceleration world (N,3), field disturbance (N,3))."""
         t = np.atleast_1d(np.asarray(t, float))
@@ -248,10 +245,6 @@ class SimResult:
     def truth_at_ms(self, time_ms) -> np.ndarray:
         """True orientation (N,4) at phone-clock times (ms, as in the samples)."""
         return self.sim.truth((np.asarray(time_ms, float) - self.boot_ms) / 1000.0)
-
-    @property
-    def truth_fn(self) -> Callable[[np.ndarray], np.ndarray]:
-        return self.truth
 
     def lines(self) -> list[str]:
         return [format_line(*s) for s in self.samples]

@@ -15,7 +15,7 @@ import websockets
 
 from app.protocol import MOTION_TAGS
 from app.server.harness import Phone, free_port, log_lines, running_server, wait_for
-from app.simulate import format_line, simulate
+from app.simulate import simulate
 from app.stream import SampleOrderer
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

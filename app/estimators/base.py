@@ -19,7 +19,6 @@ reader make one row per sample, in time order.
 from __future__ import annotations
 
 import copy
-import dataclasses
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any, ClassVar
@@ -419,6 +418,3 @@ def _rows(x, n: int) -> np.ndarray:
         raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
     return a
 
-
-def params_fields(est_or_cls) -> list[str]:
-    return [f.name for f in dataclasses.fields(est_or_cls.Params)]

@@ -33,21 +33,6 @@ def mm(A, B):
 
 
 @njit(cache=True)
-def mmT(A, B):
-    """A @ B.T for small matrices."""
-    n, k = A.shape
-    m = B.shape[0]
-    C = np.zeros((n, m))
-    for i in range(n):
-        for j in range(m):
-            acc = 0.0
-            for l in range(k):
-                acc += A[i, l] * B[j, l]
-            C[i, j] = acc
-    return C
-
-
-@njit(cache=True)
 def inv_small(S):
     """Inverse of a small symmetric positive definite matrix (closed form up to 2x2,
     Gauss-Jordan with partial pivoting above). A singular S gives NaNs."""
