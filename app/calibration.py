@@ -158,7 +158,7 @@ def level_field(acc_mean: np.ndarray, mag_mean: np.ndarray) -> np.ndarray:
     specific force to +z, then ``m0 = (0, sqrt(mx²+my²), mz)`` (µT, world)."""
     q = qm.q_from_acc_mag(np.asarray(acc_mean, float), np.zeros(3), False)
     m = qm.Q(q) @ np.asarray(mag_mean, float)   # heading arbitrary, vertical exact
-    return np.array([0.0, math.hypot(m[0], m[1]), m[2]])
+    return qm.field_reference(m)
 
 
 def calibrate(t, gyr=None, acc=None, mag=None,

@@ -268,6 +268,36 @@ def q2euler_many(qs: np.ndarray) -> np.ndarray:
     return _q2euler_rows(qs)
 
 
+def quat_mul_many(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) arrays (broadcast), scalar first: :func:`quat_mul`
+    for many quaternions at once."""
+    p0, p1, p2, p3 = np.moveaxis(np.asarray(p, float), -1, 0)
+    q0, q1, q2, q3 = np.moveaxis(np.asarray(q, float), -1, 0)
+    return np.stack([p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3,
+                     p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2,
+                     p0 * q2 - p1 * q3 + p2 * q0 + p3 * q1,
+                     p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0], axis=-1)
+
+
+def quat_from_rotvec_many(v: np.ndarray) -> np.ndarray:
+    """:func:`quat_from_rotvec` of (..., 3) rotation vectors."""
+    v = np.asarray(v, float)
+    a = np.linalg.norm(v, axis=-1)
+    small = a < 1e-12
+    s = np.where(small, 0.5, np.sin(0.5 * a) / np.where(small, 1.0, a))
+    return np.concatenate([np.cos(0.5 * a)[..., None], v * s[..., None]], axis=-1)
+
+
+def rotate_inv_many(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Q(q)ᵀ v for (..., 4) q and (..., 3) or (3,) v (a world vector in the sensor frame):
+    :func:`rotate_inv` for many at once."""
+    q = np.asarray(q, float)
+    v = np.broadcast_to(np.asarray(v, float), q.shape[:-1] + (3,))
+    zero = np.zeros(v.shape[:-1] + (1,))
+    conj = q * np.array([1.0, -1.0, -1.0, -1.0])
+    return quat_mul_many(quat_mul_many(conj, np.concatenate([zero, v], axis=-1)), q)[..., 1:]
+
+
 def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
     """Total, heading and inclination error (rad) of (N, 4) estimates against references.
 
@@ -275,53 +305,70 @@ def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
     in the world frame; heading is its part about the world's vertical (swing-twist
     decomposition), inclination the rest. This is BROAD's metric.
     """
-    q_est = np.atleast_2d(q_est)
     q_ref = np.atleast_2d(q_ref)
-    w = q_est[:, 0] * q_ref[:, 0] + np.sum(q_est[:, 1:] * q_ref[:, 1:], axis=1)
-    # e = q_est * conj(q_ref): its scalar part and its part about the world's z
-    e0 = w
-    ez = -q_est[:, 0] * q_ref[:, 3] - q_est[:, 1] * q_ref[:, 2] + q_est[:, 2] * q_ref[:, 1] + q_est[:, 3] * q_ref[:, 0]
+    e = quat_mul_many(np.atleast_2d(q_est), q_ref * np.array([1.0, -1.0, -1.0, -1.0]))
+    e0, ez = e[:, 0], e[:, 3]
     total = 2.0 * np.arccos(np.clip(np.abs(e0), 0.0, 1.0))
     heading = 2.0 * np.arctan2(np.abs(ez), np.abs(e0))
     incl = 2.0 * np.arccos(np.clip(np.sqrt(e0 ** 2 + ez ** 2), 0.0, 1.0))
-    # heading via atan2 keeps the sign-ambiguity of q away; wrap to [0, pi]
-    heading = np.where(heading > np.pi, 2 * np.pi - heading, heading)
     return total, heading, incl
+
+
+@njit(cache=True)
+def skew(v):
+    """[v]×: the matrix with [v]× w = v × w."""
+    S = np.zeros((3, 3))
+    S[0, 1] = -v[2]
+    S[0, 2] = v[1]
+    S[1, 0] = v[2]
+    S[1, 2] = -v[0]
+    S[2, 0] = -v[1]
+    S[2, 1] = v[0]
+    return S
+
+
+@njit(cache=True)
+def compass_matrix(up, ref, R_fallback):
+    """The accelerometer/magnetometer rotation matrix (TRIAD, Android's getRotationMatrix):
+    rows east, north, up in sensor coordinates, i.e. Q(q) of the sensor-to-world
+    orientation. ``up`` is the specific force (it points up at rest), ``ref`` the
+    magnetic field (or any vector with a northward horizontal part). If ``ref`` has no
+    horizontal part (zero, or vertical), the east axis of ``R_fallback`` projected on the
+    horizontal plane is used instead (or its north axis, if that east is vertical)."""
+    u = up / np.sqrt(up @ up)
+    e = np.cross(ref, u)
+    en = np.sqrt(e @ e)
+    if not en > 1e-6 * np.sqrt(ref @ ref):
+        e = R_fallback[0] - (R_fallback[0] @ u) * u
+        en = np.sqrt(e @ e)
+        if en < 1e-6:  # fallback east is vertical too: then its north is horizontal
+            e = np.cross(R_fallback[1], u)
+            en = np.sqrt(e @ e)
+    e = e / en
+    R = np.empty((3, 3))
+    R[0] = e
+    R[1] = np.cross(u, e)
+    R[2] = u
+    return R
+
+
+_TOP = np.array([0.0, 1.0, 0.0])  # the phone's top: north when there is no field
 
 
 @njit(cache=True)
 def q_from_acc_mag(acc, mag, use_mag):
     """Initial alignment: the orientation whose 'up' is the accelerometer's direction
-    (specific force at rest points up) and, when ``use_mag``, whose north is the
-    horizontal part of the magnetic field (TRIAD). Without the magnetometer, the
-    heading is chosen so the phone's top (y) points north (or its x axis points
-    east when the top points straight up)."""
-    an = np.sqrt(acc[0] ** 2 + acc[1] ** 2 + acc[2] ** 2)
-    u = acc / an
-    e = np.zeros(3)
-    ok = False
-    if use_mag:
-        e = np.cross(mag, u)
-        en = np.sqrt(e[0] ** 2 + e[1] ** 2 + e[2] ** 2)
-        if en > 1e-9 * (np.sqrt(mag[0] ** 2 + mag[1] ** 2 + mag[2] ** 2) + 1e-300):
-            e = e / en
-            ok = True
-    if not ok:
-        y = np.array([0.0, 1.0, 0.0])
-        nn = y - (y @ u) * u
-        if np.sqrt(nn @ nn) < 0.1:
-            x = np.array([1.0, 0.0, 0.0])
-            e = x - (x @ u) * u
-            e = e / np.sqrt(e @ e)
-        else:
-            nn = nn / np.sqrt(nn @ nn)
-            e = np.cross(nn, u)
-    n = np.cross(u, e)
-    R = np.empty((3, 3))
-    R[0, :] = e  # rows: world axes (east, north, up) in sensor coordinates
-    R[1, :] = n
-    R[2, :] = u
-    return quat_from_matrix(R)
+    and, when ``use_mag``, whose north is the horizontal part of the magnetic field
+    (:func:`compass_matrix`). Without the magnetometer the phone's top (y) points north
+    (or its x axis east, when the top points straight up)."""
+    ref = mag if use_mag else _TOP
+    return quat_from_matrix(compass_matrix(acc, ref, np.eye(3)))
+
+
+def field_reference(m_world: np.ndarray) -> np.ndarray:
+    """Formula (7): the nominal field ``m0 = (0, sqrt(mx² + my²), mz)`` (µT) from a field
+    already levelled into the world frame (no west-east component by definition)."""
+    return np.array([0.0, float(np.hypot(m_world[0], m_world[1])), float(m_world[2])])
 
 
 def attitude_cov_from_quat_cov(q: np.ndarray, Pq: np.ndarray) -> np.ndarray:

@@ -34,6 +34,8 @@ from typing import Iterator
 
 import numpy as np
 
+from .quaternion import quat_from_rotvec_many, quat_mul_many, rotate_inv_many
+
 
 SCENES = ("still", "turn_x", "turn_y", "turn_z", "shake", "magnet", "gyro_dropout")
 SCENE_DURATION_S = {"still": 4.0, "turn_x": 6.0, "turn_y": 6.0, "turn_z": 6.0, "shake": 4.0,
@@ -68,37 +70,6 @@ class SimConfig:
         """Flat, screen up, top pointing ``heading_deg`` east of north (a turn about -z)."""
         a = -math.radians(self.heading_deg)
         return np.array([math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)])
-
-
-# ----------------------------------------------------------------- vectorised quaternions
-
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product of (N,4) or (4,) arrays (broadcast); scalar first."""
-    p0, p1, p2, p3 = np.moveaxis(np.asarray(p, float), -1, 0)
-    q0, q1, q2, q3 = np.moveaxis(np.asarray(q, float), -1, 0)
-    return np.stack([p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3,
-                     p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2,
-                     p0 * q2 - p1 * q3 + p2 * q0 + p3 * q1,
-                     p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0], axis=-1)
-
-
-def _qexp(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternions of (N,3) rotation vectors."""
-    rotvec = np.asarray(rotvec, float)
-    a = np.linalg.norm(rotvec, axis=-1)
-    s = np.where(a < 1e-12, 0.5, np.sin(0.5 * a) / np.where(a < 1e-12, 1.0, a))
-    return np.concatenate([np.cos(0.5 * a)[..., None], rotvec * s[..., None]], axis=-1)
-
-
-def _rotate_to_sensor(q: np.ndarray, v_world: np.ndarray) -> np.ndarray:
-    """Q(q)ᵀ v for (N,4) q and (N,3) or (3,) v: a world vector seen in the sensor frame."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    R = np.stack([np.stack([2 * (w * w + x * x) - 1, 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 2 * (w * w + y * y) - 1, 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 2 * (w * w + z * z) - 1], -1)],
-                 -2)
-    v = np.broadcast_to(v_world, q.shape[:-1] + (3,))
-    return np.einsum("nji,nj->ni", R, v)
 
 
 # ----------------------------------------------------------------- the scenes
@@ -179,7 +150,7 @@ class Simulation:
             sel = idx == k
             if np.any(sel):
                 rv[sel], w[sel], a[sel], b[sel] = _scene_motion(name, tau[sel], self.durations[k])
-        q = _qmul(self._q0, _qexp(rv))
+        q = quat_mul_many(self._q0, quat_from_rotvec_many(rv))
         q = q * np.where(q[:, :1] < 0, -1.0, 1.0)
         return q, w, a, b
 
@@ -213,13 +184,13 @@ class Simulation:
                 vals = w + np.asarray(c.gyr_bias) + rng.normal(0.0, c.gyr_noise, w.shape)
             elif tag == "ACC":
                 f_world = a_lin + np.array([0.0, 0.0, G])
-                vals = _rotate_to_sensor(q, f_world) + rng.normal(0.0, c.acc_noise, a_lin.shape)
+                vals = rotate_inv_many(q, f_world) + rng.normal(0.0, c.acc_noise, a_lin.shape)
             elif tag == "MAG":
-                vals = _rotate_to_sensor(q, self._m_world + b) + rng.normal(0.0, c.mag_noise, b.shape)
+                vals = rotate_inv_many(q, self._m_world + b) + rng.normal(0.0, c.mag_noise, b.shape)
             else:  # ORI: truth with a slowly wandering error, as a phone's own filter
                 amp = math.radians(c.ori_error_deg)
                 err = amp * np.stack([np.sin(0.31 * t), np.cos(0.23 * t), np.sin(0.17 * t + 1.0)], -1)
-                vals = _qmul(_qexp(err), q)
+                vals = quat_mul_many(quat_from_rotvec_many(err), q)
                 vals = vals * np.where(vals[:, :1] < 0, -1.0, 1.0)
             for m, v in zip((c.boot_ms + ms).tolist(), vals.tolist()):
                 out.append((m, tag, tuple(v)))

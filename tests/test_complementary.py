@@ -17,8 +17,9 @@ from hypothesis import example, given, settings, strategies as st
 from app import quaternion as qm
 from app.estimators import Reason, TimeIssue, make_estimator
 from app.estimators.base import F_ACC, F_GYR, F_MAG
+from app.quaternion import compass_matrix
 from app.estimators.complementary import (
-    ComplementaryDNRF, blend_angles, compass_matrix, euler_from_matrix, gyro_step,
+    ComplementaryDNRF, blend_angles, euler_from_matrix, gyro_step,
     matrix_from_euler, orthonormalize, wrap_angle)
 from app.params import ParamError
 

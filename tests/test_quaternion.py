@@ -279,3 +279,38 @@ def test_error_split_is_consistent(p, q):
     assert head <= tot + 1e-9 and inc <= tot + 1e-9
     # invariant under the sign of either quaternion
     np.testing.assert_allclose([x[0] for x in qm.error_angles(-p, q)], [tot, head, inc], atol=1e-9)
+
+
+# ------------------------------------------------------------------ many at once, alignment
+
+def test_vectorised_helpers_equal_the_scalar_ones():
+    rng = np.random.default_rng(7)
+    p = np.array([qm.normalize(x) for x in rng.standard_normal((20, 4))])
+    q = np.array([qm.normalize(x) for x in rng.standard_normal((20, 4))])
+    v = rng.standard_normal((20, 3))
+    np.testing.assert_allclose(qm.quat_mul_many(p, q), [qm.quat_mul(a, b) for a, b in zip(p, q)],
+                               atol=1e-14)
+    np.testing.assert_allclose(qm.quat_from_rotvec_many(v), [qm.quat_from_rotvec(x) for x in v],
+                               atol=1e-14)
+    np.testing.assert_allclose(qm.quat_from_rotvec_many(np.zeros((2, 3))), [[1, 0, 0, 0]] * 2)
+    np.testing.assert_allclose(qm.rotate_inv_many(q, v), [qm.Q(a).T @ x for a, x in zip(q, v)],
+                               atol=1e-12)
+    np.testing.assert_allclose(qm.rotate_inv_many(q, v[0]), [qm.Q(a).T @ v[0] for a in q],
+                               atol=1e-12)
+
+
+@given(quats)
+@settings(max_examples=50, deadline=None)
+def test_alignment_recovers_the_orientation_from_gravity_and_field(q):
+    q = qm.normalize(q)
+    g, m = np.array([0.0, 0.0, 9.81]), np.array([0.0, 20.0, -45.0])
+    q_al = qm.q_from_acc_mag(qm.Q(q).T @ g, qm.Q(q).T @ m, True)
+    assert qm.angle_between(q_al, q) < 1e-6
+    np.testing.assert_allclose(qm.field_reference(qm.Q(q) @ (qm.Q(q).T @ m)), m, atol=1e-9)
+
+
+def test_alignment_without_field_points_the_phones_top_north():
+    # tilted 30 deg about x: the top still points north, only upwards
+    q = qm.quat_from_rotvec(np.array([np.radians(30), 0.0, 0.0]))
+    q_al = qm.q_from_acc_mag(qm.Q(q).T @ np.array([0.0, 0.0, 9.81]), np.zeros(3), False)
+    assert qm.angle_between(q_al, q) < 1e-9

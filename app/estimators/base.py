@@ -67,6 +67,11 @@ REASON_TEXT = {
 }
 
 
+# How long an estimator holding its first accelerometer sample waits for a magnetometer
+# sample to align the heading too, before it aligns with the accelerometer alone (s).
+ALIGN_WAIT_S = 0.5
+
+
 class TimeIssue(IntEnum):
     OK = 0
     REPEATED = 1    # same timestamp as the previous row: no time update

@@ -80,9 +80,8 @@ from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams, ParamError, param
-from .base import F_ACC, F_ACC_VAL, F_GYR, F_MAG, F_MAG_VAL, Estimator, Reason
+from .base import ALIGN_WAIT_S, F_ACC, F_ACC_VAL, F_GYR, F_MAG, F_MAG_VAL, Estimator, Reason
 
-ALIGN_WAIT_S = 0.5   # how long the first accelerometer sample waits for a magnetometer one
 TWO_PI = 2.0 * np.pi
 GIMBAL_EPS = 1e-9    # cos(pitch) below this is gimbal lock (eq. 22)
 
@@ -120,18 +119,6 @@ def wrap_angle(a):
 
 
 @njit(cache=True)
-def _skew(w):
-    S = np.zeros((3, 3))
-    S[0, 1] = -w[2]
-    S[0, 2] = w[1]
-    S[1, 0] = w[2]
-    S[1, 2] = -w[0]
-    S[2, 0] = -w[1]
-    S[2, 1] = w[0]
-    return S
-
-
-@njit(cache=True)
 def _unit_row(r):
     """Row scaled to unit length: the paper's Taylor step (eq. 16-18) when it is close to
     unit length, an exact division otherwise."""
@@ -163,13 +150,13 @@ def gyro_step(R, w, dt, exact):
     if exact:
         v = w * dt
         a = np.sqrt(v @ v)
-        K = _skew(v)
+        K = qm.skew(v)
         if a < 1e-8:
             inc = np.eye(3) + K + 0.5 * (K @ K)
         else:
             inc = np.eye(3) + (np.sin(a) / a) * K + ((1.0 - np.cos(a)) / (a * a)) * (K @ K)
     else:
-        inc = np.eye(3) + _skew(w) * dt
+        inc = np.eye(3) + qm.skew(w) * dt
     return orthonormalize(R @ inc)
 
 
@@ -204,29 +191,6 @@ def matrix_from_euler(e):
     R[2, 0] = sr * cp
     R[2, 1] = -sp
     R[2, 2] = cr * cp
-    return R
-
-
-@njit(cache=True)
-def compass_matrix(up, ref, R_fallback):
-    """The accelerometer/magnetometer rotation matrix (TRIAD, Android's getRotationMatrix):
-    rows east, north, up in sensor coordinates. ``ref`` is the magnetic field (or any
-    vector with a northward horizontal part); if it is (nearly) vertical, the east axis of
-    ``R_fallback`` projected on the horizontal plane is used instead."""
-    u = up / np.sqrt(up @ up)
-    e = np.cross(ref, u)
-    en = np.sqrt(e @ e)
-    if en < 1e-6 * np.sqrt(ref @ ref):
-        e = R_fallback[0] - (R_fallback[0] @ u) * u
-        en = np.sqrt(e @ e)
-        if en < 1e-6:  # fallback east is vertical too: then its north is horizontal
-            e = np.cross(R_fallback[1], u)
-            en = np.sqrt(e @ e)
-    e = e / en
-    R = np.empty((3, 3))
-    R[0] = e
-    R[1] = np.cross(u, e)
-    R[2] = u
     return R
 
 
@@ -267,7 +231,7 @@ def dnrf_row(R, w, dt, has_w, exact, up, has_up, ref, has_ref, tau):
         return R, np.nan, theta_am
     u = up if has_up else R[2].copy()          # no accelerometer: keep the current tilt
     m = ref if has_ref else R[1].copy()        # no magnetometer: keep the current heading
-    Ram = compass_matrix(u, m, R)
+    Ram = qm.compass_matrix(u, m, R)
     theta_am = euler_from_matrix(Ram)
     if not has_w:
         return Ram, 0.0, theta_am              # no gyroscope: the compass directly
@@ -366,13 +330,13 @@ class ComplementaryDNRF(Estimator):
         if has_acc:
             up = self._acc_ma.mean()
             if has_mag:
-                self.R = compass_matrix(up, self._mag_ma.mean(), np.eye(3))
+                self.R = qm.compass_matrix(up, self._mag_ma.mean(), np.eye(3))
             else:  # heading 0: pitch and roll from the accelerometer, yaw 0 (eq. 5)
-                e = euler_from_matrix(compass_matrix(up, np.array([0.0, 1.0, 0.0]), np.eye(3)))
+                e = euler_from_matrix(qm.compass_matrix(up, np.array([0.0, 1.0, 0.0]), np.eye(3)))
                 e[0] = 0.0
                 self.R = matrix_from_euler(e)
         elif has_mag:  # no accelerometer: level, heading from the field
-            self.R = compass_matrix(np.array([0.0, 0.0, 1.0]), self._mag_ma.mean(), np.eye(3))
+            self.R = qm.compass_matrix(np.array([0.0, 0.0, 1.0]), self._mag_ma.mean(), np.eye(3))
         else:
             self.R = np.eye(3)
         self._theta_am = euler_from_matrix(self.R)

@@ -30,10 +30,9 @@ from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, ParamError, param
-from .base import F_ACC, F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, Estimator, Reason
+from .base import ALIGN_WAIT_S, F_ACC, F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, Estimator, Reason
 from .kalman import correct
 
-ALIGN_WAIT_S = 0.5  # how long an accelerometer sample waits for a magnetometer one to align
 
 
 @dataclass(frozen=True)
@@ -184,7 +183,7 @@ class LabEKF(Estimator):
             m = self._m_mean
             psi = np.arctan2(m[0], m[1])  # the mean field's heading east of north
             self.x = qm.normalize(qm.quat_mul(qm.quat_from_rotvec(np.array([0.0, 0.0, psi])), self.x))
-            self._m0 = np.array([0.0, np.hypot(m[0], m[1]), m[2]])
+            self._m0 = qm.field_reference(m)
             self.L = float(np.linalg.norm(self._m0))
             flags[F_MAG] = Reason.INIT
         return False

@@ -46,12 +46,11 @@ from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
                    F_TIME, NFLAGS, R_DIP, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
-                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, BatchResult, Estimator,
-                   row_prologue)
+                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, ALIGN_WAIT_S, BatchResult,
+                   Estimator, row_prologue)
 from .kalman import correct
 
 GRAVITY = 9.81
-ALIGN_WAIT_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -171,8 +170,7 @@ def tilt_jacobian(a_world):
     a along +z it is [[0, -1, 0], [1, 0, 0]] (the tilt error, rotated)."""
     n = qm.norm3(a_world)
     u0, u1, u2 = a_world[0] / n, a_world[1] / n, a_world[2] / n
-    # [â]× rows
-    C = np.array([[0.0, -u2, u1], [u2, 0.0, -u0], [-u1, u0, 0.0]])
+    C = qm.skew(np.array([u0, u1, u2]))  # [â]×
     H = np.zeros((2, 6))
     u = (u0, u1, u2)
     for r in range(2):
