@@ -54,9 +54,10 @@ import numpy as np
 
 from ..config import load_config
 from ..estimators import NAMES, Reason, REASON_TEXT, REJECTIONS, StepFlags, make_estimator
+from ..estimators.phone import ori_quaternion
 from ..params import ParamError, fields_of, replace_params, to_dict
 from ..protocol import Sample
-from ..quaternion import angle_between, normalize, q2euler
+from ..quaternion import angle_between, q2euler
 from ..stream import SampleOrderer
 
 log = logging.getLogger("orientlab.engine")
@@ -553,8 +554,11 @@ class Engine:
                 kw = {sensor: v}
                 si = SENSORS.index(sensor)
             elif tag == "ORI":
-                self.phone_q = normalize(np.array(smp.values, dtype=float))
-                kw = {"ori": self.phone_q}
+                q = ori_quaternion(smp.values)  # the phone estimator's own validation
+                if q is None:                    # NaN, infinite or zero: not an orientation
+                    continue
+                self.phone_q = q
+                kw = {"ori": q}
             else:
                 continue
             for is_primary, est, counts, lf, has_lk in ests:
