@@ -23,6 +23,59 @@ TAG_ARITY: dict[str, tuple[int, ...] | None] = {
 MOTION_TAGS = ("ACC", "GYR", "MAG", "ORI")
 
 
+class LineSplitter:
+    """Cut a byte stream into the format's lines (``\\n``, ``\\r\\n`` or ``\\r``), holding
+    at most ``max_line`` bytes of an unfinished line: shared by the live receiver and
+    the log reader, so both frame the input alike.
+
+    A run longer than ``max_line`` without a line end is not a line of this format: it
+    is dropped up to the next line end and counted in ``overflows``; the complete lines
+    fed with it are still returned (nothing good is lost). What to do about an overflow
+    is the caller's policy (the receiver closes that connection, the reader goes on).
+    """
+
+    def __init__(self, max_line: int):
+        self.max_line = int(max_line)
+        self.overflows = 0
+        self._buf = b""
+        self._skipping = False  # inside an over-long line, dropping up to its end
+
+    @property
+    def pending(self) -> bytes:
+        """The unterminated tail held so far (the last line of a file without a newline)."""
+        return self._buf
+
+    def feed(self, chunk: bytes) -> list[bytes]:
+        """The complete lines (without their endings) that ``chunk`` finishes."""
+        data = self._buf + chunk if self._buf else chunk
+        if b"\r" in data:
+            # a lone \r ends a line too; a \r at the very end may be half of \r\n
+            tail_cr = data.endswith(b"\r")
+            data = data.replace(b"\r\n", b"\n")
+            if tail_cr:
+                data = data[:-1].replace(b"\r", b"\n") + b"\r"
+            else:
+                data = data.replace(b"\r", b"\n")
+        lines = data.split(b"\n")
+        tail = lines.pop()
+        if self._skipping:
+            if lines:          # the first piece is the end of the over-long line
+                lines.pop(0)
+                self._skipping = False
+            else:              # still inside it
+                tail = b""
+        if len(tail) > self.max_line:
+            self.overflows += 1
+            self._skipping = True
+            tail = b""
+        self._buf = tail
+        if any(len(ln) > self.max_line for ln in lines):  # over-long but complete
+            n = len(lines)
+            lines = [ln for ln in lines if len(ln) <= self.max_line]
+            self.overflows += n - len(lines)
+        return lines
+
+
 class MalformedLine(ValueError):
     """A line that cannot be used; ``reason`` is a short key for counting."""
 

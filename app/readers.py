@@ -38,7 +38,7 @@ from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
-from .protocol import MOTION_TAGS, MalformedLine, parse_line
+from .protocol import MOTION_TAGS, LineSplitter, MalformedLine, parse_line
 from .stream import SampleOrderer, samples_to_rows
 
 # Reorder window for logs (s). Files are read at leisure, so the window can be far wider
@@ -46,7 +46,7 @@ from .stream import SampleOrderer, samples_to_rows
 # of order (seen in a real log).
 LOG_WINDOW = 2.0
 DEFAULT_CHUNK_ROWS = 50_000
-# A "line" longer than this is not a line of any known format: it is skipped in parts.
+# A "line" longer than this is not a line of any known format: it is skipped and counted.
 MAX_LINE_BYTES = 1 << 16
 SENSORS = ("acc", "gyr", "mag")
 CSV_COLUMNS = {s: tuple(f"{s}_{a}" for a in "xyz") for s in SENSORS}
@@ -144,30 +144,22 @@ def concat(chunks: list[Recording]) -> Recording:
 
 # ---------------------------------------------------------------- lines
 
-def iter_lines(fh: BinaryIO) -> Iterator[tuple[bytes, int]]:
-    """Lines of a binary file ending in ``\\n``, ``\\r\\n`` or ``\\r`` (endings kept),
-    each with the number of bytes consumed so far. A run of more than
-    :data:`MAX_LINE_BYTES` without a line end is handed out in parts."""
-    buf = b""
-    consumed = 0
+def iter_lines(fh: BinaryIO, splitter: LineSplitter) -> Iterator[tuple[bytes, int]]:
+    """The lines of a binary file (the format's framing, :class:`LineSplitter`), each
+    with about the number of bytes consumed up to it (for progress). A run of more than
+    :data:`MAX_LINE_BYTES` without a line end is skipped and counted in
+    ``splitter.overflows``."""
+    read = pos = 0
     while True:
         block = fh.read(1 << 20)
         if not block:
             break
-        buf += block
-        lines = buf.splitlines(keepends=True)
-        # the last piece may continue in the next block (a lone \r may be half of \r\n)
-        buf = b"" if lines[-1].endswith(b"\n") else lines.pop()
-        for ln in lines:
-            consumed += len(ln)
-            yield ln, consumed
-        while len(buf) > MAX_LINE_BYTES:
-            part, buf = buf[:MAX_LINE_BYTES], buf[MAX_LINE_BYTES:]
-            consumed += len(part)
-            yield part, consumed
-    if buf:
-        consumed += len(buf)
-        yield buf, consumed
+        read += len(block)
+        for ln in splitter.feed(block):
+            pos = min(pos + len(ln) + 1, read)  # +1: the line end
+            yield ln, pos
+    if splitter.pending:
+        yield splitter.pending, read
 
 
 def _fraction(consumed: int, size: int) -> float:
@@ -186,12 +178,15 @@ def _applog_chunks(path: Path, rows: int) -> Iterator[Recording]:
         r = samples_to_rows(samples)
         ori = r.ori if not np.isnan(r.ori).all() else None
         counts = {**orderer.summary(), "lines": lines}
+        if splitter.overflows:
+            counts["malformed"] = {**counts["malformed"], "too_long": splitter.overflows}
         return Recording(t=r.t, gyr=r.gyr, acc=r.acc, mag=r.mag, ori=ori, kind="applog",
                          counts=counts, done=done)
 
     emitted = False
+    splitter = LineSplitter(MAX_LINE_BYTES)
     with open(path, "rb") as fh:
-        for line, consumed in iter_lines(fh):
+        for line, consumed in iter_lines(fh, splitter):
             lines += 1
             motion.extend(s for s in orderer.push_line(line) if s.tag in _MOTION)
             while len(motion) >= rows:
@@ -227,8 +222,9 @@ def _cell(text: str) -> float:
 
 def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
     size = path.stat().st_size
+    splitter = LineSplitter(MAX_LINE_BYTES)
     with open(path, "rb") as fh:
-        line_iter = iter_lines(fh)
+        line_iter = iter_lines(fh, splitter)
         consumed = 0
         header = None
         for first, consumed in line_iter:
@@ -263,6 +259,8 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
                 else:
                     out[key] = None if key == "ori" else np.full((len(a), 3), np.nan)
             counts["rows"] = n_rows
+            if splitter.overflows:
+                malformed["too_long"] = splitter.overflows
             return Recording(t=a[:, 0].copy(), gyr=out["gyr"], acc=out["acc"], mag=out["mag"],
                              ori=out["ori"], kind="csv",
                              counts={**counts, "malformed": dict(malformed)}, done=done)

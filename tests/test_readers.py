@@ -259,3 +259,16 @@ def test_broad_npz(shared_dir):
     assert len(rec) == raw["acc"].shape[0]
     np.testing.assert_allclose(np.diff(rec.t), 1.0 / float(raw["fs"]))
     np.testing.assert_array_equal(rec.mag, raw["mag"])
+
+
+def test_an_over_long_line_in_a_log_is_counted_and_the_rest_read(tmp_path):
+    """A run of bytes without a line end longer than any line of the format (a binary
+    blob pasted in) is one malformed line: the lines around it are all read."""
+    from app.readers import MAX_LINE_BYTES
+    good = [f"{1000 + 10 * k}\tACC\t0.1\t0.2\t9.8" for k in range(50)]
+    path = tmp_path / "blob.txt"
+    path.write_bytes(("\n".join(good[:20]) + "\n").encode() + b"z" * (3 * MAX_LINE_BYTES)
+                     + ("\n" + "\n".join(good[20:]) + "\n").encode())
+    rec = read_recording(path)
+    assert len(rec) == 50
+    assert rec.counts["malformed"] == {"too_long": 1}

@@ -9,7 +9,7 @@ import httpx
 import pytest
 
 from app.server.harness import Phone, running_server, wait_for
-from app.server.receiver import LineSplitter, LineTooLong
+from app.protocol import LineSplitter
 from app.simulate import simulate
 
 
@@ -24,13 +24,18 @@ def test_splitter_accepts_every_line_ending_across_chunks():
     assert sp.pending == b"4\tACC"
 
 
-def test_splitter_bounds_an_unfinished_line():
+def test_splitter_bounds_an_unfinished_line_and_keeps_the_good_ones():
     sp = LineSplitter(1000)
-    sp.feed(b"x" * 900)
-    with pytest.raises(LineTooLong):
-        sp.feed(b"x" * 200)
-    assert sp.pending == b""
-    assert sp.feed(b"ok\n") == [b"ok"]
+    assert sp.feed(b"good 1\n" + b"x" * 900) == [b"good 1"]
+    assert sp.overflows == 0
+    assert sp.feed(b"x" * 200) == []          # over the bound: dropped, counted
+    assert sp.overflows == 1 and sp.pending == b""
+    assert sp.feed(b"x" * 5000) == []         # still the same over-long line
+    assert sp.feed(b"xx\ngood 2\ngo") == [b"good 2"]   # its end is dropped too
+    assert sp.overflows == 1 and sp.pending == b"go"
+    # an over-long line that arrives whole in one chunk is dropped the same way
+    assert sp.feed(b"ne\n" + b"y" * 1500 + b"\nfine\n") == [b"gone", b"fine"]
+    assert sp.overflows == 2
 
 
 # ------------------------------------------------------------------ the real server

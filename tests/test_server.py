@@ -113,7 +113,7 @@ def test_an_unusable_ori_line_is_not_the_phones_estimate(srv, api):
     """ORI with NaN or all zeros is refused by the phone estimator's own check, in the
     engine's read-outs too: the last good ORI stays the phone's estimate."""
     good = [0.9238795, 0.0, 0.0, 0.3826834]  # 45 deg about z
-    lines = [f"1000\tACC\t0\t0\t9.81", "1000\tORI\t" + "\t".join(map(str, good)),
+    lines = ["1000\tACC\t0\t0\t9.81", "1000\tORI\t" + "\t".join(map(str, good)),
              "1010\tORI\tNaN\tNaN\tNaN\tNaN", "1020\tORI\t0\t0\t0\t0",
              "1030\tACC\t0\t0\t9.81"]
     st = play(srv, api, lines)

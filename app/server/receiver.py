@@ -34,6 +34,8 @@ import logging
 import socket
 import time
 
+from ..protocol import LineSplitter
+
 log = logging.getLogger("orientlab.receiver")
 
 READ_CHUNK = 65536
@@ -54,42 +56,6 @@ def quick_ack(sock: socket.socket | None) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, opt, 1)
     except OSError:
         pass
-
-
-class LineTooLong(ValueError):
-    pass
-
-
-class LineSplitter:
-    """Split a byte stream into lines (``\\n``, ``\\r\\n`` or ``\\r``), holding at most
-    ``max_line`` bytes of an unfinished line."""
-
-    def __init__(self, max_line: int):
-        self.max_line = int(max_line)
-        self._buf = b""
-
-    @property
-    def pending(self) -> bytes:
-        """The unterminated tail held so far."""
-        return self._buf
-
-    def feed(self, chunk: bytes) -> list[bytes]:
-        """The complete lines in ``buf + chunk``; raises :class:`LineTooLong`."""
-        data = self._buf + chunk if self._buf else chunk
-        if b"\r" in data:
-            # a lone \r ends a line too; a \r at the very end may be half of \r\n
-            tail_cr = data.endswith(b"\r")
-            data = data.replace(b"\r\n", b"\n")
-            if tail_cr:
-                data = data[:-1].replace(b"\r", b"\n") + b"\r"
-            else:
-                data = data.replace(b"\r", b"\n")
-        lines = data.split(b"\n")
-        self._buf = lines.pop()
-        if len(self._buf) > self.max_line:
-            self._buf = b""
-            raise LineTooLong(f"a line longer than {self.max_line} bytes without a newline")
-        return [ln for ln in lines]
 
 
 class PhoneServer:
@@ -151,18 +117,17 @@ class PhoneServer:
                 if not chunk:
                     break
                 t_arr = time.perf_counter()
-                try:
-                    lines = splitter.feed(chunk)
-                except LineTooLong as e:
-                    eng.counts_total["too_long"] += 1
-                    session.count_malformed("too_long")
-                    reason = str(e)
-                    break
+                lines = splitter.feed(chunk)
                 if session is not eng.session:  # replaced meanwhile
                     reason = "replaced"
                     break
                 if lines:
                     eng.feed_lines(session, lines, t_arr)
+                if splitter.overflows:  # not this format: the lines before it are kept
+                    eng.counts_total["too_long"] += 1
+                    session.count_malformed("too_long")
+                    reason = f"a line longer than {splitter.max_line} bytes without a newline"
+                    break
         except (ConnectionError, OSError) as e:
             reason = f"connection lost ({type(e).__name__})"
         except asyncio.CancelledError:
