@@ -26,7 +26,9 @@ What it prints
   released it. Also printed: the part before the engine task took the chunk, and the
   event loop's lag (how late the display timers ran): a chunk arriving while the loop
   is busy waits in the socket that long, unseen by the latency figure;
-- **CPU** of the server process (user + system) in % of one core (target < 25 %).
+- **CPU** of the server process (user + system) in % of one core (target < 25 %);
+- **Ctrl-C**: at the end the server gets SIGINT, as from a terminal, and the time until
+  its process has ended is printed (target: within a second).
 
 Run: ``.venv/bin/python benchmarks/dashboard_load.py [--seconds 20]``. Only loopback
 addresses are used.
@@ -37,6 +39,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -161,11 +164,14 @@ def main() -> int:
         clients.join(5)
     finally:
         http.close()
-        proc.terminate()
+        t_int = time.perf_counter()
+        proc.send_signal(signal.SIGINT)        # Ctrl-C, as a user stops it
         try:
-            proc.wait(5)
+            proc.wait(10)
+            stop_s = time.perf_counter() - t_int
         except subprocess.TimeoutExpired:
             proc.kill()
+            stop_s = float("nan")
     wall = wall1 - wall0
     rate = (stats["samples"] - samples0) / wall
     b = np.array(backlog)
@@ -190,6 +196,8 @@ def main() -> int:
           "target < 25 %)")
     print(f"  received         viser clients {sum(c[0] for c in counters[:N_VIEWERS]) / wall / 1e3:.0f} kB/s, "
           f"/ws/state clients {sum(c[0] for c in counters[N_VIEWERS:]) / wall / 1e3:.0f} kB/s (all)")
+    print(f"  Ctrl-C           the server process ended {stop_s:.2f} s after SIGINT "
+          "(target: within a second)")
     return 0
 
 
