@@ -335,15 +335,16 @@ def compass_matrix(up, ref, R_fallback):
     magnetic field (or any vector with a northward horizontal part). If ``ref`` has no
     horizontal part (zero, or vertical), the east axis of ``R_fallback`` projected on the
     horizontal plane is used instead (or its north axis, if that east is vertical)."""
-    u = up / np.sqrt(up @ up)
+    u = up / norm3(up)
     e = np.cross(ref, u)
-    en = np.sqrt(e @ e)
-    if not en > 1e-6 * np.sqrt(ref @ ref):
-        e = R_fallback[0] - (R_fallback[0] @ u) * u
-        en = np.sqrt(e @ e)
+    en = norm3(e)
+    if not en > 1e-6 * norm3(ref):
+        f = R_fallback[0]
+        e = f - (f[0] * u[0] + f[1] * u[1] + f[2] * u[2]) * u
+        en = norm3(e)
         if en < 1e-6:  # fallback east is vertical too: then its north is horizontal
             e = np.cross(R_fallback[1], u)
-            en = np.sqrt(e @ e)
+            en = norm3(e)
     e = e / en
     R = np.empty((3, 3))
     R[0] = e
