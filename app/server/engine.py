@@ -54,7 +54,6 @@ import numpy as np
 
 from ..config import load_config
 from ..estimators import NAMES, Reason, REASON_TEXT, REJECTIONS, StepFlags, make_estimator
-from ..estimators.phone import ori_quaternion
 from ..params import ParamError, fields_of, replace_params, to_dict
 from ..protocol import Sample
 from ..quaternion import angle_between, q2euler
@@ -327,7 +326,6 @@ class Engine:
 
     def _reset_stream_state(self) -> None:
         self.t_sent: float | None = None
-        self.phone_q: np.ndarray | None = None
         self.last_vec: dict[str, np.ndarray | None] = {"acc": None, "mag": None}
         self.last_flags: dict[str, dict[str, StepFlags | None]] = {
             name: {s: None for s in SENSORS} for name in self.estimators}
@@ -381,6 +379,13 @@ class Engine:
             self.loop.call_soon_threadsafe(self.background_allowed.set)
 
     # ----------------------------------------------------------------- changes
+    @property
+    def phone_q(self) -> np.ndarray | None:
+        """The phone's own estimate (ORI): the ``phone`` estimator's, which validates and
+        holds it; None before the stream's first good ORI."""
+        est = self.estimators.get("phone")
+        return est.q if est is not None and est.initialized else None
+
     def params_of(self, name: str):
         return self.estimators[name].params
 
@@ -540,6 +545,7 @@ class Engine:
                  self._has_lk[name]) for name, est in self.estimators.items()]
         pose, acc_ring, mag_ring = self.history.pose, self.history.acc, self.history.mag
         records = self._ws_pending if self.subscribers else None
+        phone_q = self.phone_q
         n = 0
         for smp in samples:
             tag = smp.tag
@@ -553,12 +559,8 @@ class Engine:
                     self.last_vec[sensor] = v
                 kw = {sensor: v}
                 si = SENSORS.index(sensor)
-            elif tag == "ORI":
-                q = ori_quaternion(smp.values)  # the phone estimator's own validation
-                if q is None:                    # NaN, infinite or zero: not an orientation
-                    continue
-                self.phone_q = q
-                kw = {"ori": q}
+            elif tag == "ORI":  # the phone estimator checks and holds it (see phone_q)
+                kw = {"ori": np.array(smp.values, dtype=float)}
             else:
                 continue
             for is_primary, est, counts, lf, has_lk in ests:
@@ -579,11 +581,13 @@ class Engine:
                         lk = _num(est.diagnostics().get("L_k")) if has_lk else None
                         if lk is not None:
                             row[H_LK] = lk
+            if tag == "ORI":
+                phone_q = self.phone_q
             row = pose.next_row()
             row[0] = t
             row[H_Q:H_Q + 4] = q
-            if self.phone_q is not None:
-                row[H_P:H_P + 4] = self.phone_q
+            if phone_q is not None:
+                row[H_P:H_P + 4] = phone_q
             if records is not None:
                 records.append((t, tag, q.tolist()))
         s.samples += n
