@@ -84,24 +84,11 @@ def nis_and_gain(P, H, R, innov):
 
     Returns ``(nis, K, S, PHt)``; ``nis`` is ``innov' S^-1 innov`` (chi-square with
     ``len(innov)`` degrees of freedom when the model is honest). Zeros of H (most
-    of it, for these sensor models) are skipped.
+    of it, for these sensor models) are skipped by :func:`mm`.
     """
-    n = P.shape[0]
     m = H.shape[0]
-    PHt = np.zeros((n, m))
-    for j in range(m):
-        for l in range(n):
-            h = H[j, l]
-            if h != 0.0:
-                for i in range(n):
-                    PHt[i, j] += P[i, l] * h
-    S = R.copy()
-    for a in range(m):
-        for l in range(n):
-            h = H[a, l]
-            if h != 0.0:
-                for b in range(m):
-                    S[a, b] += h * PHt[l, b]
+    PHt = np.ascontiguousarray(mm(H, P).T)  # P H' = (H P)' for a symmetric P
+    S = R + mm(H, PHt)
     Sinv = inv_small(S)
     nis = 0.0
     for i in range(m):
