@@ -1,5 +1,6 @@
 # Two commands do all the set-up on a fresh machine:
-#   make run    creates .venv, installs orientlab, starts the dashboard with the demo source
+#   make run    creates .venv, installs orientlab, compiles its filters (numba, once),
+#               starts the dashboard with the demo source
 #   make test   creates .venv, installs the test dependencies, runs the whole suite
 PYTHON ?= python3
 VENV   := .venv
@@ -24,12 +25,19 @@ $(VENV)/.installed-bench: pyproject.toml $(VENV)/.installed-test
 	$(BIN)/pip install -q -e '.[test,bench]'
 	touch $@
 
-install: $(VENV)/.installed
+# numba compiles the filters on their first use (30-60 s on 2 cores) and caches the
+# result beside the sources: do it here, at install time, in parallel, and again only
+# when a source file changed (the cache is per source file).
+$(VENV)/.compiled: $(VENV)/.installed $(shell find app -name '*.py' 2>/dev/null)
+	$(BIN)/orientlab compile
+	touch $@
 
-run: $(VENV)/.installed
+install: $(VENV)/.compiled
+
+run: $(VENV)/.compiled
 	$(BIN)/orientlab serve --source demo $(ARGS)
 
-test: $(VENV)/.installed-test
+test: $(VENV)/.installed-test $(VENV)/.compiled
 	@if [ -z "$$(command -v chromium || command -v chromium-browser || true)" ] && [ ! -x /usr/bin/chromium ]; then \
 	  echo; \
 	  echo "!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!!"; \

@@ -32,7 +32,13 @@
     prints the report and writes a preset for ``--config``.
 
 ``orientlab serve``
-    The live dashboard (:mod:`app.server.run`).
+    The live dashboard (:mod:`app.server.run`). A taken port gives one line naming it
+    and its option, exit status 1.
+
+``orientlab compile``
+    Compile every estimator now (numba's on-disk cache, :mod:`app.warmup`), so the
+    first ``serve`` or ``estimate`` does not wait for it; ``make run`` does this once
+    after installing. ``serve`` and ``estimate`` say so when they compile.
 
 Exit status: 0 on success, 2 on a usage error, an unreadable input, or a refused
 parameter or preset (one line on stderr says which).
@@ -41,6 +47,7 @@ parameter or preset (one line on stderr says which).
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import sys
@@ -57,6 +64,7 @@ from .estimators.base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_N
                               F_REST, F_TIME, count_flags)
 from .params import ParamError
 from .readers import DEFAULT_CHUNK_ROWS, ReaderError, iter_chunks
+from .warmup import prepare
 
 PROG = "orientlab"
 # inputs at least this large show a progress line even when stderr is not a terminal
@@ -148,7 +156,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--source", default="demo", metavar="SOURCE",
                    help="'demo' (simulated phone), 'none' (wait for a phone) or a "
                         "recording to replay (default demo)")
+    s.add_argument("--open", action="store_true",
+                   help="trusted network: no presenter token, anyone may change the session "
+                        "(default: only the link printed at start, which holds a token)")
+    s.add_argument("--recordings", metavar="DIR", default=None,
+                   help="folder of the lab's recordings (default recordings/ in the working "
+                        "directory); app logs dropped in it are listed too")
+    s.add_argument("--presets-dir", metavar="DIR",
+                   help="folder for saved presets (default ~/.local/share/orientlab/presets)")
     s.set_defaults(func=cmd_serve)
+
+    w = sub.add_parser(
+        "compile", help="compile the filters now (numba cache) so the first start is quick",
+        description="Compile every estimator with numba and fill its on-disk cache, one "
+                    "process per estimator. serve and estimate then start in about a "
+                    "second instead of compiling for about a minute.")
+    w.add_argument("--jobs", "-j", type=int, default=None,
+                   help="estimators compiled at once (default: the number of cores)")
+    w.set_defaults(func=cmd_compile)
 
     m = sub.add_parser(
         "params", help="list every estimator's parameters (units, ranges, defaults)",
@@ -274,6 +299,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     except OSError:
         size = 0
     progress = Progress(err, not args.quiet and (err.isatty() or size >= PROGRESS_MIN_BYTES))
+    # compile (or load from numba's cache) before timing: says so when it compiles
+    prepare(out=io.StringIO() if args.quiet else err, prog=f"{PROG} estimate",
+            only=(est.name,), live=False, batch=True)
     out_path = Path(args.out)
     n_rows, spent = 0, 0.0
     flags_total: dict = {}
@@ -339,7 +367,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-# ---------------------------------------------------------------- serve
+# ---------------------------------------------------------------- serve, compile
+
+def cmd_compile(args: argparse.Namespace) -> int:
+    from .warmup import compile_all
+    if args.jobs is not None and args.jobs < 1:
+        raise CliError("--jobs must be at least 1")
+    return compile_all(jobs=args.jobs)
+
 
 def cmd_serve(args: argparse.Namespace) -> int:
     try:

@@ -187,16 +187,16 @@ def test_set_and_config(tmp_path):
     src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
     out = tmp_path / "out.csv"
     # JSON values (number, list) and a plain string value
-    run_cli("estimate", src, "--out", out, "--filter", "lab", "--set", "gyr_noise=0.02",
+    run_cli("estimate", src, "--out", out, "--filter", "lab", "--set", "gyr_std=0.02",
             "--set", "time_update=approx", "--set", "g0=[0,0,9.8]")
     check_output(out, len(t))
     preset = tmp_path / "p.toml"
-    preset.write_text('primary = "lab"\n[lab]\nacc_noise = 0.3\n')
+    preset.write_text('primary = "lab"\n[lab]\nacc_std = 0.3\n')
     run_cli("estimate", src, "--out", out, "--config", preset)
     check_output(out, len(t))
     # the preset's primary and parameter were used: same as saying them explicitly
     explicit = tmp_path / "explicit.csv"
-    run_cli("estimate", src, "--out", explicit, "--filter", "lab", "--set", "acc_noise=0.3")
+    run_cli("estimate", src, "--out", explicit, "--filter", "lab", "--set", "acc_std=0.3")
     assert out.read_text() == explicit.read_text()
     default = tmp_path / "default.csv"
     run_cli("estimate", src, "--out", default)
@@ -204,8 +204,9 @@ def test_set_and_config(tmp_path):
 
 
 @pytest.mark.parametrize("setting, field", [
-    ("gyr_noise=5", "gyr_noise"),            # out of range
-    ("acc_noise=abc", "acc_noise"),          # not a number
+    ("gyr_std=5", "gyr_std"),                # out of range
+    ("acc_std=abc", "acc_std"),              # not a number
+    ("gyr_noise=0.01", "gyr_noise: was renamed gyr_std"),  # lab's former name
     ("no_such_param=1", "no_such_param"),    # unknown
     ("time_update=fast", "time_update"),     # not a choice
 ])
@@ -222,10 +223,25 @@ def test_bad_set_exits_2_naming_the_field(tmp_path, setting, field):
 
 def test_bad_config_exits_2(tmp_path):
     preset = tmp_path / "p.toml"
-    preset.write_text("[lab]\nacc_noise = -1\n")
+    preset.write_text("[lab]\nacc_std = -1\n")
     proc = run_cli("estimate", "x.csv", "--out", tmp_path / "o.csv", "--config", preset,
                    check_rc=2)
-    assert "acc_noise" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert "acc_std" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_old_preset_with_a_renamed_key_still_loads(tmp_path):
+    """lab's acc_noise is now acc_std (the same per-sample σ): an old preset is read
+    with a warning naming the new key, and gives the same output as the new name."""
+    t, gyr, acc, mag = motion(n=200)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    old, new = tmp_path / "old.toml", tmp_path / "new.toml"
+    old.write_text('primary = "lab"\n[lab]\nacc_noise = 0.3\n')
+    new.write_text('primary = "lab"\n[lab]\nacc_std = 0.3\n')
+    out_old, out_new = tmp_path / "old.csv", tmp_path / "new.csv"
+    proc = run_cli("estimate", src, "--out", out_old, "--config", old)
+    assert "acc_noise was renamed acc_std in lab" in proc.stderr
+    run_cli("estimate", src, "--out", out_new, "--config", new)
+    assert out_old.read_text() == out_new.read_text()
 
 
 @pytest.mark.parametrize("content", ["just some text\nnothing else\n", "t,foo\n1,2\n", None])

@@ -1,0 +1,70 @@
+"""A taken port, any of the three, gives one line naming it and its option, a non-zero
+exit status and no traceback: ``orientlab serve`` run as a user runs it, against a
+port really held by a listening socket on the loopback interface."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from harness import free_port
+
+OPTIONS = ("--port", "--viewer-port", "--phone-port")
+
+
+def serve_cli(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "app.cli", "serve", *args],
+                          capture_output=True, text=True, timeout=timeout,
+                          stdin=subprocess.DEVNULL)
+
+
+def one_line(stderr: str) -> str:
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{stderr}"
+    assert "Traceback" not in stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("option", OPTIONS)
+def test_taken_port_is_one_line_naming_it(option):
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        taken = holder.getsockname()[1]
+        ports = {opt: str(free_port()) for opt in OPTIONS}
+        ports[option] = str(taken)
+        r = serve_cli("--host", "127.0.0.1", "--source", "none",
+                      *[x for opt in OPTIONS for x in (opt, ports[opt])])
+        # the holder still owns the port: nothing of ours took it
+        assert holder.getsockname()[1] == taken
+    assert r.returncode == 1
+    line = one_line(r.stderr)
+    assert line == (f"orientlab serve: port {taken} ({option}) is already in use; "
+                    f"choose another with {option} N")
+    assert r.stdout == ""
+
+
+def test_same_port_twice_is_refused():
+    p = str(free_port())
+    r = serve_cli("--host", "127.0.0.1", "--source", "none", "--port", p,
+                  "--viewer-port", p, "--phone-port", str(free_port()))
+    assert r.returncode == 1
+    line = one_line(r.stderr)
+    assert f"--port and --viewer-port are both {p}" in line
+
+
+def test_out_of_range_port_is_refused():
+    r = serve_cli("--host", "127.0.0.1", "--source", "none", "--port", str(free_port()),
+                  "--viewer-port", str(free_port()), "--phone-port", "70000")
+    assert r.returncode == 1
+    assert "port 70000 (--phone-port) is not a TCP port" in one_line(r.stderr)
+
+
+def test_check_ports_passes_free_ports_and_any_port():
+    from app.server.run import check_ports
+    from app.server.settings import Settings
+    check_ports(Settings(host="127.0.0.1", port=free_port(), viewer_port=0, phone_port=free_port(),
+                         phone_host="127.0.0.1"))
