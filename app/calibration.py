@@ -318,7 +318,7 @@ def preset_values(st: CalibrationStats) -> dict[str, dict]:
         s = st.sensors.get(name)
         if s is None:
             continue
-        wanted[f"{name}_noise"] = float(np.sqrt(np.mean(np.diag(s.cov))))
+        wanted[f"{name}_std"] = float(np.sqrt(np.mean(np.diag(s.cov))))
         cov = 0.5 * (s.cov + s.cov.T)
         if _positive_definite(cov):
             wanted[f"{name}_cov"] = cov.reshape(-1)
@@ -350,3 +350,73 @@ def to_preset(st: CalibrationStats) -> str:
     header = ("orientlab preset from a stationary recording (orientlab calibrate)\n\n"
               + format_report(st).rstrip("\n"))
     return dump_toml(preset_values(st), header=header)
+
+
+# ---------------------------------------------------------------- JSON (the page and the API)
+
+def _jnum(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _jlist(a) -> list:
+    return [_jlist(v) if isinstance(v, (list, np.ndarray)) and np.ndim(v) > 0 else _jnum(v)
+            for v in (a.tolist() if isinstance(a, np.ndarray) else a)]
+
+
+def sensor_json(s: SensorStats) -> dict:
+    """One sensor's statistics as plain JSON (NaN as null), with per axis the histogram
+    and the Gaussian of the same mean and σ scaled to the counts (``fit``: expected
+    count per bin, ``n · width · N(centre; mean, σ²)``)."""
+    hist = []
+    for i, a in enumerate(AXES):
+        e = np.asarray(s.hist_edges[i], dtype=float)
+        c = np.asarray(s.hist_counts[i], dtype=float)
+        centres = 0.5 * (e[:-1] + e[1:])
+        width = float(e[1] - e[0]) if e.size > 1 else 0.0
+        sd = float(s.std[i])
+        if sd > 0 and math.isfinite(sd):
+            fit = s.n * width * np.exp(-0.5 * ((centres - s.mean[i]) / sd) ** 2) / (sd * math.sqrt(2 * math.pi))
+        else:
+            fit = np.full_like(centres, np.nan)
+        hist.append({"axis": a, "edges": _jlist(e), "centres": _jlist(centres),
+                     "counts": [int(v) for v in c], "fit": _jlist(fit)})
+    return {"name": s.name, "title": TITLES[s.name], "unit": s.unit, "n": s.n,
+            "mean": _jlist(s.mean), "cov": _jlist(s.cov), "std": _jlist(s.std),
+            "skew": _jlist(s.skew), "kurtosis": _jlist(s.kurtosis),
+            "normality": {"k2": _jlist(s.normal_k2), "p": _jlist(s.normal_p),
+                          "normal_5pct": [bool(p >= 0.05) if math.isfinite(p) else None
+                                          for p in s.normal_p.tolist()]},
+            "drift_per_min": _jlist(s.trend_per_min), "histograms": hist}
+
+
+def to_json(st: CalibrationStats, t=None, series: dict | None = None,
+            max_points: int = 500) -> dict:
+    """Everything :func:`calibrate` found, as JSON for ``POST /api/calibrate`` and the
+    page: per sensor :func:`sensor_json`, the derived ``g0``, ``gyr_bias``, ``m0``, the
+    warnings, the preset values (``apply``: what one click sets) and, given the samples
+    (``t`` and ``series = {"acc": (N, 3), ...}``), decimated time plots."""
+    out = {"n_rows": st.n_rows, "duration_s": _jnum(st.duration), "stationary": st.stationary,
+           "warnings": list(st.warnings),
+           "sensors": {k: sensor_json(v) for k, v in st.sensors.items()},
+           "g0": None if st.g0 is None else _jlist(st.g0),
+           "gyr_bias": None if st.gyr_bias is None else _jlist(st.gyr_bias),
+           "m0": None if st.m0 is None else _jlist(st.m0),
+           "tilt_deg": None if st.tilt_deg is None else _jnum(st.tilt_deg),
+           "apply": {k: {p: (_jlist(v) if isinstance(v, (list, np.ndarray)) else _jnum(v))
+                         for p, v in sec.items()} for k, sec in preset_values(st).items()},
+           "report": format_report(st)}
+    if t is not None and series:
+        t = np.asarray(t, dtype=float)
+        plots = {}
+        for name, x in series.items():
+            x = np.asarray(x, dtype=float).reshape(-1, 3)
+            ok = np.all(np.isfinite(x), axis=1) & np.isfinite(t)
+            tt, xx = t[ok], x[ok]
+            if tt.size == 0:
+                continue
+            idx = np.linspace(0, tt.size - 1, min(tt.size, max_points)).astype(np.int64)
+            plots[name] = {"t": _jlist(tt[idx] - tt[0]), "x": _jlist(xx[idx, 0]),
+                           "y": _jlist(xx[idx, 1]), "z": _jlist(xx[idx, 2])}
+        out["series"] = plots
+    return out

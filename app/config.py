@@ -10,10 +10,17 @@ time_update = "approx"
 
 Every key is validated by the estimator's parameter set; an unknown estimator,
 an unknown key or an out-of-range value is a :class:`ConfigError` naming it.
+
+A key an estimator has renamed (``Params.renamed``, e.g. ``lab``'s ``gyr_noise``, now
+``gyr_std``: the same quantity under a name that says what it is) is **translated** with
+a warning naming the new key, so old presets keep loading; a preset with both the old and
+the new name is refused. (The HTTP API refuses a renamed key with the same message
+instead: a client should learn the new name.)
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +28,40 @@ from .estimators import DEFAULT, NAMES, estimator_class
 from .params import DEFAULT_CONFIG, ParamError, describe, load_toml, replace_params, to_dict
 
 
+log = logging.getLogger("orientlab.config")
+
+
 class ConfigError(ValueError):
     pass
+
+
+def renamed_message(estimator: str, old: str, params_cls) -> str | None:
+    """``"gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"`` or None."""
+    new = getattr(params_cls, "renamed", {}).get(old)
+    if new is None:
+        return None
+    return f"{old} was renamed {new[0]} in {estimator} ({new[1]})"
+
+
+def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source: str) -> dict[str, Any]:
+    """``values`` with the estimator's former parameter names replaced by the new ones
+    (a warning each); both names at once is a :class:`ConfigError`."""
+    renamed = getattr(params_cls, "renamed", {})
+    if not any(k in renamed for k in values):
+        return values
+    out = {}
+    for k, v in values.items():
+        if k in renamed:
+            new = renamed[k][0]
+            if new in values:
+                raise ConfigError(f"{source}: [{estimator}] has both {k} and {new}; "
+                                  f"{renamed_message(estimator, k, params_cls)}: keep {new} only")
+            log.warning("%s: [%s] %s: read as %s", source, estimator,
+                        renamed_message(estimator, k, params_cls), new)
+            out[new] = v
+        else:
+            out[k] = v
+    return out
 
 
 TOP_LEVEL_KEYS = ("primary",)
@@ -49,10 +88,20 @@ def validate_config(raw: dict[str, Any], source: str = "config") -> dict[str, An
             continue
         if not isinstance(value, dict):
             raise ConfigError(f"{source}: unknown setting {key!r}")
+        if key == "magcal":  # the magnetometer calibration (app.magcal), not an estimator
+            from .magcal import MagCalError, from_preset
+            try:
+                from_preset(value)
+            except MagCalError as e:
+                raise ConfigError(f"{source}: {e}") from None
+            out[key] = dict(value)
+            continue
         if key not in NAMES:
             raise ConfigError(f"{source}: [{key}] is not an estimator (known: {', '.join(NAMES)})")
+        cls = estimator_class(key).Params
+        value = translate_renamed(key, cls, value, source)
         try:
-            params = replace_params(estimator_class(key).Params(), value)
+            params = replace_params(cls(), value)
         except ParamError as e:
             raise ConfigError(f"{source}: [{key}] {e}") from None
         out[key] = {k: to_dict(params)[k] for k in value}
@@ -70,6 +119,8 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
             raise ConfigError(str(e)) from None
         except Exception as e:  # tomllib.TOMLDecodeError and friends
             raise ConfigError(f"{path}: not valid TOML: {e}") from None
+        over = {k: translate_renamed(k, estimator_class(k).Params, v, str(path))
+                if isinstance(v, dict) and k in NAMES else v for k, v in over.items()}
         validate_config(over, str(path))
         raw = _merge(raw, over)
         src = str(path)

@@ -52,12 +52,19 @@ def param(default, *, unit: str = "", lo: float | None = None, hi: float | None 
 DEG = 180.0 / math.pi
 
 
+def short(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters: an error message never echoes a big input."""
+    r = repr(value) if not isinstance(value, (list, tuple, dict)) or len(value) <= 64 \
+        else f"<{type(value).__name__} of {len(value)} items>"
+    return r if len(r) <= limit else r[:limit - 3] + "..."
+
+
 def _check_number(name: str, value: Any, meta: dict) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ParamError(name, f"must be a number, got {value!r}")
+        raise ParamError(name, f"must be a number, got {short(value)}")
     v = float(value)
     if not math.isfinite(v):
-        raise ParamError(name, f"must be finite, got {value!r}")
+        raise ParamError(name, f"must be finite, got {short(value)}")
     lo, hi = meta.get("lo"), meta.get("hi")
     unit = meta.get("unit") or ""
     if lo is not None and v < lo:
@@ -72,11 +79,11 @@ def coerce(name: str, value: Any, current: Any, meta: dict) -> Any:
     choices = meta.get("choices")
     if isinstance(current, bool):
         if not isinstance(value, bool):
-            raise ParamError(name, f"must be true or false, got {value!r}")
+            raise ParamError(name, f"must be true or false, got {short(value)}")
         return value
     if choices is not None:
-        if value not in choices:
-            raise ParamError(name, f"must be one of {', '.join(map(str, choices))}; got {value!r}")
+        if not isinstance(value, (str, int, float)) or value not in choices:
+            raise ParamError(name, f"must be one of {', '.join(map(str, choices))}; got {short(value)}")
         return value
     length = meta.get("length")
     if isinstance(current, tuple) or length:
@@ -84,18 +91,22 @@ def coerce(name: str, value: Any, current: Any, meta: dict) -> Any:
             return None
         n = length or len(current)
         if isinstance(value, (list, tuple)) and value and isinstance(value[0], (list, tuple)):
-            value = [x for row in value for x in row]  # a matrix given row by row
+            # a matrix given row by row: every row a list of the same length
+            if not all(isinstance(row, (list, tuple)) and len(row) == len(value[0]) for row in value):
+                raise ParamError(name, f"a matrix must have rows of equal length (a list of {n} "
+                                       f"numbers, or rows of numbers), got {short(value)}")
+            value = [x for row in value for x in row]
         if not isinstance(value, (list, tuple)) or len(value) != n:
-            raise ParamError(name, f"must be a list of {n} numbers, got {value!r}")
+            raise ParamError(name, f"must be a list of {n} numbers, got {short(value)}")
         return tuple(_check_number(f"{name}[{i}]", v, meta) for i, v in enumerate(value))
     if isinstance(current, str):
         if not isinstance(value, str):
-            raise ParamError(name, f"must be text, got {value!r}")
+            raise ParamError(name, f"must be text, got {short(value)}")
         return value
     if isinstance(current, int) and not isinstance(current, bool) and meta.get("integer"):
         v = _check_number(name, value, meta)
         if v != int(v):
-            raise ParamError(name, f"must be a whole number, got {value!r}")
+            raise ParamError(name, f"must be a whole number, got {short(value)}")
         return int(v)
     if current is None:
         if value is None:
@@ -115,6 +126,9 @@ def replace_params(params, changes: dict[str, Any]):
     clean = {}
     for name, value in changes.items():
         if name not in fmap:
+            new = getattr(type(params), "renamed", {}).get(name)
+            if new is not None:
+                raise ParamError(name, f"was renamed {new[0]} ({new[1]})")
             raise ParamError(name, f"unknown parameter for {type(params).__name__} "
                                    f"(known: {', '.join(sorted(fmap))})")
         clean[name] = coerce(name, value, getattr(params, name), fmap[name].metadata)
@@ -200,6 +214,22 @@ def dump_toml(sections: dict[str, dict[str, Any]], header: str = "") -> str:
             else:
                 lines.append(f"{k} = {_toml_value(v)}")
     return "\n".join(lines) + "\n"
+
+
+# One meaning per name: a parameter name that more than one estimator has is one physical
+# quantity in one unit everywhere, declared here (tests/test_params.py checks every shared
+# name against this table and the units of its definitions). Only these names are taken
+# at the top level of PATCH /api/params (they set every estimator that has them).
+# Naming rule: ``*_noise`` is a noise density (per √s), ``*_std`` a per-sample σ.
+SHARED_MEANINGS: dict[str, str] = {
+    "use_gyr": "use the gyroscope (switch)",
+    "use_acc": "use the accelerometer (switch)",
+    "use_mag": "use the magnetometer (switch)",
+    "max_gap": "longest time step integrated (s); a longer one is a gap",
+    "gyr_hold": "how long the last gyroscope sample stands in for rows without one (s)",
+    "gyr_bias": "gyroscope bias from calibration, sensor frame (rad/s)",
+    "acc_band_rel": "half-width of the accepted |acc| band, relative to |g| (0: no band)",
+}
 
 
 @dataclass(frozen=True)

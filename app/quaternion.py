@@ -224,6 +224,12 @@ def angle_between(q0, q):
     return 2.0 * np.arccos(d)
 
 
+def angle_between_many(q0: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Formula (2c) row by row for (N, 4) arrays (rad); NaN rows give NaN."""
+    d = np.abs(np.sum(np.asarray(q0) * np.asarray(q), axis=-1))
+    return 2.0 * np.arccos(np.minimum(d, 1.0))
+
+
 @njit(cache=True)
 def q2euler(q):
     """Euler angles exactly as the manual's appendix A.2.2 ``q2euler``.

@@ -133,7 +133,7 @@ def test_report_and_preset_load_with_load_config(tmp_path):
     np.testing.assert_allclose(lab["g0"], st.g0)
     np.testing.assert_allclose(lab["m0"], st.m0)
     np.testing.assert_allclose(lab["acc_cov"], st.sensors["acc"].cov.reshape(-1))
-    np.testing.assert_allclose(lab["gyr_noise"], math.sqrt(np.trace(st.sensors["gyr"].cov) / 3))
+    np.testing.assert_allclose(lab["gyr_std"], math.sqrt(np.trace(st.sensors["gyr"].cov) / 3))
     np.testing.assert_allclose(cfg["robust"]["gyr_bias"], st.gyr_bias)
     # the statistics travel as comments
     assert "# gyroscope (rad/s)" in path.read_text(encoding="utf-8")
@@ -145,7 +145,7 @@ def test_preset_values_fit_parameter_ranges_and_skip_singular_covariance():
     st = calibrate(t, gyr, acc, mag)
     vals = preset_values(st)
     assert "gyr_cov" not in vals["lab"]
-    assert vals["lab"]["gyr_noise"] > 0.0        # raised to the parameter's minimum
+    assert vals["lab"]["gyr_std"] > 0.0        # raised to the parameter's minimum
 
 
 def test_real_standstill_log(shared_dir, tmp_path):

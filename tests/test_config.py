@@ -3,6 +3,8 @@ load and run, and a bad preset is refused with the section and key named."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -40,7 +42,7 @@ def test_galaxy_s7_preset_is_report_a():
     cfg = load_config("galaxy_s7")
     assert cfg["primary"] == "lab"
     lab = make_estimator("lab", cfg["lab"])
-    assert lab.diagnostics()["mag_band"] == (35.0, 55.0)
+    assert lab.diagnostics().mag_band == (35.0, 55.0)
     np.testing.assert_allclose(np.diag(lab._Rw), [2.285e-06, 1.231e-06, 1.729e-06])
     assert lab.params.time_update == "approx"
 
@@ -65,6 +67,21 @@ def test_a_bad_preset_is_refused_naming_what_is_wrong(tmp_path, text, words):
 def test_params_table_lists_every_parameter_with_its_unit():
     table = params_table()
     for name in NAMES:
-        for f in estimator_class(name).Params.__dataclass_fields__:
-            assert f"`{f}`" in table
+        for f in dataclasses.fields(estimator_class(name).Params):
+            assert f"`{f.name}`" in table
     assert "deg/s" in table  # user units shown beside SI ones
+
+
+def test_an_old_preset_with_a_renamed_key_loads_translated(tmp_path, caplog):
+    """lab's gyr_noise is now gyr_std (the same per-sample σ): read as the new name with a
+    warning saying so; both names at once is refused."""
+    path = tmp_path / "old.toml"
+    path.write_text("[lab]\ngyr_noise = 0.02\nrw_noise = 0.4\n")
+    with caplog.at_level("WARNING", logger="orientlab.config"):
+        cfg = load_config(path)
+    assert cfg["lab"]["gyr_std"] == 0.02 and cfg["lab"]["q_rw_noise"] == 0.4
+    assert "gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)" in caplog.text
+    path.write_text("[lab]\ngyr_noise = 0.02\ngyr_std = 0.03\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    assert "both gyr_noise and gyr_std" in str(e.value)

@@ -4,7 +4,10 @@ compiled robust filter against its uncompiled numpy reference."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import json
+import math
 import os
 import subprocess
 import sys
@@ -14,7 +17,7 @@ import numpy as np
 import pytest
 
 from app import quaternion as qm
-from app.estimators import NAMES, Reason, TimeIssue, make_estimator
+from app.estimators import NAMES, Diagnostics, Reason, TimeIssue, make_estimator
 from app.estimators.base import F_ACC, F_GYR, F_MAG, F_REST, F_TIME
 from app.estimators.lab import _jacobian
 from app.estimators.robust import (heading_innovation, heading_jacobian, tilt_innovation,
@@ -360,6 +363,56 @@ def test_snapshot_and_restore_mid_stream_equals_one_run(name):
     second = other.run(rows.t[k:], rows.gyr[k:], rows.acc[k:], rows.mag[k:], rows.ori[k:])
     np.testing.assert_array_equal(np.vstack([first.q, second.q]), whole.q)
     np.testing.assert_array_equal(np.vstack([first.flags, second.flags]), whole.flags)
+
+
+# the Diagnostics fields each estimator fills (after a stream with every sensor); every
+# other field is None
+DIAG_FIELDS = {
+    "robust": {"g0", "m0", "acc_band", "mag_band", "acc_nis_gate", "mag_nis_gate", "mag_ref_norm",
+               "mag_ref_dip", "acc_lp_world", "gyr_bias", "rest"},
+    "lab": {"g0", "m0", "acc_band", "mag_band", "L_k", "acc_nis_gate", "mag_nis_gate", "nis_gate"},
+    "complementary": {"alpha", "am_yaw", "am_pitch", "am_roll", "tau", "ma_window"},
+    "phone": {"ori_t", "ori_age"},
+}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_estimator_returns_typed_diagnostics(name):
+    from app.live.views import json_safe
+    est = make_estimator(name, {"acc_band_rel": 0.1} if name == "robust" else None)  # robust: off by default
+    d = est.diagnostics()                       # before any sample: still the dataclass
+    assert type(d) is Diagnostics
+    rows, _ = sim_rows(("still", "turn_z"), seed=14)
+    run(est, rows)
+    d = est.diagnostics()
+    assert type(d) is Diagnostics
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        d.m0 = None
+    names = {f.name for f in dataclasses.fields(Diagnostics)}
+    assert set(DIAG_FIELDS) == set(NAMES) and DIAG_FIELDS[name] <= names
+    filled = {k for k in names if getattr(d, k) is not None}
+    assert filled == DIAG_FIELDS[name]
+    for k in ("g0", "m0", "acc_lp_world", "gyr_bias"):
+        v = getattr(d, k)
+        assert v is None or (type(v) is tuple and len(v) == 3 and all(type(x) is float for x in v))
+    for k in ("acc_band", "mag_band"):
+        v = getattr(d, k)
+        assert v is None or (len(v) == 2 and v[0] < v[1])
+    if d.g0 is not None:                        # specific force at rest: up, |g| in m/s²
+        assert d.g0[:2] == (0.0, 0.0) and 9.7 < d.g0[2] < 9.9
+        assert d.acc_band[0] < d.g0[2] < d.acc_band[1]
+    if d.m0 is not None:                        # the field the simulator makes, in µT, north and down
+        assert 20.0 < math.hypot(*d.m0) < 70.0 and d.m0[1] > 0 and d.m0[2] < 0
+    if name == "robust":
+        assert d.mag_ref_norm == pytest.approx(math.hypot(*d.m0))
+        assert d.mag_band[0] < d.mag_ref_norm < d.mag_band[1]
+        assert d.mag_ref_dip < 0 and d.gyr_bias == tuple(est.gyr_bias)
+    if name == "lab":
+        assert d.acc_nis_gate == d.mag_nis_gate == d.nis_gate
+    # the API's JSON: every field by name, JSON-safe
+    j = json.loads(json.dumps(json_safe(d.as_dict()), allow_nan=False))
+    assert set(j) == names
+    assert all(j[k] is None for k in names - DIAG_FIELDS[name])
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -68,7 +68,7 @@ def test_switches_time_and_snapshot():
     f = est.step(1.05, ori=[0.0, 0.0, 1.0, 0.0])      # backward timestamp: row skipped
     assert f.time == TimeIssue.BACKWARD
     np.testing.assert_array_equal(est.q, [0.0, 1.0, 0.0, 0.0])
-    assert est.diagnostics()["ori_t"] == 1.1
+    assert est.diagnostics().ori_t == 1.1
     est.restore(snap)
     np.testing.assert_array_equal(est.q, [1.0, 0.0, 0.0, 0.0])
     est.reset()
@@ -90,3 +90,27 @@ def test_on_the_lab_simulator():
     tot, _, _ = qm.error_angles(np.array(qs), sim.truth_at_ms(times))
     assert np.degrees(tot).max() < 2.5                 # the phone's error, plus <= 10 ms hold
     assert np.degrees(np.sqrt(np.mean(tot ** 2))) > 0.3  # it is the phone's, not the truth
+
+
+def test_compiled_run_equals_the_reference_step():
+    """The compiled batch run takes the steps of ``_step``: valid, NaN, zero and backward
+    ORI rows, sensors switched off, a gap."""
+    from app.estimators.base import Estimator
+    rng = np.random.default_rng(1)
+    n = 400
+    t = np.cumsum(rng.uniform(0.0, 0.02, n))
+    t[150] = t[149] - 0.05                      # backward
+    t[300:] += 2.0                              # a gap
+    ori = rng.normal(size=(n, 4))
+    ori[::7] = np.nan
+    ori[::11] = 0.0
+    gyr = np.where(rng.random((n, 1)) < 0.5, rng.normal(size=(n, 3)), np.nan)
+    acc = np.where(rng.random((n, 1)) < 0.5, rng.normal(size=(n, 3)), np.nan)
+    for params in ({}, {"use_gyr": False, "use_mag": False}):
+        ref = Estimator.run(make_estimator("phone", params), t, gyr, acc, None, ori)
+        est = make_estimator("phone", params)
+        parts = [est.run(t[i:i + 50], gyr[i:i + 50], acc[i:i + 50], None, ori[i:i + 50])
+                 for i in range(0, n, 50)]
+        np.testing.assert_allclose(np.concatenate([p.q for p in parts]), ref.q, atol=1e-12)
+        f = np.concatenate([p.flags for p in parts])
+        np.testing.assert_array_equal(np.nan_to_num(f, nan=-7), np.nan_to_num(ref.flags, nan=-7))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import (BatchResult, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT, REJECTIONS,
-                   StepFlags, TimeIssue, count_flags)
+from .base import (ALERTS, BatchResult, Diagnostics, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT,
+                   REJECTIONS, StepFlags, TimeIssue, count_flags, is_rejected)
 
 DEFAULT = "robust"
 NAMES = ("robust", "lab", "complementary", "phone")
@@ -33,6 +33,6 @@ def make_estimator(name: str = DEFAULT, params: dict[str, Any] | None = None) ->
     return cls(**(params or {}))
 
 
-__all__ = ["BatchResult", "Estimator", "FLAG_COLUMNS", "Reason", "REASON_TEXT", "REJECTIONS",
-           "StepFlags", "TimeIssue", "count_flags", "DEFAULT", "NAMES", "estimator_class",
+__all__ = ["ALERTS", "BatchResult", "Diagnostics", "Estimator", "FLAG_COLUMNS", "Reason", "REASON_TEXT", "REJECTIONS",
+           "StepFlags", "TimeIssue", "count_flags", "is_rejected", "DEFAULT", "NAMES", "estimator_class",
            "make_estimator"]

@@ -19,7 +19,7 @@ reader make one row per sample, in time order.
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from enum import IntEnum
 from typing import Any, ClassVar
 
@@ -44,6 +44,13 @@ class Reason(IntEnum):
     GAP = 10        # gyroscope: time gap too long to integrate (value: dt, s)
     REST = 11       # gyroscope: at rest, bias update made
     LATE = 12       # the row's timestamp is before the previous row's: skipped
+    ACCEL = 13      # acc: specific force (the phone accelerates); the sample enters robust's
+                    # low-pass but is not trusted as gravity (value: angle between the sample
+                    # and the low-passed gravity, rad)
+    NEW_FIELD = 14  # mag: a new homogeneous field became the reference (value: its strength, µT)
+    RECOVER = 15    # the estimate was judged lost and re-aligned (mag: heading far from a
+                    # trusted field for long; value: the heading error corrected, rad)
+    BIAS_RESET = 16 # gyr: the bias estimate was implausible (above bias_max) and was reset
 
     @property
     def label(self) -> str:
@@ -64,6 +71,10 @@ REASON_TEXT = {
     Reason.GAP: "time gap too long to integrate",
     Reason.REST: "at rest (bias update)",
     Reason.LATE: "timestamp before the previous row (skipped)",
+    Reason.ACCEL: "phone accelerating (specific force): not trusted as gravity",
+    Reason.NEW_FIELD: "new magnetic field accepted as the reference",
+    Reason.RECOVER: "estimate was lost: re-aligned",
+    Reason.BIAS_RESET: "implausible gyroscope bias: reset",
 }
 
 
@@ -84,8 +95,8 @@ _REASONS = tuple(Reason)          # code -> member, without Enum's slow construc
 _TIME_ISSUES = tuple(TimeIssue)
 
 # Plain int copies of the codes for numba-compiled code (it cannot cast IntEnum to float)
-R_USED, R_ABSENT, R_DISABLED, R_INVALID, R_NORM, R_NIS, R_DIP, R_FIELD, R_INIT, R_WAIT, R_GAP, \
-    R_REST, R_LATE = (int(r) for r in Reason)
+(R_USED, R_ABSENT, R_DISABLED, R_INVALID, R_NORM, R_NIS, R_DIP, R_FIELD, R_INIT, R_WAIT, R_GAP,
+ R_REST, R_LATE, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET) = (int(r) for r in Reason)
 T_OK, T_REPEATED, T_BACKWARD, T_GAP, T_FIRST = (int(x) for x in TimeIssue)
 
 # The flag record written after every row (floats so one array holds them all).
@@ -188,6 +199,54 @@ def row_prologue(t_prev, t, max_gap, seen, gyr, acc, mag, use_gyr, use_acc, use_
             vector_state(mag, use_mag))
 
 
+# Slots of the row bookkeeping every estimator's state carries (the first five of a
+# compiled estimator's state array): time of the last row, sensors seen at that time, the
+# held gyroscope sample and its time.
+B_T, B_SEEN, B_W_T, B_W = 0, 1, 2, 3
+B_N = 6
+
+
+@njit(cache=True)
+def begin_row(b, t, gyr, acc, mag, use_gyr, use_acc, use_mag, max_gap, gyr_hold, f):
+    """The part of a row every estimator shares, in one compiled call (the one place it
+    is decided): the flag record ``f`` reset and filled with the time issue and each
+    sensor's state before any gate; the row bookkeeping ``b`` (slots ``B_*``) advanced;
+    the gyroscope rate to integrate over ``dt`` (the row's own sample, else the last one
+    for up to ``gyr_hold`` s; none across a gap). Returns ``(go, dt, gs, as_, ms, has_w,
+    w)``; ``go`` is False for a backward timestamp (row skipped, samples flagged LATE)."""
+    f[:] = np.nan
+    f[F_REST] = 0.0
+    dt, issue, seen, gs, as_, ms = row_prologue(b[B_T], t, max_gap, int(b[B_SEEN]), gyr, acc, mag,
+                                                use_gyr, use_acc, use_mag)
+    b[B_SEEN] = seen
+    f[F_TIME] = issue
+    w = np.zeros(3)
+    if issue == T_BACKWARD:
+        f[F_GYR] = R_LATE if gs == R_USED else gs
+        f[F_ACC] = R_LATE if as_ == R_USED else as_
+        f[F_MAG] = R_LATE if ms == R_USED else ms
+        return False, dt, gs, as_, ms, False, w
+    f[F_GYR] = gs
+    f[F_ACC] = as_
+    f[F_MAG] = ms
+    b[B_T] = t
+    has_w = False
+    if use_gyr:
+        if gs == R_USED:
+            has_w = True
+            w[:] = gyr
+            b[B_W:B_W + 3] = gyr
+            b[B_W_T] = t
+        elif b[B_W_T] == b[B_W_T] and t - b[B_W_T] <= gyr_hold:
+            has_w = True
+            w[:] = b[B_W:B_W + 3]
+    if issue == T_GAP:
+        if gs == R_USED:
+            f[F_GYR] = R_GAP
+        has_w = False
+    return True, dt, gs, as_, ms, has_w, w
+
+
 _NAN3 = np.full(3, np.nan)
 _FLAGS0 = new_flags()  # the record of a row before anything happened (copied per row)
 
@@ -226,17 +285,33 @@ class StepFlags:
                    mag_nis=v[F_MAG_NIS], rest=v[F_REST] > 0.5,
                    time=_TIME_ISSUES[int(v[F_TIME])])
 
+    def rejected(self, sensor: str) -> bool:
+        """Was ``sensor``'s sample (gyr, acc or mag) a valid one refused by a gate?"""
+        return is_rejected(getattr(self, sensor))
+
     @property
     def acc_rejected(self) -> bool:
-        return self.acc in REJECTIONS
+        return is_rejected(self.acc)
 
     @property
     def mag_rejected(self) -> bool:
-        return self.mag in REJECTIONS
+        return is_rejected(self.mag)
 
 
-# Reasons that mean "a valid sample was refused by a gate"
-REJECTIONS = frozenset({Reason.NORM, Reason.NIS, Reason.DIP, Reason.FIELD})
+# Reasons that mean "a valid sample was refused or not trusted by a gate": the ONE place
+# deciding what the dashboard shows as "disturbed" (indicators, red samples, rejection counts).
+REJECTIONS = frozenset({Reason.NORM, Reason.NIS, Reason.DIP, Reason.FIELD, Reason.ACCEL})
+# Reasons that report an event worth telling the user (the filter corrected itself).
+ALERTS = frozenset({Reason.NEW_FIELD, Reason.RECOVER, Reason.BIAS_RESET})
+
+
+def is_rejected(reason) -> bool:
+    """True when a flag record's reason (a :class:`Reason` or its code) means that a
+    valid sample was refused or not trusted by a gate (see :data:`REJECTIONS`)."""
+    try:
+        return _REASONS[int(reason)] in REJECTIONS
+    except (IndexError, ValueError, TypeError):
+        return False
 
 
 @dataclass
@@ -272,6 +347,76 @@ class Row:
     acc: Reason
     mag: Reason
     w: np.ndarray | None    # angular rate to integrate over dt (rad/s), None: random walk
+
+
+@dataclass(frozen=True)
+class Diagnostics:
+    """What an estimator shows besides its estimate (the plots' gate bands, the 3D view's
+    expected arrows, GET /api/state "diagnostics"): one typed read model returned by every
+    estimator. SI units (µT for the field), vectors in world coordinates (ENU) as tuples;
+    None where the estimator has no such thing or has not learned it yet."""
+
+    # --- references (world frame)
+    g0: tuple[float, float, float] | None = None
+    """Expected accelerometer reading at rest in world coordinates (m/s², specific force: up)."""
+    m0: tuple[float, float, float] | None = None
+    """Expected magnetic field in world coordinates (µT): lab's nominal or learned m0,
+    robust's learned reference (north and the learned dip)."""
+    # --- norm gates
+    acc_band: tuple[float, float] | None = None
+    """(lo, hi) band |acc| must stay in to be used (m/s²); None: gate off."""
+    mag_band: tuple[float, float] | None = None
+    """(lo, hi) band the field strength (lab: L_k; robust: |mag|) must stay in (µT); None: off."""
+    L_k: float | None = None
+    """Lab's low-passed field strength (µT), the value its field gate tests."""
+    # --- NIS gates (χ², 3 degrees of freedom; 0: off)
+    acc_nis_gate: float | None = None
+    """Gate on the accelerometer update's normalised innovation squared."""
+    mag_nis_gate: float | None = None
+    """Gate on the magnetometer update's normalised innovation squared."""
+    nis_gate: float | None = None
+    """Lab's single NIS gate, applied to both sensors (= acc_nis_gate = mag_nis_gate)."""
+    # --- robust: learned field reference and disturbance state
+    mag_ref_norm: float | None = None
+    """Strength of the learned field reference (µT)."""
+    mag_ref_dip: float | None = None
+    """Elevation of the learned field (rad): negative where it points down (north)."""
+    acc_lp_world: tuple[float, float, float] | None = None
+    """Low-passed specific force in world coordinates (m/s²): the disturbance detector's input."""
+    gyr_bias: tuple[float, float, float] | None = None
+    """Estimated gyroscope bias (rad/s, sensor frame)."""
+    rest: bool | None = None
+    """Standstill detected."""
+    # --- complementary
+    alpha: float | None = None
+    """Gyro weight α = τ/(τ+dt) of the last blend (NaN: none made yet; 0: compass only)."""
+    am_yaw: float | None = None
+    """Yaw of the accelerometer/magnetometer (compass) orientation (rad)."""
+    am_pitch: float | None = None
+    """Pitch of the compass orientation (rad)."""
+    am_roll: float | None = None
+    """Roll of the compass orientation (rad)."""
+    tau: float | None = None
+    """Blend time constant τ (s)."""
+    ma_window: int | None = None
+    """Samples in the moving average of acc and mag."""
+    # --- phone
+    ori_t: float | None = None
+    """Time (s) of the phone's ORI sample shown."""
+    ori_age: float | None = None
+    """Age (s) of that ORI sample at the last row."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every field by name (tuples stay tuples); the API passes it through json_safe."""
+        return asdict(self)
+
+
+def vec3(x) -> tuple[float, float, float] | None:
+    """A 3-vector as a tuple of floats (None stays None): for Diagnostics' fields."""
+    if x is None:
+        return None
+    a, b, c = (float(v) for v in x)
+    return a, b, c
 
 
 class Estimator:
@@ -344,34 +489,28 @@ class Estimator:
         raise NotImplementedError
 
     def _begin_row(self, t, gyr, acc, mag, flags) -> "Row | None":
-        """The part of a row every estimator shares: the time step and its issues,
-        each sensor's state before any gate (``vector_state``), and the held gyroscope
-        rate (the row's own sample, else the last one for up to ``gyr_hold`` s).
-        Returns None (row skipped, samples flagged LATE) for a backward timestamp.
-        Uses ``self.t`` (time of the last row) and ``self._w``/``self._w_t`` (held rate)."""
+        """:func:`begin_row` on this estimator's row bookkeeping (``self.t``, the held
+        gyroscope rate ``self._w``/``self._w_t``); None for a backward timestamp."""
         p = self._params
-        dt, issue, self._seen, gs, as_, ms = row_prologue(
-            self.t, t, p.max_gap, self._seen, gyr, acc, mag, p.use_gyr, p.use_acc, p.use_mag)
-        flags[F_TIME] = issue
-        if issue == T_BACKWARD:
-            for col, st in ((F_GYR, gs), (F_ACC, as_), (F_MAG, ms)):
-                flags[col] = Reason.LATE if st == Reason.USED else st
+        b = self._row_state()
+        go, dt, gs, as_, ms, has_w, w = begin_row(b, t, gyr, acc, mag, p.use_gyr, p.use_acc,
+                                                  p.use_mag, p.max_gap, p.gyr_hold, flags)
+        self._set_row_state(b)
+        if not go:
             return None
-        flags[F_GYR], flags[F_ACC], flags[F_MAG] = gs, as_, ms
-        self.t = t
-        w = None
-        if p.use_gyr:
-            if gs == Reason.USED:
-                w = gyr
-                self._w, self._w_t = gyr.copy(), t
-            elif self._w is not None and t - self._w_t <= p.gyr_hold:
-                w = self._w
-        if issue == TimeIssue.GAP:
-            if gs == Reason.USED:
-                flags[F_GYR] = Reason.GAP
-            w = None
-        return Row(dt=dt, issue=_TIME_ISSUES[issue], gyr=_REASONS[gs], acc=_REASONS[as_],
-                   mag=_REASONS[ms], w=w)
+        return Row(dt=dt, issue=_TIME_ISSUES[int(flags[F_TIME])], gyr=_REASONS[gs],
+                   acc=_REASONS[as_], mag=_REASONS[ms], w=w if has_w else None)
+
+    def _row_state(self) -> np.ndarray:
+        """The row bookkeeping as the compiled code keeps it (slots ``B_*``)."""
+        b = np.empty(B_N)
+        b[B_T], b[B_SEEN], b[B_W_T] = self.t, self._seen, self._w_t
+        b[B_W:B_W + 3] = np.nan if self._w is None else self._w
+        return b
+
+    def _set_row_state(self, b: np.ndarray) -> None:
+        self.t, self._seen, self._w_t = float(b[B_T]), int(b[B_SEEN]), float(b[B_W_T])
+        self._w = None if np.isnan(b[B_W_T]) else b[B_W:B_W + 3].copy()
 
     def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
         """Process rows in order; the estimate and flags after each. Arrays are (N,)
@@ -410,9 +549,15 @@ class Estimator:
     def gyr_bias(self) -> np.ndarray | None:
         return None
 
-    def diagnostics(self) -> dict[str, Any]:
-        """Values worth plotting (gate bands, references); SI units."""
-        return {}
+    def diagnostics(self) -> Diagnostics:
+        """Gate bands, references and learned state worth showing (see Diagnostics)."""
+        return Diagnostics()
+
+    def field_strength_rows(self, flags: np.ndarray, before: float) -> np.ndarray | None:
+        """The low-passed field strength L_k (µT) after each of these rows (``flags``: the
+        rows' flag records, in order), given its value ``before`` them; None for an
+        estimator without one. Lets the live plots show L_k from a batch run."""
+        return None
 
 
 def _rows(x, n: int) -> np.ndarray:

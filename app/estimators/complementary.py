@@ -80,7 +80,9 @@ from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams, ParamError, param
-from .base import ALIGN_WAIT_S, F_ACC, F_ACC_VAL, F_GYR, F_MAG, F_MAG_VAL, Estimator, Reason
+from .base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
+                   F_MAG_VAL, NFLAGS, R_INIT, R_USED, R_WAIT, BatchResult, Diagnostics, Estimator,
+                   StepFlags, begin_row)
 
 TWO_PI = 2.0 * np.pi
 GIMBAL_EPS = 1e-9    # cos(pitch) below this is gimbal lock (eq. 22)
@@ -242,6 +244,131 @@ def dnrf_row(R, w, dt, has_w, exact, up, has_up, ref, has_ref, tau):
     return matrix_from_euler(theta), alpha, theta_am
 
 
+
+# ------------------------------------------------------------------ the compiled batch run
+# ``ComplementaryDNRF.run`` (the live dashboard's path and the CLI's) takes the very steps of
+# ``_step`` in one compiled loop; ``_step`` stays the readable reference (tests hold them
+# to 1e-9). Scalars travel in one array (slots below), R and the two pre-filters apart.
+# slots 0-5: the row bookkeeping every estimator shares (base.B_*)
+C_T, C_SEEN, C_W_T, C_W = B_T, B_SEEN, B_W_T, B_W
+(C_INIT, C_ACC_T, C_MAG_T, C_FIRST_T, C_FIRST_ACC_T, C_ALPHA, C_ACC_N, C_ACC_I, C_MAG_N,
+ C_MAG_I) = range(B_N, B_N + 10)
+C_THETA = 16     # 3: the compass angles of the last blend
+C_NSTATE = 19
+(CP_USE_GYR, CP_USE_ACC, CP_USE_MAG, CP_MAX_GAP, CP_GYR_HOLD, CP_AM_HOLD, CP_TAU, CP_EXACT) = range(8)
+CP_N = 8
+
+
+@njit(cache=True)
+def _ma_push(buf, s, n_slot, i_slot, v):
+    k = buf.shape[0]
+    i = int(s[i_slot])
+    buf[i] = v
+    s[i_slot] = (i + 1) % k
+    s[n_slot] = min(s[n_slot] + 1.0, k)
+
+
+@njit(cache=True)
+def _ma_mean(buf, n):
+    """MovingAverage.mean: the last sample for a window of 1, else the mean of the n held."""
+    if buf.shape[0] == 1:
+        return buf[0].copy()
+    out = np.zeros(3)
+    for j in range(n):
+        out += buf[j]
+    return out / n
+
+
+@njit(cache=True)
+def _fresh(t_sample, t, enabled, hold):
+    return enabled and t - t_sample <= hold
+
+
+@njit(cache=True)
+def _dnrf_align(s, R, p, abuf, mbuf, t, as_, ms, f):
+    has_acc = _fresh(s[C_ACC_T], t, p[CP_USE_ACC] > 0.5, p[CP_AM_HOLD])
+    has_mag = _fresh(s[C_MAG_T], t, p[CP_USE_MAG] > 0.5, p[CP_AM_HOLD])
+    if has_acc:
+        up = _ma_mean(abuf, int(s[C_ACC_N]))
+        if has_mag:
+            R[:, :] = qm.compass_matrix(up, _ma_mean(mbuf, int(s[C_MAG_N])), np.eye(3))
+        else:
+            e = euler_from_matrix(qm.compass_matrix(up, np.array([0.0, 1.0, 0.0]), np.eye(3)))
+            e[0] = 0.0
+            R[:, :] = matrix_from_euler(e)
+    elif has_mag:
+        R[:, :] = qm.compass_matrix(np.array([0.0, 0.0, 1.0]), _ma_mean(mbuf, int(s[C_MAG_N])),
+                                    np.eye(3))
+    else:
+        R[:, :] = np.eye(3)
+    s[C_THETA:C_THETA + 3] = euler_from_matrix(R)
+    s[C_INIT] = 1.0
+    if as_ == R_USED:
+        f[F_ACC] = R_INIT
+    if ms == R_USED:
+        f[F_MAG] = R_INIT
+
+
+@njit(cache=True)
+def _dnrf_row(s, R, p, abuf, mbuf, t, gyr, acc, mag, f):
+    """One row of the DNRF (see the module doc): the valid accelerometer/magnetometer
+    samples into the pre-filters, then the alignment or the gyroscope step and the blend.
+    ``s`` the state slots above, ``R`` and the pre-filter buffers in place, ``f`` the
+    row's flag record. Uncompiled: ``_dnrf_row.py_func``."""
+    use_gyr, use_acc, use_mag = p[CP_USE_GYR] > 0.5, p[CP_USE_ACC] > 0.5, p[CP_USE_MAG] > 0.5
+    go, dt, gs, as_, ms, has_w, w = begin_row(s, t, gyr, acc, mag, use_gyr, use_acc, use_mag,
+                                              p[CP_MAX_GAP], p[CP_GYR_HOLD], f)
+    if not go:
+        return
+    if not has_w:
+        w = np.zeros(3)
+    if as_ == R_USED:   # the pre-filters take the valid samples
+        _ma_push(abuf, s, C_ACC_N, C_ACC_I, acc)
+        s[C_ACC_T] = t
+        f[F_ACC_VAL] = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+    if ms == R_USED:
+        _ma_push(mbuf, s, C_MAG_N, C_MAG_I, mag)
+        s[C_MAG_T] = t
+        f[F_MAG_VAL] = math.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
+    if s[C_INIT] < 0.5:   # the alignment: accelerometer + magnetometer, or what there is
+        if gs == R_USED:
+            f[F_GYR] = R_WAIT
+        if as_ == R_USED:
+            f[F_ACC] = R_WAIT
+        if ms == R_USED:
+            f[F_MAG] = R_WAIT
+        if s[C_FIRST_T] != s[C_FIRST_T]:
+            s[C_FIRST_T] = t
+        if as_ == R_USED and s[C_FIRST_ACC_T] != s[C_FIRST_ACC_T]:
+            s[C_FIRST_ACC_T] = t
+        has_acc = _fresh(s[C_ACC_T], t, use_acc, p[CP_AM_HOLD])
+        has_mag = _fresh(s[C_MAG_T], t, use_mag, p[CP_AM_HOLD])
+        if has_acc and (has_mag or not use_mag or t - s[C_FIRST_ACC_T] >= ALIGN_WAIT_S):
+            _dnrf_align(s, R, p, abuf, mbuf, t, as_, ms, f)
+        elif s[C_FIRST_ACC_T] != s[C_FIRST_ACC_T] and (not use_acc or t - s[C_FIRST_T] >= ALIGN_WAIT_S) \
+                and (has_mag or gs == R_USED):
+            _dnrf_align(s, R, p, abuf, mbuf, t, as_, ms, f)
+        return
+    has_up = _fresh(s[C_ACC_T], t, use_acc, p[CP_AM_HOLD])
+    has_ref = _fresh(s[C_MAG_T], t, use_mag, p[CP_AM_HOLD])
+    up = _ma_mean(abuf, int(s[C_ACC_N])) if has_up else np.zeros(3)
+    ref = _ma_mean(mbuf, int(s[C_MAG_N])) if has_ref else np.zeros(3)
+    Rn, alpha, theta_am = dnrf_row(R, w, dt, has_w, p[CP_EXACT] > 0.5, up, has_up, ref, has_ref,
+                                   p[CP_TAU])
+    R[:, :] = Rn
+    s[C_ALPHA] = alpha
+    if has_up or has_ref:
+        s[C_THETA:C_THETA + 3] = theta_am
+
+
+@njit(cache=True)
+def dnrf_run(s, R, p, abuf, mbuf, T, G, A, M, Qout, Fout):
+    """Batch: ``_dnrf_row`` for every row; the estimate and flags after each."""
+    for k in range(T.shape[0]):
+        _dnrf_row(s, R, p, abuf, mbuf, T[k], G[k], A[k], M[k], Fout[k])
+        Qout[k, :] = qm.quat_from_matrix(R)
+
+
 # ------------------------------------------------------------------ pre-filter
 
 class MovingAverage:
@@ -307,82 +434,56 @@ class ComplementaryDNRF(Estimator):
         self._alpha = float("nan")
         self._theta_am = np.full(3, np.nan)
 
-    # ------------------------------------------------------------------ helpers
-    def _fresh(self, t_sample: float, t: float, enabled: bool) -> bool:
-        return enabled and t - t_sample <= self._params.am_hold  # NaN compares False
-
-    def _take(self, row, t, acc, mag, flags) -> None:
-        """Push the row's valid accelerometer/magnetometer samples into the pre-filters."""
-        if row.acc == Reason.USED:
-            self._acc_ma.push(acc)
-            self._acc_t = t
-            flags[F_ACC_VAL] = math.hypot(acc[0], acc[1], acc[2])
-        if row.mag == Reason.USED:
-            self._mag_ma.push(mag)
-            self._mag_t = t
-            flags[F_MAG_VAL] = math.hypot(mag[0], mag[1], mag[2])
-
-    def _align(self, t, row, flags) -> None:
-        """Initial orientation from the filtered accelerometer (+ magnetometer) sample."""
-        p = self._params
-        has_acc = self._fresh(self._acc_t, t, p.use_acc)
-        has_mag = self._fresh(self._mag_t, t, p.use_mag)
-        if has_acc:
-            up = self._acc_ma.mean()
-            if has_mag:
-                self.R = qm.compass_matrix(up, self._mag_ma.mean(), np.eye(3))
-            else:  # heading 0: pitch and roll from the accelerometer, yaw 0 (eq. 5)
-                e = euler_from_matrix(qm.compass_matrix(up, np.array([0.0, 1.0, 0.0]), np.eye(3)))
-                e[0] = 0.0
-                self.R = matrix_from_euler(e)
-        elif has_mag:  # no accelerometer: level, heading from the field
-            self.R = qm.compass_matrix(np.array([0.0, 0.0, 1.0]), self._mag_ma.mean(), np.eye(3))
-        else:
-            self.R = np.eye(3)
-        self._theta_am = euler_from_matrix(self.R)
-        self._init = True
-        for col, st in ((F_ACC, row.acc), (F_MAG, row.mag)):
-            if st == Reason.USED:
-                flags[col] = Reason.INIT
-
-    def _try_align(self, t, row, flags) -> None:
-        p = self._params
-        for col, st in ((F_GYR, row.gyr), (F_ACC, row.acc), (F_MAG, row.mag)):
-            if st == Reason.USED:
-                flags[col] = Reason.WAIT
-        if np.isnan(self._first_t):
-            self._first_t = t
-        if row.acc == Reason.USED and np.isnan(self._first_acc_t):
-            self._first_acc_t = t
-        has_acc = self._fresh(self._acc_t, t, p.use_acc)
-        has_mag = self._fresh(self._mag_t, t, p.use_mag)
-        if has_acc and (has_mag or not p.use_mag or t - self._first_acc_t >= ALIGN_WAIT_S):
-            self._align(t, row, flags)
-        elif np.isnan(self._first_acc_t) and (not p.use_acc or t - self._first_t >= ALIGN_WAIT_S) \
-                and (has_mag or row.gyr == Reason.USED):
-            self._align(t, row, flags)  # no accelerometer in sight: start level
-
     # ------------------------------------------------------------------ one row
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
-        row = self._begin_row(t, gyr, acc, mag, flags)
-        if row is None:
-            return
-        self._take(row, t, acc, mag, flags)
-        if not self._init:
-            self._try_align(t, row, flags)
-            return
+        """One row through the compiled ``_dnrf_row`` (the one implementation)."""
+        self._run_rows(np.array([t], dtype=float), gyr.reshape(1, 3), acc.reshape(1, 3),
+                       mag.reshape(1, 3), np.empty((1, 4)), flags.reshape(1, -1))
+
+    # ------------------------------------------------------------------ batch (compiled)
+    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+        """Rows in order through the compiled ``dnrf_run`` (the same steps as ``_step``)."""
+        t = np.ascontiguousarray(t, dtype=float)
+        n = t.shape[0]
+        G, A, M = (np.full((n, 3), np.nan) if v is None else np.ascontiguousarray(v, dtype=float)
+                   for v in (gyr, acc, mag))
+        for a in (G, A, M):
+            if a.shape != (n, 3):
+                raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
+        qs = np.empty((n, 4))
+        flags = np.empty((n, NFLAGS))
+        self._run_rows(t, G, A, M, qs, flags)
+        if n:
+            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
+        return BatchResult(t=t, q=qs, flags=flags)
+
+    def _run_rows(self, t, G, A, M, qs, flags) -> None:
+        """``dnrf_run`` on this estimator's state (packed, run, unpacked)."""
         p = self._params
-        has_up = self._fresh(self._acc_t, t, p.use_acc)
-        has_ref = self._fresh(self._mag_t, t, p.use_mag)
-        up = self._acc_ma.mean() if has_up else np.zeros(3)
-        ref = self._mag_ma.mean() if has_ref else np.zeros(3)
-        has_w = row.w is not None
-        w = row.w if has_w else np.zeros(3)
-        self.R, alpha, theta_am = dnrf_row(self.R, w, row.dt, has_w, p.gyro_update == "exact",
-                                           up, has_up, ref, has_ref, float(p.tau))
-        self._alpha = float(alpha)
-        if has_up or has_ref:
-            self._theta_am = theta_am
+        pv = np.array([p.use_gyr, p.use_acc, p.use_mag, p.max_gap, p.gyr_hold, p.am_hold,
+                       float(p.tau), p.gyro_update == "exact"], dtype=float)
+        s = np.full(C_NSTATE, np.nan)
+        s[C_T], s[C_W_T], s[C_SEEN], s[C_INIT] = self.t, self._w_t, self._seen, self._init
+        if self._w is not None:
+            s[C_W:C_W + 3] = self._w
+        s[C_ACC_T], s[C_MAG_T] = self._acc_t, self._mag_t
+        s[C_FIRST_T], s[C_FIRST_ACC_T], s[C_ALPHA] = self._first_t, self._first_acc_t, self._alpha
+        s[C_ACC_N], s[C_ACC_I] = self._acc_ma.n, self._acc_ma.i
+        s[C_MAG_N], s[C_MAG_I] = self._mag_ma.n, self._mag_ma.i
+        s[C_THETA:C_THETA + 3] = self._theta_am
+        R = self.R.copy()
+        abuf, mbuf = self._acc_ma.buf.copy(), self._mag_ma.buf.copy()
+        dnrf_run(s, R, pv, abuf, mbuf, t, G, A, M, qs, flags)
+        self.R = R
+        self.t, self._w_t, self._seen = float(s[C_T]), float(s[C_W_T]), int(s[C_SEEN])
+        self._w = None if np.isnan(s[C_W_T]) else s[C_W:C_W + 3].copy()
+        self._init = bool(s[C_INIT] > 0.5)
+        self._acc_t, self._mag_t = float(s[C_ACC_T]), float(s[C_MAG_T])
+        self._first_t, self._first_acc_t = float(s[C_FIRST_T]), float(s[C_FIRST_ACC_T])
+        self._alpha = float(s[C_ALPHA])
+        self._theta_am = s[C_THETA:C_THETA + 3].copy()
+        self._acc_ma.buf, self._acc_ma.n, self._acc_ma.i = abuf, int(s[C_ACC_N]), int(s[C_ACC_I])
+        self._mag_ma.buf, self._mag_ma.n, self._mag_ma.i = mbuf, int(s[C_MAG_N]), int(s[C_MAG_I])
 
     # ------------------------------------------------------------------ read-outs
     @property
@@ -396,8 +497,8 @@ class ComplementaryDNRF(Estimator):
     def attitude_cov(self) -> None:
         return None
 
-    def diagnostics(self) -> dict:
+    def diagnostics(self) -> Diagnostics:
         """α of the last blend (NaN: none made) and the compass angles (rad)."""
         y, p, r = (float(v) for v in self._theta_am)
-        return {"alpha": self._alpha, "am_yaw": y, "am_pitch": p, "am_roll": r,
-                "tau": float(self._params.tau), "ma_window": int(self._params.ma_window)}
+        return Diagnostics(alpha=float(self._alpha), am_yaw=y, am_pitch=p, am_roll=r,
+                           tau=float(self._params.tau), ma_window=int(self._params.ma_window))

@@ -6,7 +6,7 @@ the input. Hold this file beside the manual:
 - time update (Section 4.1): ``q <- F q``, ``P <- F P Fᵀ + G Rw Gᵀ`` with
   ``F = exp(1/2 S(ω) T)`` (exact, 2j) or ``I + 1/2 S(ω) T`` (approximate, 2k) and
   ``G = T/2 S̄(q)``; with the gyroscope off or missing, a random walk
-  ``P <- P + rw_noise² T I``;
+  ``P <- P + q_rw_noise² T I``;
 - accelerometer update (4.2): ``h(q) = Q(q)ᵀ g0``, Jacobian columns ``dQ/dq_i ᵀ g0``,
   refused when ``|a|`` is outside ``|g0| (1 ± acc_band_rel)`` (report A: 0.75 g–1.25 g);
 - magnetometer update (4.3): ``h(q) = Q(q)ᵀ m0``, refused when the low-pass filtered
@@ -22,6 +22,7 @@ the one shared :func:`app.estimators.kalman.correct`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import math
 
@@ -30,7 +31,9 @@ from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, ParamError, param
-from .base import ALIGN_WAIT_S, F_ACC, F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, Estimator, Reason
+from .base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR,
+                   F_MAG, F_MAG_NIS, F_MAG_VAL, NFLAGS, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
+                   R_WAIT, BatchResult, Diagnostics, Estimator, StepFlags, begin_row, vec3)
 from .kalman import correct
 
 
@@ -39,20 +42,20 @@ from .kalman import correct
 class LabParams(CommonParams):
     time_update: str = param("exact", choices=("exact", "approx"),
                              doc="exact (2j) or approximate (2k) quaternion time update")
-    gyr_noise: float = param(0.01, unit="rad/s", lo=1e-6, hi=1.0, user_unit="deg/s", user_scale=DEG,
-                             log=True, doc="gyroscope noise σ (Rw = σ² I per sample)")
-    acc_noise: float = param(0.5, unit="m/s²", lo=1e-4, hi=20.0, log=True,
-                             doc="accelerometer noise σ (Ra = σ² I)")
-    mag_noise: float = param(2.0, unit="µT", lo=1e-3, hi=100.0, log=True,
-                             doc="magnetometer noise σ (Rm = σ² I)")
+    gyr_std: float = param(0.01, unit="rad/s", lo=1e-6, hi=1.0, user_unit="deg/s", user_scale=DEG,
+                           log=True, doc="gyroscope noise σ per sample (Rw = σ² I)")
+    acc_std: float = param(0.5, unit="m/s²", lo=1e-4, hi=20.0, log=True,
+                           doc="accelerometer noise σ per sample (Ra = σ² I)")
+    mag_std: float = param(2.0, unit="µT", lo=1e-3, hi=100.0, log=True,
+                           doc="magnetometer noise σ per sample (Rm = σ² I)")
     gyr_cov: tuple | None = param(None, unit="(rad/s)²", length=9, optional=True, tunable=False,
-                                  doc="full Rw (row-major 3x3) from calibration; overrides gyr_noise")
+                                  doc="full Rw (row-major 3x3) from calibration; overrides gyr_std")
     acc_cov: tuple | None = param(None, unit="(m/s²)²", length=9, optional=True, tunable=False,
-                                  doc="full Ra (row-major 3x3) from calibration; overrides acc_noise")
+                                  doc="full Ra (row-major 3x3) from calibration; overrides acc_std")
     mag_cov: tuple | None = param(None, unit="µT²", length=9, optional=True, tunable=False,
-                                  doc="full Rm (row-major 3x3) from calibration; overrides mag_noise")
-    rw_noise: float = param(0.3, unit="1/√s", lo=1e-6, hi=10.0, log=True,
-                            doc="random-walk noise of q without gyroscope (P += σ² T I)")
+                                  doc="full Rm (row-major 3x3) from calibration; overrides mag_std")
+    q_rw_noise: float = param(0.3, unit="1/√s", lo=1e-6, hi=10.0, log=True,
+                              doc="random-walk noise density of q without gyroscope (P += σ² T I)")
     g0: tuple = param((0.0, 0.0, 9.81), unit="m/s²", lo=-20.0, hi=20.0, tunable=False,
                       doc="nominal gravity (specific force at rest) in world coordinates")
     m0: tuple | None = param(None, unit="µT", length=3, lo=-200.0, hi=200.0, optional=True,
@@ -60,7 +63,7 @@ class LabParams(CommonParams):
                              "from the data at alignment, formula (7)")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="gyroscope bias subtracted from every sample (calibration)")
-    acc_band_rel: float = param(0.25, lo=0.0, hi=1.0,
+    acc_band_rel: float = param(0.25, lo=0.0, hi=2.0,
                                 doc="accelerometer used only while | |a| - |g0| | <= this × |g0|; 0: off")
     mag_band_rel: float = param(0.2, lo=0.0, hi=1.0,
                                 doc="magnetometer used only while | L_k - |m0| | <= this × |m0|; 0: off")
@@ -75,6 +78,15 @@ class LabParams(CommonParams):
     m0_learn_time: float = param(2.0, unit="s", lo=0.0, hi=60.0, tunable=False,
                                  doc="when m0 is not given: learn it by (7) from the mean field of "
                                      "this long after alignment (the accelerometer levels it meanwhile)")
+
+    # former names (same quantity): presets are translated with a warning, the API refuses
+    # them with this message (see app.live.changes)
+    renamed: ClassVar[dict[str, tuple[str, str]]] = {
+        "gyr_noise": ("gyr_std", "per-sample σ, rad/s"),
+        "acc_noise": ("acc_std", "per-sample σ, m/s²"),
+        "mag_noise": ("mag_std", "per-sample σ, µT"),
+        "rw_noise": ("q_rw_noise", "noise density of q, 1/√s"),
+    }
 
     def check(self) -> None:
         if np.linalg.norm(self.g0) < 1.0:
@@ -124,6 +136,145 @@ def mu_h(x, P, y, v0, R, nis_gate):
     return ok, nis, x
 
 
+
+# ------------------------------------------------------------------ the compiled batch run
+# ``LabEKF.run`` (the live dashboard's path and the CLI's) runs the very steps of ``_step``
+# below in one compiled loop; ``_step`` stays the readable reference (tests hold them to
+# 1e-9). The mutable state travels as one float array (slots below) plus x and P.
+# slots 0-5: the row bookkeeping every estimator shares (base.B_*)
+L_T, L_SEEN, L_W_T, L_W = B_T, B_SEEN, B_W_T, B_W
+(L_INIT, L_WAIT_T, L_M0_OK, L_L, L_M_N, L_M_T, L_T_ALIGN) = range(B_N, B_N + 7)
+L_WAIT, L_M0, L_M_MEAN = 13, 16, 19     # 3 each: the waiting accelerometer sample, m0, mean field
+L_NSTATE = 22
+# parameters: switches, limits, noise, references, gates
+(LP_USE_GYR, LP_USE_ACC, LP_USE_MAG, LP_MAX_GAP, LP_GYR_HOLD, LP_EXACT, LP_RW, LP_ACC_BAND,
+ LP_BAND_MODE, LP_BAND_LO, LP_BAND_HI, LP_MAG_BAND_REL, LP_ALPHA, LP_NIS, LP_P0, LP_LEARN_T,
+ LP_G0N) = range(17)
+LP_G0, LP_BIAS, LP_N = 17, 20, 23      # g0 (3), gyr_bias (3)
+
+
+@njit(cache=True)
+def _lab_align(s, x, P, p, acc, mag, use_mag):
+    if use_mag:
+        q = qm.q_from_acc_mag(acc, mag, True)
+    else:
+        q = qm.q_from_acc_mag(acc, np.zeros(3), False)
+    x[:] = q
+    P[:, :] = p[LP_P0] * np.eye(4)
+    if s[L_M0_OK] > 0.5:
+        s[L_L] = qm.norm3(s[L_M0:L_M0 + 3])
+    s[L_INIT] = 1.0
+    s[L_WAIT_T] = np.nan
+    s[L_T_ALIGN] = s[L_T]
+
+
+@njit(cache=True)
+def _lab_row(s, x, P, p, Rw, Ra, Rm, t, gyr, acc, mag, f):
+    """One row: the time update (4.1), the accelerometer (4.2) and magnetometer (4.3)
+    updates with their gates, after the initial alignment; ``s`` the state slots above,
+    ``x``/``P`` in place, ``f`` the row's flag record. Uncompiled: ``_lab_row.py_func``."""
+    use_gyr, use_acc, use_mag = p[LP_USE_GYR] > 0.5, p[LP_USE_ACC] > 0.5, p[LP_USE_MAG] > 0.5
+    go, dt, gs, as_, ms, has_w, w = begin_row(s, t, gyr, acc, mag, use_gyr, use_acc, use_mag,
+                                              p[LP_MAX_GAP], p[LP_GYR_HOLD], f)
+    if not go:
+        return
+    if s[L_INIT] < 0.5:   # the initial alignment: first accelerometer (+ magnetometer) sample
+        if gs == R_USED:
+            f[F_GYR] = R_WAIT
+        if as_ == R_USED:
+            f[F_ACC] = R_WAIT
+        if ms == R_USED:
+            f[F_MAG] = R_WAIT
+        if as_ == R_USED:
+            if not use_mag:
+                _lab_align(s, x, P, p, acc, acc, False)
+                f[F_ACC] = R_INIT
+                return
+            if s[L_WAIT_T] != s[L_WAIT_T]:  # the wait runs from the first sample on
+                s[L_WAIT_T] = t
+            s[L_WAIT:L_WAIT + 3] = acc
+        if ms == R_USED and s[L_WAIT_T] == s[L_WAIT_T]:
+            _lab_align(s, x, P, p, s[L_WAIT:L_WAIT + 3].copy(), mag, True)
+            f[F_MAG] = R_INIT
+            return
+        if s[L_WAIT_T] == s[L_WAIT_T] and t - s[L_WAIT_T] > ALIGN_WAIT_S:
+            _lab_align(s, x, P, p, s[L_WAIT:L_WAIT + 3].copy(), mag, False)
+            f[F_ACC] = R_INIT
+            return
+        if not use_acc and (ms == R_USED or gs == R_USED):
+            s[L_INIT] = 1.0
+            s[L_T_ALIGN] = t
+        return
+    if dt > 0.0:   # time update; a random walk without gyroscope
+        if not has_w:
+            P[:, :] = P + p[LP_RW] ** 2 * dt * np.eye(4)
+        else:
+            xn, Pn = tu_qw(x, P, w - p[LP_BIAS:LP_BIAS + 3], dt, Rw, p[LP_EXACT] > 0.5)
+            x[:] = xn
+            P[:, :] = Pn
+    if as_ == R_USED:
+        n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+        g = p[LP_G0N]
+        f[F_ACC_VAL] = n
+        if p[LP_ACC_BAND] > 0.0 and abs(n - g) > p[LP_ACC_BAND] * g:
+            f[F_ACC] = R_NORM
+        else:
+            ok, nis, xn = mu_h(x, P, acc, p[LP_G0:LP_G0 + 3].copy(), Ra, p[LP_NIS])
+            x[:] = xn
+            f[F_ACC_NIS] = nis
+            f[F_ACC] = R_USED if ok else R_NIS
+    if ms == R_USED:
+        if s[L_M0_OK] < 0.5:
+            # m0 not given: formula (7) on the mean field levelled by the current estimate
+            # over m0_learn_time (exponentially weighted, so the samples taken while the
+            # accelerometer was still levelling count little); then the heading is aligned
+            # with that mean field, as the initial alignment would have done with it
+            mw = qm.Q(x) @ mag
+            tau = max(p[LP_LEARN_T] / 4.0, 1e-3)
+            k = 1.0 if s[L_M_N] == 0 else min(1.0, max(t - s[L_M_T], 0.0) / tau)
+            for i in range(3):
+                s[L_M_MEAN + i] += k * (mw[i] - s[L_M_MEAN + i])
+            s[L_M_N] += 1.0
+            s[L_M_T] = t
+            f[F_MAG] = R_WAIT
+            if t - s[L_T_ALIGN] >= p[LP_LEARN_T]:
+                m = s[L_M_MEAN:L_M_MEAN + 3].copy()
+                psi = np.arctan2(m[0], m[1])
+                x[:] = qm.normalize(qm.quat_mul(qm.quat_from_rotvec(np.array([0.0, 0.0, psi])), x))
+                s[L_M0] = 0.0
+                s[L_M0 + 1] = math.hypot(m[0], m[1])
+                s[L_M0 + 2] = m[2]
+                s[L_M0_OK] = 1.0
+                s[L_L] = qm.norm3(s[L_M0:L_M0 + 3])
+                f[F_MAG] = R_INIT
+            return
+        a = p[LP_ALPHA]
+        s[L_L] = (1.0 - a) * s[L_L] + a * math.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
+        f[F_MAG_VAL] = s[L_L]
+        gate = False
+        lo = hi = 0.0
+        if p[LP_BAND_MODE] > 0.5:
+            gate, lo, hi = True, p[LP_BAND_LO], p[LP_BAND_HI]
+        elif p[LP_MAG_BAND_REL] > 0.0:
+            m0n = qm.norm3(s[L_M0:L_M0 + 3])
+            gate, lo, hi = True, m0n * (1 - p[LP_MAG_BAND_REL]), m0n * (1 + p[LP_MAG_BAND_REL])
+        if gate and not lo <= s[L_L] <= hi:
+            f[F_MAG] = R_FIELD
+        else:
+            ok, nis, xn = mu_h(x, P, mag, s[L_M0:L_M0 + 3].copy(), Rm, p[LP_NIS])
+            x[:] = xn
+            f[F_MAG_NIS] = nis
+            f[F_MAG] = R_USED if ok else R_NIS
+
+
+@njit(cache=True)
+def lab_run(s, x, P, p, Rw, Ra, Rm, T, G, A, M, Qout, Fout):
+    """Batch: ``_lab_row`` for every row; the estimate and flags after each."""
+    for k in range(T.shape[0]):
+        _lab_row(s, x, P, p, Rw, Ra, Rm, T[k], G[k], A[k], M[k], Fout[k])
+        Qout[k, :] = x
+
+
 class LabEKF(Estimator):
     name = "lab"
     title = "Lab EKF (4a)"
@@ -131,14 +282,24 @@ class LabEKF(Estimator):
 
     def _on_params(self) -> None:
         p = self._params
-        self._Rw = _cov(p.gyr_cov, p.gyr_noise)
-        self._Ra = _cov(p.acc_cov, p.acc_noise)
-        self._Rm = _cov(p.mag_cov, p.mag_noise)
+        self._Rw = _cov(p.gyr_cov, p.gyr_std)
+        self._Ra = _cov(p.acc_cov, p.acc_std)
+        self._Rm = _cov(p.mag_cov, p.mag_std)
         self._g0 = np.array(p.g0, dtype=float)
         self._g0_norm = float(np.linalg.norm(self._g0))
         self._bias = np.array(p.gyr_bias, dtype=float)
         if getattr(self, "_init", False) and p.m0 is not None:
             self._m0 = np.array(p.m0, dtype=float)
+        v = np.zeros(LP_N)
+        v[LP_USE_GYR], v[LP_USE_ACC], v[LP_USE_MAG] = p.use_gyr, p.use_acc, p.use_mag
+        v[LP_MAX_GAP], v[LP_GYR_HOLD] = p.max_gap, p.gyr_hold
+        v[LP_EXACT], v[LP_RW], v[LP_ACC_BAND] = p.time_update == "exact", p.q_rw_noise, p.acc_band_rel
+        if p.mag_band_uT is not None:
+            v[LP_BAND_MODE], v[LP_BAND_LO], v[LP_BAND_HI] = 1.0, p.mag_band_uT[0], p.mag_band_uT[1]
+        v[LP_MAG_BAND_REL], v[LP_ALPHA], v[LP_NIS] = p.mag_band_rel, p.mag_alpha, p.nis_gate
+        v[LP_P0], v[LP_LEARN_T], v[LP_G0N] = p.p0, p.m0_learn_time, self._g0_norm
+        v[LP_G0:LP_G0 + 3], v[LP_BIAS:LP_BIAS + 3] = self._g0, self._bias
+        self._pv = v
 
     def _reset_state(self) -> None:
         self.x = np.array([1.0, 0.0, 0.0, 0.0])
@@ -152,88 +313,13 @@ class LabEKF(Estimator):
         self._m_t = float("nan")
         self._t_align = float("nan")
 
-    # ------------------------------------------------------------------ helpers
-    def _align(self, acc, mag) -> None:
-        p = self._params
-        use_mag = mag is not None
-        self.x = qm.q_from_acc_mag(acc, mag if use_mag else np.zeros(3), use_mag)
-        self.P = p.p0 * np.eye(4)
-        if self._m0 is not None:
-            self.L = float(np.linalg.norm(self._m0))
-        self._init = True
-        self._acc_wait = None
-        self._t_align = self.t
-
-    def _learn_m0(self, mag, flags) -> bool:
-        """Formula (7) on the mean field levelled by the current estimate over
-        ``m0_learn_time`` (exponentially weighted, so the samples taken while the
-        accelerometer was still levelling count little); the heading is then aligned
-        with that mean field, as the initial alignment would have done with it.
-        True once m0 is known."""
-        if self._m0 is not None:
-            return True
-        mw = qm.Q(self.x) @ mag
-        tau = max(self._params.m0_learn_time / 4.0, 1e-3)
-        k = 1.0 if self._m_n == 0 else min(1.0, max(self.t - self._m_t, 0.0) / tau)
-        self._m_mean += k * (mw - self._m_mean)
-        self._m_n += 1
-        self._m_t = self.t
-        flags[F_MAG] = Reason.WAIT
-        if self.t - self._t_align >= self._params.m0_learn_time:
-            m = self._m_mean
-            psi = np.arctan2(m[0], m[1])  # the mean field's heading east of north
-            self.x = qm.normalize(qm.quat_mul(qm.quat_from_rotvec(np.array([0.0, 0.0, psi])), self.x))
-            self._m0 = qm.field_reference(m)
-            self.L = float(np.linalg.norm(self._m0))
-            flags[F_MAG] = Reason.INIT
-        return False
-
-    def _time_update(self, w, T) -> None:
-        p = self._params
-        if w is None:
-            self.P = self.P + p.rw_noise ** 2 * T * np.eye(4)
-            return
-        self.x, self.P = tu_qw(self.x, self.P, w - self._bias, T, self._Rw,
-                               p.time_update == "exact")
-
-    def _measurement_update(self, y, v0, R, flags, col_reason, col_nis) -> None:
-        ok, nis, self.x = mu_h(self.x, self.P, y, v0, R, self._params.nis_gate)  # P in place
-        flags[col_nis] = nis
-        if ok:
-            flags[col_reason] = Reason.USED
-        else:
-            flags[col_reason] = Reason.NIS
-
     # ------------------------------------------------------------------ one row
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
-        row = self._begin_row(t, gyr, acc, mag, flags)
-        if row is None:
-            return
-        p = self._params
-        if not self._init:
-            self._try_align(t, row, acc, mag, flags)
-            return
-        if row.dt > 0.0:
-            self._time_update(row.w, row.dt)
-
-        if row.acc == Reason.USED:
-            n = math.hypot(acc[0], acc[1], acc[2])
-            g = self._g0_norm
-            flags[F_ACC_VAL] = n
-            if p.acc_band_rel > 0.0 and abs(n - g) > p.acc_band_rel * g:
-                flags[F_ACC] = Reason.NORM
-            else:
-                self._measurement_update(acc, self._g0, self._Ra, flags, F_ACC, F_ACC_NIS)
-
-        if row.mag == Reason.USED and self._learn_m0(mag, flags):
-            a = p.mag_alpha
-            self.L = (1.0 - a) * self.L + a * math.hypot(mag[0], mag[1], mag[2])
-            flags[F_MAG_VAL] = self.L
-            band = self._mag_band()
-            if band is not None and not band[0] <= self.L <= band[1]:
-                flags[F_MAG] = Reason.FIELD
-            else:
-                self._measurement_update(mag, self._m0, self._Rm, flags, F_MAG, F_MAG_NIS)
+        """One row through the compiled ``_lab_row`` (the one implementation)."""
+        s = self._pack()
+        x, P = self.x.copy(), self.P.copy()
+        _lab_row(s, x, P, self._pv, self._Rw, self._Ra, self._Rm, t, gyr, acc, mag, flags)
+        self._unpack(s, x, P)
 
     def _mag_band(self) -> tuple[float, float] | None:
         """The band L_k must stay in (µT), or None when the gate is off."""
@@ -245,30 +331,50 @@ class LabEKF(Estimator):
             return m0n * (1 - p.mag_band_rel), m0n * (1 + p.mag_band_rel)
         return None
 
-    def _try_align(self, t, row, acc, mag, flags) -> None:
-        """Initial alignment from the first accelerometer (+ magnetometer) sample."""
-        p = self._params
-        for col, st in ((0, row.gyr), (F_ACC, row.acc), (F_MAG, row.mag)):
-            if st == Reason.USED:
-                flags[col] = Reason.WAIT
-        if row.acc == Reason.USED:
-            if not p.use_mag:
-                self._align(acc, None)
-                flags[F_ACC] = Reason.INIT
-                return
-            self._acc_wait = (t, acc.copy())
-        if row.mag == Reason.USED and self._acc_wait is not None:
-            self._align(self._acc_wait[1], mag)
-            flags[F_MAG] = Reason.INIT
-            return
-        if self._acc_wait is not None and t - self._acc_wait[0] > ALIGN_WAIT_S:
-            self._align(self._acc_wait[1], None)  # no magnetometer came: heading 0
-            flags[F_ACC] = Reason.INIT
-            return
-        if not p.use_acc and (row.mag == Reason.USED or row.gyr == Reason.USED):
-            # no accelerometer: start level and let the updates (or the gyro) take over
-            self._init = True
-            self._t_align = t
+    # ------------------------------------------------------------------ batch (compiled)
+    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+        """Rows in order through the compiled ``lab_run`` (the same steps as ``_step``)."""
+        t = np.ascontiguousarray(t, dtype=float)
+        n = t.shape[0]
+        G, A, M = (np.full((n, 3), np.nan) if v is None else np.ascontiguousarray(v, dtype=float)
+                   for v in (gyr, acc, mag))
+        for a in (G, A, M):
+            if a.shape != (n, 3):
+                raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
+        s = self._pack()
+        x, P = self.x.copy(), self.P.copy()
+        qs = np.empty((n, 4))
+        flags = np.empty((n, NFLAGS))
+        lab_run(s, x, P, self._pv, self._Rw, self._Ra, self._Rm, t, G, A, M, qs, flags)
+        self._unpack(s, x, P)
+        if n:
+            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
+        return BatchResult(t=t, q=qs, flags=flags)
+
+    def _pack(self) -> np.ndarray:
+        s = np.full(L_NSTATE, np.nan)
+        s[L_T], s[L_W_T], s[L_SEEN], s[L_INIT] = self.t, self._w_t, self._seen, self._init
+        if self._w is not None:
+            s[L_W:L_W + 3] = self._w
+        if self._acc_wait is not None:
+            s[L_WAIT_T], s[L_WAIT:L_WAIT + 3] = self._acc_wait[0], self._acc_wait[1]
+        s[L_M0_OK] = self._m0 is not None
+        if self._m0 is not None:
+            s[L_M0:L_M0 + 3] = self._m0
+        s[L_L], s[L_M_N], s[L_M_T], s[L_T_ALIGN] = self.L, self._m_n, self._m_t, self._t_align
+        s[L_M_MEAN:L_M_MEAN + 3] = self._m_mean
+        return s
+
+    def _unpack(self, s: np.ndarray, x: np.ndarray, P: np.ndarray) -> None:
+        self.x, self.P = x, P
+        self.t, self._w_t, self._seen = float(s[L_T]), float(s[L_W_T]), int(s[L_SEEN])
+        self._w = None if np.isnan(s[L_W_T]) else s[L_W:L_W + 3].copy()
+        self._init = bool(s[L_INIT] > 0.5)
+        self._acc_wait = None if np.isnan(s[L_WAIT_T]) else (float(s[L_WAIT_T]), s[L_WAIT:L_WAIT + 3].copy())
+        self._m0 = s[L_M0:L_M0 + 3].copy() if s[L_M0_OK] > 0.5 else None
+        self.L, self._m_n, self._m_t = float(s[L_L]), int(s[L_M_N]), float(s[L_M_T])
+        self._t_align = float(s[L_T_ALIGN])
+        self._m_mean = s[L_M_MEAN:L_M_MEAN + 3].copy()
 
     # ------------------------------------------------------------------ read-outs
     @property
@@ -286,14 +392,24 @@ class LabEKF(Estimator):
     def gyr_bias(self) -> np.ndarray:
         return self._bias.copy()
 
-    def diagnostics(self) -> dict:
+    def field_strength_rows(self, flags: np.ndarray, before: float) -> np.ndarray:
+        """L_k after each row: the value the field gate tested (``mag_value`` of a row whose
+        magnetometer went through it: used, FIELD or NIS), else unchanged. (The one row
+        that learns m0 sets L_k = |m0| without a tested value: it shows from the next.)"""
+        code = flags[:, F_MAG]
+        through = (code == R_USED) | (code == R_FIELD) | (code == R_NIS)
+        vals = np.where(through, flags[:, F_MAG_VAL], np.nan)
+        idx = np.where(through, np.arange(len(vals)), -1)
+        np.maximum.accumulate(idx, out=idx)
+        return np.where(idx >= 0, vals[np.maximum(idx, 0)], before)
+
+    def diagnostics(self) -> Diagnostics:
         p = self._params
         g = float(np.linalg.norm(self._g0))
-        return {
-            "acc_band": (g * (1 - p.acc_band_rel), g * (1 + p.acc_band_rel)) if p.acc_band_rel > 0 else None,
-            "mag_band": self._mag_band(),
-            "L_k": self.L,
-            "m0": None if self._m0 is None else self._m0.tolist(),
-            "g0": self._g0.tolist(),
-            "nis_gate": p.nis_gate,
-        }
+        return Diagnostics(
+            g0=vec3(self._g0), m0=vec3(self._m0),
+            acc_band=(g * (1 - p.acc_band_rel), g * (1 + p.acc_band_rel)) if p.acc_band_rel > 0 else None,
+            mag_band=self._mag_band(),
+            L_k=float(self.L),
+            acc_nis_gate=float(p.nis_gate), mag_nis_gate=float(p.nis_gate), nis_gate=float(p.nis_gate),
+        )

@@ -12,10 +12,14 @@ and its estimate is the identity.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams
-from .base import F_ACC, F_GYR, F_MAG, Estimator, Reason
+from .base import (B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_GYR, F_MAG, NFLAGS, R_DISABLED, R_USED,
+                   BatchResult, Diagnostics, Estimator, StepFlags, begin_row)
+
+P_INIT, P_ORI_T = B_N, B_N + 1      # state slots after the row bookkeeping
 
 
 def ori_quaternion(ori) -> np.ndarray | None:
@@ -39,6 +43,39 @@ def ori_quaternion(ori) -> np.ndarray | None:
     return qm.normalize(v)
 
 
+@njit(cache=True)
+def _ori_valid(v):
+    """The 4-value case of :func:`ori_quaternion`: finite and not all zero."""
+    nz = False
+    for i in range(4):
+        if not np.isfinite(v[i]):
+            return False
+        if v[i] != 0.0:
+            nz = True
+    return nz
+
+
+@njit(cache=True)
+def phone_run(s, q, use, max_gap, gyr_hold, T, G, A, M, O, Qout, Fout):
+    """Batch: every row's bookkeeping (``begin_row``; a present sensor sample is "switched
+    off" for this estimator), and each valid ORI sample normalised and held. ``s``: the
+    row bookkeeping (slots ``B_*``), then init and the time of the ORI shown; ``q`` in place."""
+    for k in range(T.shape[0]):
+        f = Fout[k]
+        go, dt, gs, as_, ms, has_w, w = begin_row(s, T[k], G[k], A[k], M[k], use[0], use[1],
+                                                  use[2], max_gap, gyr_hold, f)
+        if go:
+            f[F_GYR] = R_DISABLED if gs == R_USED else f[F_GYR]
+            f[F_ACC] = R_DISABLED if as_ == R_USED else as_
+            f[F_MAG] = R_DISABLED if ms == R_USED else ms
+            o = O[k]
+            if _ori_valid(o):
+                q[:] = qm.normalize(o)
+                s[P_INIT] = 1.0
+                s[P_ORI_T] = T[k]
+        Qout[k, :] = q
+
+
 class PhoneOrientation(Estimator):
     name = "phone"
     title = "Phone's own estimate (ORI)"
@@ -50,18 +87,42 @@ class PhoneOrientation(Estimator):
         self._ori_t = float("nan")
 
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
-        row = self._begin_row(t, gyr, acc, mag, flags)
-        if row is None:
-            return
-        # the sensors are never used: a present sample is "switched off" for this estimator
-        for col, st in ((F_GYR, row.gyr), (F_ACC, row.acc), (F_MAG, row.mag)):
-            if st == Reason.USED:
-                flags[col] = Reason.DISABLED
-        q = ori_quaternion(ori)
-        if q is not None:
-            self._q = q
-            self._init = True
-            self._ori_t = t
+        """One row through the compiled ``phone_run`` (the one implementation)."""
+        o = ori_quaternion(ori)        # also takes the 3-value form and refuses |v| > 1
+        self._run_rows(np.array([t], dtype=float), gyr.reshape(1, 3), acc.reshape(1, 3),
+                       mag.reshape(1, 3), (np.full(4, np.nan) if o is None else o).reshape(1, 4),
+                       np.empty((1, 4)), flags.reshape(1, -1))
+
+    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+        """Rows in order through the compiled ``phone_run`` (the steps of ``_step``)."""
+        t = np.ascontiguousarray(t, dtype=float)
+        n = t.shape[0]
+        G, A, M = (np.full((n, 3), np.nan) if v is None else np.ascontiguousarray(v, dtype=float)
+                   for v in (gyr, acc, mag))
+        O = np.full((n, 4), np.nan) if ori is None else np.ascontiguousarray(ori, dtype=float)
+        if O.shape != (n, 4):
+            raise ValueError(f"expected ori of shape ({n}, 4), got {O.shape}")
+        qs = np.empty((n, 4))
+        flags = np.empty((n, NFLAGS))
+        self._run_rows(t, G, A, M, O, qs, flags)
+        if n:
+            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
+        return BatchResult(t=t, q=qs, flags=flags)
+
+    def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
+        """``phone_run`` on this estimator's state (packed, run, unpacked)."""
+        p = self._params
+        s = np.full(B_N + 2, np.nan)
+        s[B_T], s[B_SEEN], s[B_W_T] = self.t, self._seen, self._w_t
+        if self._w is not None:
+            s[B_W:B_W + 3] = self._w
+        s[P_INIT], s[P_ORI_T] = self._init, self._ori_t
+        q = self._q.copy()
+        phone_run(s, q, np.array([p.use_gyr, p.use_acc, p.use_mag]), p.max_gap, p.gyr_hold,
+                  t, G, A, M, O, qs, flags)
+        self.t, self._w_t, self._seen = float(s[B_T]), float(s[B_W_T]), int(s[B_SEEN])
+        self._w = None if np.isnan(s[B_W_T]) else s[B_W:B_W + 3].copy()
+        self._init, self._ori_t, self._q = bool(s[P_INIT] > 0.5), float(s[P_ORI_T]), q
 
     @property
     def initialized(self) -> bool:
@@ -74,6 +135,6 @@ class PhoneOrientation(Estimator):
     def attitude_cov(self) -> None:
         return None
 
-    def diagnostics(self) -> dict:
+    def diagnostics(self) -> Diagnostics:
         """Time (s) of the ORI sample shown and its age at the last row."""
-        return {"ori_t": self._ori_t, "ori_age": self.t - self._ori_t}
+        return Diagnostics(ori_t=float(self._ori_t), ori_age=float(self.t - self._ori_t))

@@ -19,11 +19,21 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
 - **Heading only from the magnetometer.** The field is rotated into the world frame
   with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
   the gain is masked so this update can never tilt the attitude.
-- **Magnetic disturbance detection.** Field strength and dip angle are compared with
-  a reference learned slowly while undisturbed (``mag_norm_gate_rel``,
-  ``mag_dip_gate``); a persistent new homogeneous field (stable strength and dip
-  while the phone turns for ``mag_new_field_time``) becomes the new reference; after
-  ``mag_max_reject`` seconds of rejection the reference is re-learned.
+- **Magnetic disturbance detection** (VQF's logic, :func:`_field_check`). The low-passed
+  field strength and dip angle are compared with a reference learned while undisturbed
+  (``mag_norm_gate_rel``, ``mag_dip_gate``); the first reference is a field stable for
+  ``mag_first_field_time`` (never the first samples of a phone that starts moving); a
+  new homogeneous field (stable strength and dip while the phone turns for
+  ``mag_new_field_time``) becomes the reference; after ``mag_max_reject`` seconds of
+  refusal the heading update resumes ``mag_reject_factor`` times slower. Within the
+  gates, a deviation from the reference adds heading noise (``mag_dev_weight``).
+- **Never lost.** An undisturbed field farther than ``mag_lost_angle`` from the heading
+  for ``mag_lost_time`` means the estimate is wrong: the heading σ grows to the error,
+  the field's heading is taken, the bias learned meanwhile is dropped (flag RECOVER);
+  a bias estimate above ``bias_max`` is reset (flag BIAS_RESET).
+- **Specific force flagged.** An accelerometer sample far from the low-passed gravity
+  (``acc_flag_angle``, ``acc_flag_rel``) is flagged ACCEL with the angle (it still
+  enters the low-pass): a shake shows.
 - **Rest detection** (gyroscope and accelerometer both quiet for ``rest_time``):
   the low-passed gyroscope is then a direct measurement of the bias.
 - **Measurement noise as densities** (``tilt_noise``, ``heading_noise`` in rad·√s):
@@ -33,11 +43,15 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
 Every update goes through :func:`app.estimators.kalman.correct`. The per-row code is
 numba-compiled (``robust_step``); ``robust_run`` loops it over arrays for batch
 use. The same functions run uncompiled (``.py_func``) as the readable numpy reference.
+The kernels read the parameters, the coefficients derived from them and the state from
+two flat arrays whose slots are named once (``PRM`` and ``S``, see "layouts" below).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections import namedtuple
+from dataclasses import MISSING, dataclass, fields as dataclass_fields
 
 import numpy as np
 from numba import njit
@@ -46,7 +60,8 @@ from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
                    F_TIME, NFLAGS, R_DIP, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
-                   R_USED, R_WAIT, R_GAP, T_BACKWARD, T_GAP, ALIGN_WAIT_S, BatchResult,
+                   R_USED, R_WAIT, R_GAP, R_ABSENT, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET,
+                   T_BACKWARD, T_GAP, T_OK, ALIGN_WAIT_S, BatchResult,
                    Estimator, row_prologue)
 from .kalman import correct
 
@@ -59,35 +74,65 @@ class RobustParams(CommonParams):
                              user_scale=DEG, doc="gyroscope noise density (attitude random walk)")
     bias_noise: float = param(3e-5, unit="rad/s/√s", lo=0.0, hi=0.1, log=True, user_unit="deg/s/√s",
                               user_scale=DEG, doc="gyroscope bias random walk")
-    bias_init: float = param(0.05, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
+    bias_max: float = param(0.3, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s", user_scale=DEG,
+                            doc="a bias estimate above this is implausible (the filter is lost): it "
+                                "is reset and flagged; 0: off")
+    gyr_scale_noise: float = param(0.0, unit="√s", lo=0.0, hi=1.0,
+                                   doc="attitude noise density per rad/s of turn rate (scale factor, "
+                                       "axis misalignment, timing): fast turns make the filter less sure")
+    bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="initial gyroscope bias (calibration)")
     tilt_noise: float = param(0.02, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                               user_scale=DEG, doc="noise density of the low-passed gravity direction")
-    acc_tau: float = param(1.0, unit="s", lo=0.0, hi=60.0,
+    acc_tau: float = param(3.0, unit="s", lo=0.0, hi=60.0,
                            doc="time constant of the inertial low-pass of the accelerometer")
     acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
                                 doc="tilt corrections pause while | |a| - g | > this × g (every sample "
                                     "still enters the low-pass); 0: off")
+    tilt_motion_time: float = param(0.0, unit="s", lo=0.0, hi=10.0,
+                                    doc="correlation time of the specific force: its power (low-passed, "
+                                        "over g²) times this is added to tilt_noise² (0: off)")
+    acc_flag_angle: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
+                                  user_scale=DEG, doc="a sample this far from the low-passed gravity is "
+                                                      "flagged as specific force (ACCEL; it still enters "
+                                                      "the low-pass); 0: off")
+    acc_flag_rel: float = param(0.1, lo=0.0, hi=5.0,
+                                doc="likewise when | |a| - g | > this × g; 0: off")
     acc_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
     heading_noise: float = param(0.1, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                                  user_scale=DEG, doc="noise density of the magnetometer heading")
     mag_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the heading update (χ², 1 dof); 0: off")
-    mag_norm_gate_rel: float = param(0.06, lo=0.0, hi=2.0,
+    mag_norm_gate_rel: float = param(0.15, lo=0.0, hi=2.0,
                                      doc="field strength may differ from the reference by this fraction; 0: off")
-    mag_dip_gate: float = param(15.0 / DEG, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
+    mag_dip_gate: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
                                 doc="dip angle may differ from the reference by this much; 0: off")
-    mag_ref_tau: float = param(30.0, unit="s", lo=0.1, hi=3600.0,
+    mag_ref_tau: float = param(20.0, unit="s", lo=0.1, hi=3600.0,
                                doc="time constant of learning the field reference while undisturbed")
     mag_new_field_time: float = param(20.0, unit="s", lo=0.0, hi=600.0,
                                       doc="a new homogeneous field is accepted after this long while turning")
     mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
                                     user_scale=DEG, doc="turn rate that counts towards accepting a new field")
     mag_max_reject: float = param(60.0, unit="s", lo=0.0, hi=3600.0,
-                                  doc="after this long rejected, the field reference is re-learned; 0: never")
+                                  doc="after this long refused as disturbed, the heading update resumes "
+                                      "mag_reject_factor times slower (a field that stays is the field); "
+                                      "0: never")
+    mag_reject_factor: float = param(2.0, lo=1.0, hi=100.0,
+                                     doc="heading noise multiplier of the resumed updates in a field "
+                                         "judged disturbed; the rejection budget refills this much faster")
+    mag_dev_weight: float = param(1.0, lo=0.0, hi=100.0,
+                                  doc="heading σ added per relative deviation of the field from its "
+                                      "reference (Δ/|m_h|), within the gates too; 0: off")
+    mag_first_field_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
+                                        doc="the first field reference is a field stable this long (until "
+                                            "then every sample corrects the heading: nothing to judge it by)")
+    mag_min_undisturbed: float = param(0.5, unit="s", lo=0.0, hi=60.0,
+                                       doc="a field within the gates this long ends a disturbance")
+    mag_norm_dip_tau: float = param(0.05, unit="s", lo=0.0, hi=10.0,
+                                    doc="time constant of the low-pass of strength and dip before the gates")
     rest_gyr_th: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s", user_scale=DEG,
                                doc="rest: gyroscope deviation from its low-pass below this")
     rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,
@@ -100,50 +145,116 @@ class RobustParams(CommonParams):
     update_rate_hz: float = param(50.0, unit="Hz", lo=0.0, hi=10000.0,
                                   doc="most measurement updates per second and sensor (the low-passes "
                                       "and averages see every sample); 0: every sample")
+    rest_lp_tau: float = param(0.5, unit="s", lo=0.0, hi=10.0,
+                               doc="rest detection: time constant of the gyroscope and accelerometer "
+                                   "low-passes the samples are compared with")
+    mag_cand_tau: float = param(2.0, unit="s", lo=0.0, hi=60.0,
+                                doc="time constant of the candidate new field's strength and dip")
+    mag_cand_norm_rel: float = param(0.05, lo=0.0, hi=2.0,
+                                     doc="a candidate new field stays one while its strength stays within "
+                                         "this fraction (at least mag_norm_gate_rel)")
+    mag_cand_dip: float = param(0.05, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
+                                doc="likewise for its dip angle (at least mag_dip_gate)")
+    mag_lost_angle: float = param(30.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
+                                  user_scale=DEG, doc="an undisturbed field this far from the estimated "
+                                                      "heading for mag_lost_time means the estimate is lost")
+    mag_lost_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
+                                 doc="after this long with an undisturbed field far from the heading (or "
+                                     "refused by the NIS gate), the estimate is judged lost: its heading σ "
+                                     "grows to the error and the field's heading is taken (flag RECOVER); "
+                                     "0: never")
+    init_tilt_std: float = param(10.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
+                                 user_scale=DEG, doc="σ of the tilt after the initial alignment")
+    init_heading_std: float = param(20.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
+                                    user_scale=DEG, doc="σ of the heading after an alignment with the field")
+    noacc_tilt_std: float = param(30.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
+                                  user_scale=DEG, doc="σ of the tilt of a start without accelerometer (level)")
 
 
 # ----------------------------------------------------------------- layouts
-# parameter vector (derived coefficients included), built by RobustEKF._on_params
-(P_USE_GYR, P_USE_ACC, P_USE_MAG, P_MAX_GAP, P_GYR_HOLD, P_GYR_NOISE, P_BIAS_NOISE, P_BIAS_INIT,
- P_TILT_NOISE, P_ACC_TAU, P_ACC_BAND, P_ACC_NIS, P_HEAD_NOISE, P_MAG_NIS, P_MAG_NORM, P_MAG_DIP,
- P_MAG_REF_TAU, P_MAG_NEW_T, P_MAG_NEW_RATE, P_MAG_MAX_REJ, P_REST_GYR, P_REST_ACC, P_REST_T,
- P_REST_NOISE, P_RW_NOISE, P_B0X, P_B0Y, P_B0Z, P_UPD_DT, NPARAM) = range(30)
+# The compiled kernels keep the filter in two flat float arrays, the state ``s`` and the
+# parameter vector ``p`` (numba's fastest form). Their slots are NAMED here, once: ``S.q``
+# is the offset of the attitude in ``s``, ``PRM.gyr_noise`` the offset of that parameter in
+# ``p``. As in vqf's pyvqf.py, three kinds of numbers are kept apart: parameters (the
+# user's, :class:`RobustParams`), coefficients derived from them (``DERIVED`` below,
+# recomputed by ``RobustEKF._on_params`` on every change) and the state (``STATE``).
 
-# state vector (everything but P)
-S_Q = 0          # 4: nominal attitude
-S_B = 4          # 3: gyroscope bias
-S_ALP = 7        # 3: low-passed specific force, world frame of the estimate
-S_GLP = 10       # 3: low-passed gyroscope (rest detection)
-S_AL2 = 13       # 3: low-passed accelerometer, sensor frame (rest detection)
-S_REST_T = 16    # s quiet so far
-S_T = 17         # time of the last row
-S_INIT = 18      # 1 once aligned
-S_W = 19         # 3: held gyroscope sample
-S_W_T = 22       # its time
-S_WAIT_T = 23    # time of an accelerometer sample waiting for alignment (NaN: none)
-S_WAIT = 24      # 3: that sample
-S_REF_N = 27     # field reference: strength (µT)
-S_REF_D = 28     # field reference: dip (rad, elevation of the field: negative in the north)
-S_REF_OK = 29    # 1 once there is a reference
-S_CAND_N = 30    # candidate new field: strength
-S_CAND_D = 31    # candidate new field: dip
-S_CAND_T = 32    # s the candidate has been stable while turning
-S_REJ_T = 33     # s of continuous magnetic rejection
-S_T0 = 34        # time of the alignment
-S_MAG_T = 35     # time of the last magnetometer update attempt
-S_ACC_T = 36     # time of the last accelerometer sample
-S_GLP_T = 37     # time of the last gyroscope sample in the rest low-pass (NaN: none yet)
-S_REST = 38      # 1 at rest
-S_NIS_REJ_T = 39 # s of continuous heading-NIS rejection
-S_ACC_UPD_T = 40 # s of used accelerometer samples since the last tilt update
-S_REST_UPD_T = 41  # s at rest since the last bias update
-S_MAG_SUM = 42   # 3: sum of world-frame field samples since the last heading update
-S_MAG_CNT = 45   # how many
-S_MAG_UPD_T = 46 # s of used magnetometer samples since the last heading update
-S_AL2_T = 47     # likewise for the accelerometer
-S_WCUR = 48      # 3: scratch: the rate integrated over the current row
-S_SEEN = 51      # sensors seen at the time of the last row (bit mask)
-NSTATE = 52
+def _layout(name: str, fields) -> tuple:
+    """A namedtuple of offsets for ``fields`` ((name, size), ...) and the total size.
+    numba folds a global namedtuple's fields into constants: no cost per access."""
+    offsets, n = {}, 0
+    for fname, size in fields:
+        offsets[fname] = n
+        n += size
+    return namedtuple(name, offsets)(**offsets), n
+
+
+# coefficients derived from the parameters (appended to the parameter vector)
+DERIVED = (
+    ("upd_dt", 1, "s between two measurement updates of a sensor (1/update_rate_hz; 0: every sample)"),
+)
+
+STATE = (
+    ("q", 4, "nominal attitude [w, x, y, z], sensor to world"),
+    ("bias", 3, "gyroscope bias (rad/s, sensor frame)"),
+    ("acc_lp", 3, "low-passed specific force, world frame of the estimate (m/s²)"),
+    ("gyr_lp", 3, "low-passed gyroscope (rest detection)"),
+    ("acc_lp_rest", 3, "low-passed accelerometer, sensor frame (rest detection)"),
+    ("quiet_time", 1, "s quiet so far (rest detection)"),
+    ("t", 1, "time of the last row"),
+    ("aligned", 1, "1 once aligned"),
+    ("gyr_held", 3, "held gyroscope sample"),
+    ("gyr_held_t", 1, "its time"),
+    ("wait_t", 1, "time of an accelerometer sample waiting for alignment (NaN: none)"),
+    ("wait_acc", 3, "that sample"),
+    ("ref_norm", 1, "field reference: strength (µT)"),
+    ("ref_dip", 1, "field reference: dip (rad, elevation of the field: negative in the north)"),
+    ("ref_ok", 1, "1 once there is a field reference"),
+    ("cand_norm", 1, "candidate new field: strength (µT)"),
+    ("cand_dip", 1, "candidate new field: dip (rad)"),
+    ("cand_time", 1, "s the candidate has been stable while turning"),
+    ("reject_time", 1, "s of continuous magnetic rejection"),
+    ("t0", 1, "time of the alignment"),
+    ("mag_t", 1, "time of the last magnetometer update attempt"),
+    ("acc_t", 1, "time of the last accelerometer sample"),
+    ("gyr_lp_t", 1, "time of the last gyroscope sample in the rest low-pass (NaN: none yet)"),
+    ("rest", 1, "1 at rest"),
+    ("far_time", 1, "s the heading has disagreed with an undisturbed field (far or NIS-refused)"),
+    ("acc_upd_time", 1, "s of used accelerometer samples since the last tilt update"),
+    ("rest_upd_time", 1, "s at rest since the last bias update"),
+    ("mag_sum", 3, "sum of world-frame field samples since the last heading update"),
+    ("mag_count", 1, "how many"),
+    ("mag_upd_time", 1, "s of used magnetometer samples since the last heading update"),
+    ("acc_lp_rest_t", 1, "time of the last accelerometer sample in the rest low-pass"),
+    ("w_cur", 3, "scratch: the rate integrated over the current row"),
+    ("seen", 1, "sensors seen at the time of the last row (bit mask)"),
+    ("mag_nd", 2, "low-passed field strength (µT) and dip (rad)"),
+    ("mag_nd_ok", 1, "1 once mag_nd holds a sample"),
+    ("undisturbed_time", 1, "s the field has been within the gates"),
+    ("disturbed", 1, "1 while the field is judged disturbed"),
+    ("dist_reason", 1, "Reason of the current disturbance (NORM or DIP)"),
+    ("bias_good", 3, "the bias estimate before the heading began to disagree with the field"),
+    ("acc_var", 1, "low-passed power of the specific force, |a - low-pass|² (m²/s⁴)"),
+)
+# slots that start as NaN ("not yet")
+_STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
+
+
+def _param_fields():
+    """(name, size) of every RobustParams field, in order, then the derived coefficients."""
+    out = []
+    for f in dataclass_fields(RobustParams):
+        default = f.default_factory() if f.default is MISSING else f.default
+        out.append((f.name, len(default) if isinstance(default, tuple) else 1))
+    return tuple(out) + tuple((n, k) for n, k, _ in DERIVED)
+
+
+S, NSTATE = _layout("StateLayout", ((n, k) for n, k, _ in STATE))
+PRM, NPARAM = _layout("ParamLayout", _param_fields())
+
+# Longest interval (s) a low-pass or an update accumulator takes from one sample: a stall
+# in the stream must not look like a long, information-rich average.
+DT_MAX = 0.1
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
 
@@ -217,40 +328,44 @@ def _inject(s, P, dx):
     """Apply an error-state correction: q <- exp(δθ) ⊗ q, b <- b + δb, and rotate
     the world-frame low-pass with the attitude so it stays in the estimate's frame."""
     dq = qm.quat_from_rotvec(dx[0:3])
-    s[S_Q:S_Q + 4] = qm.normalize(qm.quat_mul(dq, s[S_Q:S_Q + 4]))
+    s[S.q:S.q + 4] = qm.normalize(qm.quat_mul(dq, s[S.q:S.q + 4]))
     for i in range(3):
-        s[S_B + i] += dx[3 + i]
-    s[S_ALP:S_ALP + 3] = qm.rotate(dq, s[S_ALP:S_ALP + 3])
+        s[S.bias + i] += dx[3 + i]
+    s[S.acc_lp:S.acc_lp + 3] = qm.rotate(dq, s[S.acc_lp:S.acc_lp + 3])
 
 
 @njit(cache=True)
 def _align(s, P, p, t, acc, mag, use_mag):
-    s[S_Q:S_Q + 4] = qm.q_from_acc_mag(acc, mag, use_mag)
+    s[S.q:S.q + 4] = qm.q_from_acc_mag(acc, mag, use_mag)
     for i in range(3):
-        s[S_B + i] = p[P_B0X + i]
-    s[S_ALP:S_ALP + 3] = qm.rotate(s[S_Q:S_Q + 4], acc)
+        s[S.bias + i] = p[PRM.gyr_bias + i]
+    s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
+    s[S.acc_var] = 0.0
     P[:, :] = 0.0
-    tilt0 = 10.0 * np.pi / 180.0
-    head0 = (20.0 if use_mag else 180.0) * np.pi / 180.0
+    tilt0 = p[PRM.init_tilt_std]
+    head0 = p[PRM.init_heading_std] if use_mag else np.pi
     P[0, 0] = tilt0 ** 2
     P[1, 1] = tilt0 ** 2
     P[2, 2] = head0 ** 2
     for i in range(3, 6):
-        P[i, i] = max(p[P_BIAS_INIT], 1e-6) ** 2
-    s[S_INIT] = 1.0
-    s[S_T0] = t
-    s[S_WAIT_T] = np.nan
-    s[S_MAG_T] = t
-    s[S_ACC_T] = t
-    s[S_ACC_UPD_T] = 0.0
-    s[S_REST_UPD_T] = 0.0
-    s[S_MAG_CNT] = 0.0
-    s[S_MAG_SUM:S_MAG_SUM + 3] = 0.0
-    s[S_MAG_UPD_T] = 0.0
-    s[S_REF_OK] = 0.0
-    s[S_REJ_T] = 0.0
-    s[S_CAND_T] = 0.0
-    s[S_NIS_REJ_T] = 0.0
+        P[i, i] = max(p[PRM.bias_init], 1e-6) ** 2
+    s[S.aligned] = 1.0
+    s[S.t0] = t
+    s[S.wait_t] = np.nan
+    s[S.mag_t] = t
+    s[S.acc_t] = t
+    s[S.acc_upd_time] = 0.0
+    s[S.rest_upd_time] = 0.0
+    s[S.mag_count] = 0.0
+    s[S.mag_sum:S.mag_sum + 3] = 0.0
+    s[S.mag_upd_time] = 0.0
+    s[S.ref_ok] = 0.0
+    s[S.reject_time] = 0.0
+    s[S.cand_time] = 0.0
+    s[S.far_time] = 0.0
+    s[S.mag_nd_ok] = 0.0
+    s[S.undisturbed_time] = 0.0
+    s[S.disturbed] = 0.0
 
 
 @njit(cache=True)
@@ -260,7 +375,7 @@ def _integrate(s, vx, vy, vz):
     c = np.cos(0.5 * a)
     k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
     x, y, z = vx * k, vy * k, vz * k
-    q0, q1, q2, q3 = s[S_Q], s[S_Q + 1], s[S_Q + 2], s[S_Q + 3]
+    q0, q1, q2, q3 = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
     r0 = q0 * c - q1 * x - q2 * y - q3 * z
     r1 = q0 * x + q1 * c + q2 * z - q3 * y
     r2 = q0 * y - q1 * z + q2 * c + q3 * x
@@ -268,7 +383,7 @@ def _integrate(s, vx, vy, vz):
     n = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
     if r0 < 0.0:
         n = -n
-    s[S_Q], s[S_Q + 1], s[S_Q + 2], s[S_Q + 3] = r0 / n, r1 / n, r2 / n, r3 / n
+    s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3] = r0 / n, r1 / n, r2 / n, r3 / n
 
 
 @njit(cache=True)
@@ -277,10 +392,10 @@ def _due(s, idx, dt, p):
     when it reaches 1/update_rate_hz, reset it and return (True, accumulated s).
     The accumulated time of *used* samples is what scales R = σ²/Δt, so an update
     after a long rejection is not mistaken for a long, information-rich average."""
-    dt = min(max(dt, 0.0), 0.1)
+    dt = min(max(dt, 0.0), DT_MAX)
     s[idx] += dt
     # half a sample of tolerance: 100 Hz data with jittery stamps still updates at 100 Hz
-    if s[idx] >= p[P_UPD_DT] - 0.5 * dt and s[idx] > 0.0:
+    if s[idx] >= p[PRM.upd_dt] - 0.5 * dt and s[idx] > 0.0:
         acc = s[idx]
         s[idx] = 0.0
         return True, acc
@@ -291,15 +406,16 @@ def _due(s, idx, dt, p):
 def _predict(s, P, p, w, dt):
     """Time update over dt with the rate w (NaN: random walk without gyroscope)."""
     if np.isnan(w[0]):
-        var = p[P_RW_NOISE] ** 2 * dt
+        var = p[PRM.rw_noise] ** 2 * dt
         for i in range(3):
             P[i, i] += var
-        bv = p[P_BIAS_NOISE] ** 2 * dt
+        bv = p[PRM.bias_noise] ** 2 * dt
         for i in range(3, 6):
             P[i, i] += bv
         return
-    R = qm.Q(s[S_Q:S_Q + 4])
-    _integrate(s, (w[0] - s[S_B]) * dt, (w[1] - s[S_B + 1]) * dt, (w[2] - s[S_B + 2]) * dt)
+    R = qm.Q(s[S.q:S.q + 4])
+    wx, wy, wz = w[0] - s[S.bias], w[1] - s[S.bias + 1], w[2] - s[S.bias + 2]
+    _integrate(s, wx * dt, wy * dt, wz * dt)
     # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
     # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]
     T = np.zeros((3, 6))
@@ -322,8 +438,9 @@ def _predict(s, P, p, w, dt):
         for j in range(3):
             P[i, 3 + j] -= dt * T[i, j]
             P[3 + j, i] = P[i, 3 + j]
-    gv = p[P_GYR_NOISE] ** 2 * dt
-    bv = p[P_BIAS_NOISE] ** 2 * dt
+    # gyroscope noise, plus what grows with the turn rate (scale factor, misalignment, timing)
+    gv = (p[PRM.gyr_noise] ** 2 + p[PRM.gyr_scale_noise] ** 2 * (wx * wx + wy * wy + wz * wz)) * dt
+    bv = p[PRM.bias_noise] ** 2 * dt
     for i in range(3):
         P[i, i] += gv
         P[3 + i, 3 + i] += bv
@@ -337,7 +454,7 @@ def _lp_sensor(s, idx, idx_t, v, t, tau):
         s[idx:idx + 3] = v
         s[idx_t] = t
         return 0.0
-    k = _lp_coef(min(t - s[idx_t], 0.1), tau)
+    k = _lp_coef(min(t - s[idx_t], DT_MAX), tau)
     s[idx_t] = t
     d2 = 0.0
     for i in range(3):
@@ -350,28 +467,28 @@ def _lp_sensor(s, idx, idx_t, v, t, tau):
 def _rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
     """Rest detection on the deviation of gyroscope and accelerometer from their
     low-passes; at rest the low-passed gyroscope measures the bias directly."""
-    if p[P_REST_T] <= 0.0:
-        s[S_REST] = 0.0
+    if p[PRM.rest_time] <= 0.0:
+        s[S.rest] = 0.0
         return
     quiet = True
-    if has_gyr and _lp_sensor(s, S_GLP, S_GLP_T, gyr, t, 0.5) > p[P_REST_GYR]:
+    if has_gyr and _lp_sensor(s, S.gyr_lp, S.gyr_lp_t, gyr, t, p[PRM.rest_lp_tau]) > p[PRM.rest_gyr_th]:
         quiet = False
-    if has_acc and _lp_sensor(s, S_AL2, S_AL2_T, acc, t, 0.5) > p[P_REST_ACC]:
+    if has_acc and _lp_sensor(s, S.acc_lp_rest, S.acc_lp_rest_t, acc, t, p[PRM.rest_lp_tau]) > p[PRM.rest_acc_th]:
         quiet = False
-    s[S_REST_T] = s[S_REST_T] + dt if quiet else 0.0
-    s[S_REST] = 1.0 if s[S_REST_T] >= p[P_REST_T] else 0.0
-    f[F_REST] = s[S_REST]
-    if s[S_REST] == 0.0:
-        s[S_REST_UPD_T] = 0.0
+    s[S.quiet_time] = s[S.quiet_time] + dt if quiet else 0.0
+    s[S.rest] = 1.0 if s[S.quiet_time] >= p[PRM.rest_time] else 0.0
+    f[F_REST] = s[S.rest]
+    if s[S.rest] == 0.0:
+        s[S.rest_upd_time] = 0.0
         return
     # time at rest since the last bias update; the update runs on a gyroscope row
-    s[S_REST_UPD_T] += min(dt, 0.1)
-    if not has_gyr or s[S_REST_UPD_T] < p[P_UPD_DT] - 0.5 * dt or s[S_REST_UPD_T] <= 0.0:
+    s[S.rest_upd_time] += min(dt, DT_MAX)
+    if not has_gyr or s[S.rest_upd_time] < p[PRM.upd_dt] - 0.5 * dt or s[S.rest_upd_time] <= 0.0:
         return
-    elapsed = s[S_REST_UPD_T]
-    s[S_REST_UPD_T] = 0.0
-    Rm = (p[P_REST_NOISE] ** 2 / elapsed) * np.eye(3)
-    innov = s[S_GLP:S_GLP + 3] - s[S_B:S_B + 3]
+    elapsed = s[S.rest_upd_time]
+    s[S.rest_upd_time] = 0.0
+    Rm = (p[PRM.rest_noise] ** 2 / elapsed) * np.eye(3)
+    innov = s[S.gyr_lp:S.gyr_lp + 3] - s[S.bias:S.bias + 3]
     ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0)
     if ok:
         _inject(s, P, dx)
@@ -382,112 +499,185 @@ def _rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
 def _acc_update(s, P, p, t, acc, f):
     n = qm.norm3(acc)
     f[F_ACC_VAL] = n
-    dt = t - s[S_ACC_T] if np.isfinite(s[S_ACC_T]) else 0.0
-    s[S_ACC_T] = t
+    dt = t - s[S.acc_t] if np.isfinite(s[S.acc_t]) else 0.0
+    s[S.acc_t] = t
     if dt <= 0.0:
         dt = 1e-3
     # inertial low-pass, with a running mean while younger than acc_tau (fast start)
-    k = _lp_coef(dt, p[P_ACC_TAU])
-    age = t - s[S_T0]
+    k = _lp_coef(dt, p[PRM.acc_tau])
+    age = t - s[S.t0]
     if age > 0.0 and dt / (age + dt) > k:
         k = dt / (age + dt)
-    aw = qm.rotate(s[S_Q:S_Q + 4], acc)
+    aw = qm.rotate(s[S.q:S.q + 4], acc)
+    d2 = 0.0
     for i in range(3):
-        s[S_ALP + i] += k * (aw[i] - s[S_ALP + i])
+        s[S.acc_lp + i] += k * (aw[i] - s[S.acc_lp + i])
+        d2 += (aw[i] - s[S.acc_lp + i]) ** 2
+    # the power of the specific force over the same window (what the low-pass averages out)
+    s[S.acc_var] += k * (d2 - s[S.acc_var])
     f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
+    # specific force: the sample is far from the low-passed gravity (angle) or from g
+    # (norm): the phone accelerates. It still enters the low-pass (the accelerations
+    # average out there) but is flagged, so a shake shows, with the angle as its value.
+    if p[PRM.acc_flag_angle] > 0.0 or p[PRM.acc_flag_rel] > 0.0:
+        ln = qm.norm3(s[S.acc_lp:S.acc_lp + 3])
+        c = (aw[0] * s[S.acc_lp] + aw[1] * s[S.acc_lp + 1] + aw[2] * s[S.acc_lp + 2]) / max(n * ln, 1e-12)
+        ang = np.arccos(min(1.0, max(-1.0, c)))
+        if ((p[PRM.acc_flag_angle] > 0.0 and ang > p[PRM.acc_flag_angle])
+                or (p[PRM.acc_flag_rel] > 0.0 and abs(n - GRAVITY) > p[PRM.acc_flag_rel] * GRAVITY)):
+            f[F_ACC] = R_ACCEL
+            f[F_ACC_VAL] = ang
     # Every valid sample enters the low-pass: the specific force only averages out if
     # none is left out (refusing the peaks of a movement would bias the mean). The norm
     # band gates the *correction* instead: no tilt update while |a| is far from g.
-    if p[P_ACC_BAND] > 0.0 and abs(n - GRAVITY) > p[P_ACC_BAND] * GRAVITY:
+    if p[PRM.acc_band_rel] > 0.0 and abs(n - GRAVITY) > p[PRM.acc_band_rel] * GRAVITY:
         f[F_ACC] = R_NORM
         return
-    due, elapsed = _due(s, S_ACC_UPD_T, dt, p)
+    due, elapsed = _due(s, S.acc_upd_time, dt, p)
     if not due:
         return
     dt = elapsed
-    a = s[S_ALP:S_ALP + 3]
+    a = s[S.acc_lp:S.acc_lp + 3]
     an = qm.norm3(a)
     if an < 1e-6:
         return
-    Rm = (p[P_TILT_NOISE] ** 2 / dt) * np.eye(2)
-    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[P_ACC_NIS])
+    # noise density of the low-passed direction: the sensor's, plus what the specific force
+    # leaves in it (its power over g², times its correlation time): a walking or running
+    # phone's gravity estimate is trusted less than a still one's
+    Rm = ((p[PRM.tilt_noise] ** 2 + p[PRM.tilt_motion_time] * s[S.acc_var] / (GRAVITY * GRAVITY)) / dt
+          ) * np.eye(2)
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[PRM.acc_nis_gate])
     f[F_ACC_NIS] = nis
     if ok:
         _inject(s, P, dx)
-        f[F_ACC] = R_USED
     else:
         f[F_ACC] = R_NIS
         f[F_ACC_VAL] = nis
 
 
 @njit(cache=True)
+def _field_check(s, p, n, dip, dt, rate, f):
+    """Judge the field (strength ``n``, dip) against the learned reference, as VQF does:
+    a disturbance is a strength or dip off the reference; it ends after the field has been
+    within the gates for ``mag_min_undisturbed``; a new homogeneous field (stable strength
+    and dip while the phone turns for ``mag_new_field_time``) becomes the reference; the
+    first reference is the first field stable for ``mag_first_field_time`` (a phone that
+    starts moving, or next to a desk, must not fix it from its first samples).
+    Returns True when the sample may correct the heading (no reference yet, or undisturbed)."""
+    # low-pass of strength and dip: one sample's noise is no disturbance
+    if s[S.mag_nd_ok] == 0.0:
+        s[S.mag_nd] = n
+        s[S.mag_nd + 1] = dip
+        s[S.mag_nd_ok] = 1.0
+        s[S.cand_norm] = n
+        s[S.cand_dip] = dip
+        s[S.cand_time] = 0.0
+    else:
+        k = _lp_coef(dt, p[PRM.mag_norm_dip_tau])
+        s[S.mag_nd] += k * (n - s[S.mag_nd])
+        s[S.mag_nd + 1] += k * (dip - s[S.mag_nd + 1])
+    nf, df = s[S.mag_nd], s[S.mag_nd + 1]
+    # candidate for a new homogeneous field: stable strength and dip (while turning)
+    cn_dev = abs(nf - s[S.cand_norm]) / max(s[S.cand_norm], 1e-6)
+    cd_dev = abs(df - s[S.cand_dip])
+    if (cn_dev <= max(p[PRM.mag_norm_gate_rel], p[PRM.mag_cand_norm_rel])
+            and cd_dev <= max(p[PRM.mag_dip_gate], p[PRM.mag_cand_dip])):
+        if rate >= p[PRM.mag_new_min_rate] or s[S.ref_ok] == 0.0:
+            s[S.cand_time] += dt
+        kc = _lp_coef(dt, p[PRM.mag_cand_tau]) if dt > 0 else 0.0
+        s[S.cand_norm] += kc * (nf - s[S.cand_norm])
+        s[S.cand_dip] += kc * (df - s[S.cand_dip])
+    else:
+        s[S.cand_norm] = nf
+        s[S.cand_dip] = df
+        s[S.cand_time] = 0.0
+    if s[S.ref_ok] == 0.0:
+        if s[S.cand_time] >= p[PRM.mag_first_field_time]:
+            s[S.ref_norm] = s[S.cand_norm]
+            s[S.ref_dip] = s[S.cand_dip]
+            s[S.ref_ok] = 1.0
+            s[S.disturbed] = 0.0
+            s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
+        return True
+    # disturbance: strength or dip off the reference
+    n_dev = abs(nf - s[S.ref_norm]) / s[S.ref_norm]
+    d_dev = abs(df - s[S.ref_dip])
+    reason = R_USED
+    if p[PRM.mag_norm_gate_rel] > 0.0 and n_dev > p[PRM.mag_norm_gate_rel]:
+        reason = R_NORM
+    elif p[PRM.mag_dip_gate] > 0.0 and d_dev > p[PRM.mag_dip_gate]:
+        reason = R_DIP
+    if reason == R_USED:
+        s[S.undisturbed_time] += dt
+        if s[S.undisturbed_time] >= p[PRM.mag_min_undisturbed]:
+            s[S.disturbed] = 0.0
+            kr = _lp_coef(dt, p[PRM.mag_ref_tau]) if dt > 0 else 0.0
+            s[S.ref_norm] += kr * (nf - s[S.ref_norm])
+            s[S.ref_dip] += kr * (df - s[S.ref_dip])
+    else:
+        s[S.undisturbed_time] = 0.0
+        s[S.disturbed] = 1.0
+        s[S.dist_reason] = reason
+    if s[S.disturbed] != 0.0 and s[S.cand_time] >= p[PRM.mag_new_field_time]:
+        # a new homogeneous field: the phone moved to another place (or a magnet stays on it)
+        s[S.ref_norm] = s[S.cand_norm]
+        s[S.ref_dip] = s[S.cand_dip]
+        s[S.disturbed] = 0.0
+        s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
+        s[S.reject_time] = 0.0
+        f[F_MAG] = R_NEW_FIELD
+        f[F_MAG_VAL] = s[S.ref_norm]
+        return True
+    if s[S.disturbed] != 0.0:
+        f[F_MAG] = s[S.dist_reason]
+        f[F_MAG_VAL] = nf if s[S.dist_reason] == R_NORM else d_dev
+        return False
+    return True
+
+
+@njit(cache=True)
+def _far(s, elapsed):
+    """The heading disagrees with an undisturbed field: count the time; at its start,
+    keep the bias estimate (what follows may be learned from a wrong heading)."""
+    if s[S.far_time] == 0.0:
+        s[S.bias_good:S.bias_good + 3] = s[S.bias:S.bias + 3]
+    s[S.far_time] += elapsed
+
+
+@njit(cache=True)
 def _mag_update(s, P, p, t, mag, w, f):
-    mw = qm.rotate(s[S_Q:S_Q + 4], mag)
+    mw = qm.rotate(s[S.q:S.q + 4], mag)
     n = qm.norm3(mw)
     dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
-    dt = t - s[S_MAG_T] if np.isfinite(s[S_MAG_T]) else 0.0
-    s[S_MAG_T] = t
-    if s[S_REF_OK] == 0.0:
-        s[S_REF_N] = n
-        s[S_REF_D] = dip
-        s[S_CAND_N] = n
-        s[S_CAND_D] = dip
-        s[S_REF_OK] = 1.0
-    # candidate for a new homogeneous field: stable strength and dip while turning
-    kc = _lp_coef(dt, 2.0) if dt > 0 else 0.0
-    cn_dev = abs(n - s[S_CAND_N]) / max(s[S_CAND_N], 1e-6)
-    cd_dev = abs(dip - s[S_CAND_D])
-    if cn_dev <= max(p[P_MAG_NORM], 0.05) and cd_dev <= max(p[P_MAG_DIP], 0.05):
-        rate = 0.0 if np.isnan(w[0]) else qm.norm3(w)
-        if rate >= p[P_MAG_NEW_RATE]:
-            s[S_CAND_T] += dt
-        s[S_CAND_N] += kc * (n - s[S_CAND_N])
-        s[S_CAND_D] += kc * (dip - s[S_CAND_D])
-    else:
-        s[S_CAND_N] = n
-        s[S_CAND_D] = dip
-        s[S_CAND_T] = 0.0
-    n_dev = abs(n - s[S_REF_N]) / s[S_REF_N]
-    d_dev = abs(dip - s[S_REF_D])
-    reason = R_USED
-    if p[P_MAG_NORM] > 0.0 and n_dev > p[P_MAG_NORM]:
-        reason = R_NORM
-        f[F_MAG_VAL] = n
-    elif p[P_MAG_DIP] > 0.0 and d_dev > p[P_MAG_DIP]:
-        reason = R_DIP
-        f[F_MAG_VAL] = d_dev
-    if reason != R_USED:
-        s[S_REJ_T] += dt
-        relearn = p[P_MAG_MAX_REJ] > 0.0 and s[S_REJ_T] >= p[P_MAG_MAX_REJ]
-        new_field = s[S_CAND_T] >= p[P_MAG_NEW_T]
-        if relearn or new_field:
-            s[S_REF_N] = s[S_CAND_N]
-            s[S_REF_D] = s[S_CAND_D]
-            s[S_REJ_T] = 0.0
-            s[S_CAND_T] = 0.0
-            # the heading may have drifted meanwhile: let the next updates pull harder
-            P[2, 2] += (10.0 * np.pi / 180.0) ** 2
-        f[F_MAG] = reason
-        return
-    s[S_REJ_T] = 0.0
-    kr = _lp_coef(dt, p[P_MAG_REF_TAU]) if dt > 0 else 0.0
-    s[S_REF_N] += kr * (n - s[S_REF_N])
-    s[S_REF_D] += kr * (dip - s[S_REF_D])
+    dt = t - s[S.mag_t] if np.isfinite(s[S.mag_t]) else 0.0
+    dt = min(max(dt, 0.0), DT_MAX)
+    s[S.mag_t] = t
     f[F_MAG_VAL] = n
     f[F_MAG] = R_USED
-    # accepted samples are averaged in the world frame; the heading correction with
+    rate = 0.0 if np.isnan(w[0]) else qm.norm3(w)
+    ok = _field_check(s, p, n, dip, dt, rate, f)
+    scale = 1.0
+    if ok:
+        s[S.reject_time] = max(s[S.reject_time] - p[PRM.mag_reject_factor] * dt, 0.0)
+    elif p[PRM.mag_max_reject] > 0.0 and s[S.reject_time] > p[PRM.mag_max_reject]:
+        # refused for long: a field that stays is the field; resume, slower (still flagged)
+        scale = p[PRM.mag_reject_factor]
+    else:
+        s[S.reject_time] += dt
+        return
+    # the samples used are averaged in the world frame; the heading correction with
     # their mean runs at most at update_rate_hz
     for i in range(3):
-        s[S_MAG_SUM + i] += mw[i]
-    s[S_MAG_CNT] += 1.0
-    due, elapsed = _due(s, S_MAG_UPD_T, dt, p)
+        s[S.mag_sum + i] += mw[i]
+    s[S.mag_count] += 1.0
+    due, elapsed = _due(s, S.mag_upd_time, dt, p)
     if not due:
         return
-    mx = s[S_MAG_SUM] / s[S_MAG_CNT]
-    my = s[S_MAG_SUM + 1] / s[S_MAG_CNT]
-    mz = s[S_MAG_SUM + 2] / s[S_MAG_CNT]
-    s[S_MAG_SUM:S_MAG_SUM + 3] = 0.0
-    s[S_MAG_CNT] = 0.0
+    mx = s[S.mag_sum] / s[S.mag_count]
+    my = s[S.mag_sum + 1] / s[S.mag_count]
+    mz = s[S.mag_sum + 2] / s[S.mag_count]
+    s[S.mag_sum:S.mag_sum + 3] = 0.0
+    s[S.mag_count] = 0.0
     hn = np.sqrt(mx * mx + my * my)
     if hn < 1e-3 * n:
         return  # field (almost) vertical: no heading information
@@ -495,28 +685,51 @@ def _mag_update(s, P, p, t, mag, w, f):
     m_mean[0], m_mean[1], m_mean[2] = mx, my, mz
     innov = heading_innovation(m_mean)
     Rm = np.empty((1, 1))
-    Rm[0, 0] = p[P_HEAD_NOISE] ** 2 / elapsed
-    gate = p[P_MAG_NIS]
-    if s[S_NIS_REJ_T] > 10.0:
-        gate = 0.0  # rejected for long with a plausible field: the estimate is what is wrong
-    ok, nis, dx = correct(P, heading_jacobian(m_mean), Rm, innov, gate, _MASK_HEADING)
+    Rm[0, 0] = (scale * p[PRM.heading_noise]) ** 2 / elapsed
+    if s[S.ref_ok] != 0.0 and p[PRM.mag_dev_weight] > 0.0:
+        # a field off its reference by Δ (strength change, or |m|·Δdip) can turn the
+        # horizontal field by up to Δ/|m_h|: that much heading noise, within the gates too
+        nh = s[S.ref_norm] * np.cos(s[S.ref_dip])
+        dn = s[S.mag_nd] - s[S.ref_norm]
+        dd = s[S.mag_nd] * (s[S.mag_nd + 1] - s[S.ref_dip])
+        Rm[0, 0] += p[PRM.mag_dev_weight] ** 2 * (dn * dn + dd * dd) / max(nh * nh, 1e-6)
+    H = heading_jacobian(m_mean)
+    gate = p[PRM.mag_nis_gate]
+    lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]
+    if lost:
+        # an undisturbed field has disagreed with the estimate for long: the estimate is
+        # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
+        # the bias learned meanwhile (from a heading that was wrong) is dropped.
+        P[2, 2] += innov[0] ** 2
+        gate = 0.0
+        s[S.bias:S.bias + 3] = s[S.bias_good:S.bias_good + 3]
+    ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING)
     f[F_MAG_NIS] = nis
-    if ok:
+    if ok2:
         _inject(s, P, dx)
-        s[S_NIS_REJ_T] = 0.0
+        if lost:
+            f[F_MAG] = R_RECOVER
+            f[F_MAG_VAL] = innov[0]
+            s[S.far_time] = 0.0
+        elif ok and p[PRM.mag_lost_angle] > 0.0 and abs(innov[0]) > p[PRM.mag_lost_angle]:
+            _far(s, elapsed)  # accepted, but still far: the slow correction may not do
+        else:
+            s[S.far_time] = 0.0
     else:
-        f[F_MAG] = R_NIS
-        f[F_MAG_VAL] = nis
-        s[S_NIS_REJ_T] += elapsed
+        if f[F_MAG] == R_USED:
+            f[F_MAG] = R_NIS
+            f[F_MAG_VAL] = nis
+        if ok:
+            _far(s, elapsed)
 
 
 @njit(cache=True)
 def robust_step(s, P, p, t, gyr, acc, mag, f):
     """Process one row: time update, rest detection, tilt update, heading update."""
-    dt, issue, seen, gs, as_, ms = row_prologue(s[S_T], t, p[P_MAX_GAP], int(s[S_SEEN]), gyr, acc,
-                                                mag, p[P_USE_GYR] > 0.5, p[P_USE_ACC] > 0.5,
-                                                p[P_USE_MAG] > 0.5)
-    s[S_SEEN] = seen
+    dt, issue, seen, gs, as_, ms = row_prologue(s[S.t], t, p[PRM.max_gap], int(s[S.seen]), gyr, acc,
+                                                mag, p[PRM.use_gyr] > 0.5, p[PRM.use_acc] > 0.5,
+                                                p[PRM.use_mag] > 0.5)
+    s[S.seen] = seen
     f[F_TIME] = issue
     if issue == T_BACKWARD:
         f[F_GYR] = R_LATE if gs == R_USED else gs
@@ -526,22 +739,22 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
     f[F_GYR] = gs
     f[F_ACC] = as_
     f[F_MAG] = ms
-    s[S_T] = t
-    w = s[S_WCUR:S_WCUR + 3]  # the rate integrated over this row (a slot of the state)
+    s[S.t] = t
+    w = s[S.w_cur:S.w_cur + 3]  # the rate integrated over this row (a slot of the state)
     w[:] = np.nan
-    if p[P_USE_GYR] > 0.5:
+    if p[PRM.use_gyr] > 0.5:
         if gs == R_USED:
             w[:] = gyr
-            s[S_W:S_W + 3] = gyr
-            s[S_W_T] = t
-        elif np.isfinite(s[S_W_T]) and t - s[S_W_T] <= p[P_GYR_HOLD]:
-            w[:] = s[S_W:S_W + 3]
+            s[S.gyr_held:S.gyr_held + 3] = gyr
+            s[S.gyr_held_t] = t
+        elif np.isfinite(s[S.gyr_held_t]) and t - s[S.gyr_held_t] <= p[PRM.gyr_hold]:
+            w[:] = s[S.gyr_held:S.gyr_held + 3]
     if issue == T_GAP:
         if gs == R_USED:
             f[F_GYR] = R_GAP
         w[:] = np.nan
 
-    if s[S_INIT] == 0.0:
+    if s[S.aligned] == 0.0:
         _try_align(s, P, p, t, acc, mag, gs, as_, ms, f)
         return
     if dt > 0.0:
@@ -550,8 +763,19 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
     if as_ == R_USED:
         _acc_update(s, P, p, t, acc, f)
     if ms == R_USED:
-        wb = w - s[S_B:S_B + 3]
+        wb = w - s[S.bias:S.bias + 3]
         _mag_update(s, P, p, t, mag, wb, f)
+    if p[PRM.bias_max] > 0.0:
+        bn = qm.norm3(s[S.bias:S.bias + 3])
+        if bn > p[PRM.bias_max]:
+            # no phone's gyroscope is that far off: the estimate is lost, not the sensor
+            for i in range(3):
+                s[S.bias + i] = p[PRM.gyr_bias + i]
+                for j in range(6):
+                    P[3 + i, j] = 0.0
+                    P[j, 3 + i] = 0.0
+                P[3 + i, 3 + i] = max(p[PRM.bias_init], 1e-6) ** 2
+            f[F_GYR] = R_BIAS_RESET
 
 
 @njit(cache=True)
@@ -560,27 +784,28 @@ def _try_align(s, P, p, t, acc, mag, gs, as_, ms, f):
         f[F_GYR] = R_WAIT
     if as_ == R_USED:
         f[F_ACC] = R_WAIT
-        if p[P_USE_MAG] < 0.5:
+        if p[PRM.use_mag] < 0.5:
             _align(s, P, p, t, acc, mag, False)
             f[F_ACC] = R_INIT
             return
-        s[S_WAIT_T] = t
-        s[S_WAIT:S_WAIT + 3] = acc
+        if not np.isfinite(s[S.wait_t]):  # the wait runs from the first sample on
+            s[S.wait_t] = t
+        s[S.wait_acc:S.wait_acc + 3] = acc
     if ms == R_USED:
         f[F_MAG] = R_WAIT
-        if np.isfinite(s[S_WAIT_T]):
-            _align(s, P, p, t, s[S_WAIT:S_WAIT + 3].copy(), mag, True)
+        if np.isfinite(s[S.wait_t]):
+            _align(s, P, p, t, s[S.wait_acc:S.wait_acc + 3].copy(), mag, True)
             f[F_MAG] = R_INIT
             return
-    if np.isfinite(s[S_WAIT_T]) and t - s[S_WAIT_T] > ALIGN_WAIT_S:
-        _align(s, P, p, t, s[S_WAIT:S_WAIT + 3].copy(), mag, False)
+    if np.isfinite(s[S.wait_t]) and t - s[S.wait_t] > ALIGN_WAIT_S:
+        _align(s, P, p, t, s[S.wait_acc:S.wait_acc + 3].copy(), mag, False)
         f[F_ACC] = R_INIT
         return
-    if p[P_USE_ACC] < 0.5 and (ms == R_USED or gs == R_USED):
+    if p[PRM.use_acc] < 0.5 and (ms == R_USED or gs == R_USED):
         # no accelerometer: start level, heading from the field if there is one
         up = np.array([0.0, 0.0, GRAVITY])
         _align(s, P, p, t, up, mag, ms == R_USED)
-        P[0, 0] = (30.0 * np.pi / 180.0) ** 2
+        P[0, 0] = p[PRM.noacc_tilt_std] ** 2
         P[1, 1] = P[0, 0]
         f[F_MAG if ms == R_USED else F_GYR] = R_INIT
 
@@ -591,21 +816,42 @@ def robust_run(s, P, p, T, G, A, M, Qout, Fout):
     for k in range(T.shape[0]):
         f = Fout[k]
         f[:] = np.nan
-        f[F_GYR] = 1.0
-        f[F_ACC] = 1.0
-        f[F_MAG] = 1.0
+        f[F_GYR] = R_ABSENT
+        f[F_ACC] = R_ABSENT
+        f[F_MAG] = R_ABSENT
         f[F_REST] = 0.0
-        f[F_TIME] = 0.0
+        f[F_TIME] = T_OK
         robust_step(s, P, p, T[k], G[k], A[k], M[k], f)
-        Qout[k, :] = s[S_Q:S_Q + 4]
+        Qout[k, :] = s[S.q:S.q + 4]
 
 
 def new_state() -> np.ndarray:
     s = np.zeros(NSTATE)
-    s[S_Q] = 1.0
-    for i in (S_T, S_W_T, S_WAIT_T, S_T0, S_MAG_T, S_ACC_T, S_GLP_T, S_AL2_T):
-        s[i] = np.nan
+    s[S.q] = 1.0
+    for name in _STATE_NAN:
+        s[getattr(S, name)] = np.nan
     return s
+
+
+def derived(p: RobustParams) -> dict[str, float]:
+    """The coefficients derived from the parameters (see ``DERIVED``)."""
+    return {"upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0}
+
+
+def param_vector(p: RobustParams) -> np.ndarray:
+    """The compiled kernels' parameter vector: every field of ``p`` at its ``PRM`` offset
+    (booleans as 0/1, vectors over consecutive slots), then the derived coefficients."""
+    v = np.zeros(NPARAM)
+    for f in dataclass_fields(RobustParams):
+        val = getattr(p, f.name)
+        off = getattr(PRM, f.name)
+        if isinstance(val, tuple):
+            v[off:off + len(val)] = val
+        else:
+            v[off] = float(val)
+    for name, val in derived(p).items():
+        v[getattr(PRM, name)] = val
+    return v
 
 
 class RobustEKF(Estimator):
@@ -614,23 +860,7 @@ class RobustEKF(Estimator):
     Params = RobustParams
 
     def _on_params(self) -> None:
-        p = self._params
-        v = np.zeros(NPARAM)
-        v[P_USE_GYR], v[P_USE_ACC], v[P_USE_MAG] = float(p.use_gyr), float(p.use_acc), float(p.use_mag)
-        v[P_MAX_GAP], v[P_GYR_HOLD] = p.max_gap, p.gyr_hold
-        v[P_GYR_NOISE], v[P_BIAS_NOISE], v[P_BIAS_INIT] = p.gyr_noise, p.bias_noise, p.bias_init
-        v[P_TILT_NOISE], v[P_ACC_TAU], v[P_ACC_BAND], v[P_ACC_NIS] = (p.tilt_noise, p.acc_tau,
-                                                                       p.acc_band_rel, p.acc_nis_gate)
-        v[P_HEAD_NOISE], v[P_MAG_NIS] = p.heading_noise, p.mag_nis_gate
-        v[P_MAG_NORM], v[P_MAG_DIP], v[P_MAG_REF_TAU] = p.mag_norm_gate_rel, p.mag_dip_gate, p.mag_ref_tau
-        v[P_MAG_NEW_T], v[P_MAG_NEW_RATE], v[P_MAG_MAX_REJ] = (p.mag_new_field_time, p.mag_new_min_rate,
-                                                               p.mag_max_reject)
-        v[P_REST_GYR], v[P_REST_ACC], v[P_REST_T], v[P_REST_NOISE] = (p.rest_gyr_th, p.rest_acc_th,
-                                                                     p.rest_time, p.rest_noise)
-        v[P_RW_NOISE] = p.rw_noise
-        v[P_B0X:P_B0X + 3] = p.gyr_bias
-        v[P_UPD_DT] = 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0
-        self._p = v
+        self._p = param_vector(self._params)
 
     def _reset_state(self) -> None:
         self._s = new_state()
@@ -638,7 +868,7 @@ class RobustEKF(Estimator):
 
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         robust_step(self._s, self._P, self._p, t, gyr, acc, mag, flags)
-        self.t = self._s[S_T]
+        self.t = self._s[S.t]
 
     def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
         t = np.ascontiguousarray(t, dtype=float)
@@ -651,45 +881,46 @@ class RobustEKF(Estimator):
         qs = np.empty((n, 4))
         flags = np.empty((n, NFLAGS))
         robust_run(self._s, self._P, self._p, t, arrs[0], arrs[1], arrs[2], qs, flags)
-        self.t = self._s[S_T]
+        self.t = self._s[S.t]
         return BatchResult(t=t, q=qs, flags=flags)
 
     @property
     def initialized(self) -> bool:
-        return bool(self._s[S_INIT])
+        return bool(self._s[S.aligned])
 
     @property
     def q(self) -> np.ndarray:
-        return self._s[S_Q:S_Q + 4].copy()
+        return self._s[S.q:S.q + 4].copy()
 
     def attitude_cov(self) -> np.ndarray:
         return self._P[0:3, 0:3].copy()
 
     @property
     def gyr_bias(self) -> np.ndarray:
-        return self._s[S_B:S_B + 3].copy()
+        return self._s[S.bias:S.bias + 3].copy()
 
     @property
     def covariance(self) -> np.ndarray:
         return self._P.copy()
 
-    def diagnostics(self) -> dict:
+    def diagnostics(self):
+        """Diagnostics: gravity as the reference, the learned field (None until learned)."""
+        from .base import Diagnostics, vec3    # here: this method is the whole of the change
         p, s = self._params, self._s
-        ref_n = s[S_REF_N] if s[S_REF_OK] else float("nan")
-        return {
-            "acc_band": (GRAVITY * (1 - p.acc_band_rel), GRAVITY * (1 + p.acc_band_rel))
-            if p.acc_band_rel > 0 else None,
-            "mag_band": (ref_n * (1 - p.mag_norm_gate_rel), ref_n * (1 + p.mag_norm_gate_rel))
-            if p.mag_norm_gate_rel > 0 and s[S_REF_OK] else None,
-            "mag_ref_norm": ref_n,
-            # elevation of the field (rad): negative where it points down (north)
-            "mag_ref_dip": s[S_REF_D] if s[S_REF_OK] else float("nan"),
+        ok = bool(s[S.ref_ok])
+        ref_n, dip = float(s[S.ref_norm]), float(s[S.ref_dip])
+        return Diagnostics(
+            g0=(0.0, 0.0, GRAVITY),
             # the expected field in world coordinates (µT): north and the learned dip
-            "m0": [0.0, ref_n * np.cos(s[S_REF_D]), ref_n * np.sin(s[S_REF_D])]
-            if s[S_REF_OK] else None,
-            "acc_lp_world": s[S_ALP:S_ALP + 3].tolist(),
-            "gyr_bias": s[S_B:S_B + 3].tolist(),
-            "rest": bool(s[S_REST]),
-            "acc_nis_gate": p.acc_nis_gate,
-            "mag_nis_gate": p.mag_nis_gate,
-        }
+            m0=vec3((0.0, ref_n * np.cos(dip), ref_n * np.sin(dip))) if ok else None,
+            acc_band=(GRAVITY * (1 - p.acc_band_rel), GRAVITY * (1 + p.acc_band_rel))
+            if p.acc_band_rel > 0 else None,
+            mag_band=(ref_n * (1 - p.mag_norm_gate_rel), ref_n * (1 + p.mag_norm_gate_rel))
+            if p.mag_norm_gate_rel > 0 and ok else None,
+            acc_nis_gate=float(p.acc_nis_gate), mag_nis_gate=float(p.mag_nis_gate),
+            mag_ref_norm=ref_n if ok else None,
+            mag_ref_dip=dip if ok else None,
+            acc_lp_world=vec3(s[S.acc_lp:S.acc_lp + 3]),
+            gyr_bias=vec3(s[S.bias:S.bias + 3]),
+            rest=bool(s[S.rest]),
+        )
