@@ -22,6 +22,45 @@ TAG_ARITY: dict[str, tuple[int, ...] | None] = {
 # tags whose values are vectors the estimators use
 MOTION_TAGS = ("ACC", "GYR", "MAG", "ORI")
 
+G0 = 9.81
+# Physically impossible readings, one definition for the live stream and every file
+# reader (app.readers): a vector whose norm is above its limit is no reading of a phone
+# (a phone gyro saturates near 35 rad/s, an accelerometer near 16 g, a magnetometer near
+# 5 mT only next to a magnet touching it; the Earth's field is 25-65 µT). Such a line is
+# refused and counted (reason "impossible"), like a line that does not parse.
+VALUE_LIMITS: dict[str, float] = {
+    "GYR": 100.0,          # rad/s
+    "ACC": 20.0 * G0,      # m/s² (20 g)
+    "MAG": 2000.0,         # µT (2 mT)
+}
+VALUE_LIMITS["RAWGYR"] = VALUE_LIMITS["GYR"]
+VALUE_LIMITS["RAWMAG"] = VALUE_LIMITS["MAG"]
+# A time stamp beyond this many ms (about 3,000 years) is no clock reading.
+MAX_TIME_MS = 1e14
+
+
+def impossible(tag: str, values) -> bool:
+    """True if the first three values of ``tag`` (a 3-vector sensor) have a norm above
+    :data:`VALUE_LIMITS` (NaN is *not* impossible: it is a missing value)."""
+    lim = VALUE_LIMITS.get(tag)
+    if lim is None:
+        return False
+    x, y, z = values[0], values[1], values[2]
+    if abs(x) > lim or abs(y) > lim or abs(z) > lim:   # also +-inf; no overflow below
+        return True
+    return x * x + y * y + z * z > lim * lim
+
+
+def impossible_rows(tag: str, v):
+    """Vectorised :func:`impossible` for an (N, 3) array (bool (N,)); NaN rows False."""
+    import numpy as np
+    lim = VALUE_LIMITS[tag]
+    v = np.asarray(v, dtype=float)
+    with np.errstate(invalid="ignore", over="ignore"):
+        big = (np.abs(v) > lim).any(axis=1)
+        return big | (np.einsum("ij,ij->i", np.where(big[:, None], 0.0, v),
+                                np.where(big[:, None], 0.0, v)) > lim * lim)
+
 
 class LineSplitter:
     """Cut a byte stream into the format's lines (``\\n``, ``\\r\\n`` or ``\\r``), holding
@@ -125,7 +164,7 @@ def parse_line(line: str | bytes) -> Sample:
         t_f = float(ts)
     except ValueError:
         raise MalformedLine("bad_time", ts[:40]) from None
-    if not math.isfinite(t_f):
+    if not math.isfinite(t_f) or abs(t_f) > MAX_TIME_MS:
         raise MalformedLine("bad_time", ts[:40])
     time_ms = int(t_f)
     if tag not in TAG_ARITY:
@@ -143,6 +182,8 @@ def parse_line(line: str | bytes) -> Sample:
         vals = tuple(_float(v) for v in raw)
     except ValueError:
         raise MalformedLine("not_numeric", f"{tag}: {' '.join(raw)[:60]}") from None
+    if tag in VALUE_LIMITS and impossible(tag, vals):
+        raise MalformedLine("impossible", f"{tag}: beyond {VALUE_LIMITS[tag]:g} (not a phone's reading)")
     if tag == "ORI" and len(vals) == 3:
         x, y, z = vals
         w2 = 1.0 - x * x - y * y - z * z

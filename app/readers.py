@@ -14,8 +14,10 @@ The format is told from the content, not the extension:
 ``csv``
     A header naming ``t`` (s) and any of ``acc_x..acc_z`` (m/s²), ``gyr_x..gyr_z``
     (rad/s), ``mag_x..mag_z`` (µT), optionally ``ori_w..ori_z``; other columns are
-    ignored. An empty cell is missing (NaN); ``nan``/``inf`` pass through (the estimator
-    flags them). A row with the wrong number of cells or text in a number cell is
+    ignored. An empty cell is missing (NaN); ``nan`` passes through (the estimator
+    flags it); a physically impossible reading (``inf``, a gyro beyond 100 rad/s: the
+    limits of :data:`app.protocol.VALUE_LIMITS`, as for app logs and the live stream)
+    becomes NaN, counted as ``impossible``. A row with the wrong number of cells or text in a number cell is
     counted (``counts["malformed"]``) and skipped. One row per (good) line, in order.
 ``npz``
     ``numpy.savez`` archive with ``acc``, ``gyr`` and optionally ``mag`` (N, 3) and
@@ -38,7 +40,7 @@ from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
-from .protocol import MOTION_TAGS, LineSplitter, MalformedLine, parse_line
+from .protocol import MOTION_TAGS, LineSplitter, MalformedLine, impossible_rows, parse_line
 from .stream import SampleOrderer, samples_to_rows
 
 # Reorder window for logs (s). Files are read at leisure, so the window can be far wider
@@ -258,6 +260,7 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
                     col += width
                 else:
                     out[key] = None if key == "ori" else np.full((len(a), 3), np.nan)
+            _refuse_impossible(out, malformed)
             counts["rows"] = n_rows
             if splitter.overflows:
                 malformed["too_long"] = splitter.overflows
@@ -286,6 +289,19 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
                 emitted = True
         if block or not emitted:
             yield chunk(1.0)
+
+
+def _refuse_impossible(arrays: dict, malformed: dict) -> None:
+    """Physically impossible readings (:data:`app.protocol.VALUE_LIMITS`, the same limits
+    as the app-log parser's) become missing (NaN), counted as ``impossible``."""
+    for key, tag in (("gyr", "GYR"), ("acc", "ACC"), ("mag", "MAG")):
+        a = arrays.get(key)
+        if a is None or not len(a):
+            continue
+        bad = impossible_rows(tag, a)
+        if bad.any():
+            a[bad] = np.nan
+            malformed["impossible"] = malformed.get("impossible", 0) + int(bad.sum())
 
 
 # ---------------------------------------------------------------- npz
@@ -326,6 +342,7 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[Recording]:
         else:
             raise ReaderError(f"{path}: npz has neither 't' (s) nor 'fs' (Hz)")
     counts = {"malformed": {}, "rows": 0, "columns": sorted(k for k in arrays if arrays[k] is not None)}
+    _refuse_impossible(arrays, counts["malformed"])
     start = 0
     while True:
         stop = min(n, start + rows)

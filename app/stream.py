@@ -50,6 +50,16 @@ any more. It is never dropped silently:
 - later than that: **dropped** and counted in ``counters.late`` (placing it seconds
   away from its true time would corrupt the integration more than losing it).
 
+*Clock jumps.* A sample more than ``jump_s`` (2 s) away from the newest time seen
+(forward or back; after clock mapping) is not let into the buffer at once: it waits
+aside. A single wrong time stamp (a digit flip, +10 s) is followed by samples of its tag
+back on the old clock: it is then dropped and counted (``malformed["time_jump"]``), and
+nothing else is touched. If ``jump_confirm`` (3) samples of a motion tag in a row agree
+on the new time, the clock really jumped: the buffer is released in order, the clock is
+**re-anchored** on the new time (nothing later counts as late) and ``counters.jumps``
+goes up; a non-motion tag that moves for good gets a new offset instead. Before, one
+sample 10 s ahead made the buffer drop seconds of good samples as late.
+
 Released samples are new :class:`~app.protocol.Sample` objects whose ``time_ms`` is on
 the reference clock (offset removed, possibly clamped).
 """
@@ -79,10 +89,11 @@ class StreamCounters:
     tags: Counter = field(default_factory=Counter)
     late: int = 0          # dropped: too late to be put in order
     clamped: int = 0       # released with their time clamped (slightly late)
+    jumps: int = 0         # clock jumps confirmed (re-anchored)
 
     def as_dict(self) -> dict:
         return {"malformed": dict(self.malformed), "tags": dict(self.tags),
-                "late": self.late, "clamped": self.clamped}
+                "late": self.late, "clamped": self.clamped, "jumps": self.jumps}
 
 
 class SampleOrderer:
@@ -93,12 +104,14 @@ class SampleOrderer:
     for;
     ``late_tolerance`` up to how late a sample is clamped rather than dropped;
     ``offset_threshold`` the clock difference above which a tag gets an offset;
-    ``max_pending`` how many samples may wait for the reference clock.
+    ``max_pending`` how many samples may wait for the reference clock;
+    ``jump_s`` the distance from the newest time beyond which a time stamp is a jump,
+    ``jump_confirm`` how many samples of a tag in a row confirm it.
     """
 
     def __init__(self, window: float = 0.05, *, max_delay: float = 0.5,
                  late_tolerance: float = 0.1, offset_threshold: float = 2.0,
-                 max_pending: int = 256):
+                 max_pending: int = 256, jump_s: float = 2.0, jump_confirm: int = 3):
         if not (window >= 0.0 and max_delay >= 0.0 and late_tolerance >= 0.0
                 and offset_threshold > 0.0):
             raise ValueError("window, max_delay and late_tolerance must be >= 0, "
@@ -108,6 +121,8 @@ class SampleOrderer:
         self.late_tolerance = float(late_tolerance)
         self.offset_threshold = float(offset_threshold)
         self.max_pending = int(max_pending)
+        self.jump_ms = float(jump_s) * 1000.0
+        self.jump_confirm = max(1, int(jump_confirm))
         self.counters = StreamCounters()
         self.reset()
 
@@ -124,6 +139,8 @@ class SampleOrderer:
         self._released: int | None = None       # last released time (ms)
         self._latest: dict[str, int] = {}       # motion tag -> its newest mapped time
         self._recent: dict[str, deque] = {}
+        # tag -> samples waiting aside after a time jump: [(arrival seq, mapped t, sample)]
+        self._aside: dict[str, list[tuple[int, int, Sample]]] = {}
 
     @property
     def reference_tag(self) -> str | None:
@@ -139,7 +156,7 @@ class SampleOrderer:
     @property
     def buffered(self) -> int:
         """Samples waiting in the buffer (and for the reference clock)."""
-        return len(self._heap) + len(self._pending)
+        return len(self._heap) + len(self._pending) + sum(map(len, self._aside.values()))
 
     @property
     def last_released(self) -> float | None:
@@ -199,6 +216,9 @@ class SampleOrderer:
             out.extend(self._set_reference(first.tag, first.time_ms, []))
         while self._heap:
             out.append(self._pop())
+        for aside in self._aside.values():   # jumps never confirmed
+            self.counters.malformed["time_jump"] += len(aside)
+        self._aside = {}
         return out
 
     # ------------------------------------------------------------ internals
@@ -222,6 +242,51 @@ class SampleOrderer:
 
     def _insert(self, sample: Sample) -> list[Sample]:
         t = sample.time_ms - self._offset_of(sample)
+        if abs(t - self._newest) > self.jump_ms:
+            return self._set_aside(sample, t)
+        aside = self._aside.pop(sample.tag, None)
+        if aside:  # the tag is back on its clock: what was set aside was a glitch
+            self.counters.malformed["time_jump"] += len(aside)
+        return self._place(sample, t)
+
+    def _set_aside(self, sample: Sample, t: int) -> list[Sample]:
+        """A time jump: hold the sample until its tag confirms the new clock (then
+        re-anchor) or goes back to the old one (then it was a glitch: dropped)."""
+        aside = self._aside.setdefault(sample.tag, [])
+        if aside and abs(t - aside[-1][1]) > self.jump_ms:  # not even the same new clock
+            self.counters.malformed["time_jump"] += len(aside)
+            aside.clear()
+        aside.append((self._seq, t, sample))
+        self._seq += 1
+        if len(aside) < self.jump_confirm:
+            return []
+        if sample.tag not in MOTION_TAGS:   # this tag's clock moved: a new offset
+            del self._aside[sample.tag]
+            self._offsets_ms[sample.tag] += aside[0][1] - self._newest
+            out: list[Sample] = []
+            for _, _, s in aside:
+                out.extend(self._insert(s))
+            return out
+        return self._reanchor(aside[0][1])
+
+    def _reanchor(self, t_new: int) -> list[Sample]:
+        """The stream's clock jumped to ``t_new``: release the buffer in order, start
+        the new clock, then place what was waiting aside (in arrival order)."""
+        self.counters.jumps += 1
+        out: list[Sample] = []
+        while self._heap:
+            out.append(self._pop())
+        held = sorted((x for aside in self._aside.values() for x in aside), key=lambda x: x[0])
+        self._aside = {}
+        self._newest = t_new
+        self._released = None
+        self._latest = {}
+        self._recent = {}
+        for _, _, s in held:
+            out.extend(self._insert(s))
+        return out
+
+    def _place(self, sample: Sample, t: int) -> list[Sample]:
         times = self._recent.get(sample.tag)
         if times is None:
             times = self._recent[sample.tag] = deque(maxlen=RATE_HISTORY)

@@ -223,3 +223,46 @@ def test_property_bounded_jitter_is_always_sorted_without_loss(jitters, seed):
     assert o.counters.late == o.counters.clamped == 0
     assert times(out) == sorted(times(src))
     assert sorted(s.values[0] for s in out) == [float(k) for k in range(len(src))]
+
+
+# ---------------------------------------------------------------- clock jumps (issue 10)
+
+def test_one_time_stamp_ten_seconds_ahead_costs_only_that_sample():
+    """A digit flip (+10 s on one line) used to make the buffer drop the following
+    samples as late; now only the wrong one is dropped, counted as time_jump."""
+    stream = imu_stream(1000)
+    k = 400
+    bad = stream[k]
+    stream[k] = Sample(bad.time_ms + 10_000, bad.tag, bad.values)
+    o = SampleOrderer(window=0.05)
+    out = run_all(o, stream)
+    assert len(out) == len(stream) - 1
+    assert times(out) == sorted(times(out))
+    assert o.counters.late == 0 and o.counters.malformed["time_jump"] == 1
+    assert o.counters.jumps == 0
+
+
+def test_time_stamp_far_in_the_future_or_past_is_a_glitch():
+    stream = imu_stream(600)
+    stream[100] = Sample(10 ** 13, "GYR", (0.0, 0.0, 0.0))       # absurd, but finite
+    stream[300] = Sample(5, "ACC", (0.0, 0.0, 9.81))             # far back
+    o = SampleOrderer(window=0.05)
+    out = run_all(o, stream)
+    assert len(out) == len(stream) - 2
+    assert o.counters.late == 0 and o.counters.malformed["time_jump"] == 2
+
+
+def test_a_real_clock_jump_is_reanchored_without_loss():
+    """The whole stream moves by +60 s (or back by 30 s): nothing is dropped, times
+    stay in order on each side of the jump, the jump is counted."""
+    for shift in (60_000, -30_000):
+        before = imu_stream(300)
+        after = [Sample(s.time_ms + 3000 + shift, s.tag, s.values) for s in imu_stream(300)]
+        o = SampleOrderer(window=0.05)
+        out = run_all(o, before + after)
+        assert len(out) == len(before) + len(after)
+        assert o.counters.late == 0 and o.counters.jumps == 1
+        assert sum(o.counters.malformed.values()) == 0
+        n = len(before)
+        assert times(out[:n]) == sorted(times(before))
+        assert times(out[n:]) == sorted(times(after))
