@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .run import make_server
-from .settings import Settings
+from app.server.run import make_server
+from app.server.settings import Settings
 
 START_TIMEOUT_S = 300.0   # the first start may compile the estimators (numba)
 
@@ -75,10 +75,13 @@ class RunningServer:
 
 @contextlib.contextmanager
 def running_server(**overrides) -> Iterator[RunningServer]:
-    """The dashboard on free loopback ports (``source="none"`` unless told)."""
+    """The dashboard on free loopback ports (``source="none"`` unless told).
+
+    ``open_access=True`` unless told (tests of other concerns need no token); tests of
+    the access rules pass ``open_access=False`` (and ``token=...``)."""
     kw = dict(host="127.0.0.1", port=free_port(), viewer_host="127.0.0.1",
               viewer_port=free_port(), phone_host="127.0.0.1", phone_port=free_port(),
-              source="none", verbose=False)
+              source="none", verbose=False, open_access=True)
     kw.update(overrides)
     settings = Settings(**kw)
     server = make_server(settings)

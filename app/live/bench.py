@@ -1,0 +1,373 @@
+"""The bench: every estimator instance, stepped together on the stream's samples.
+
+An **instance** is a named estimator of a base kind (``robust``, ``lab``,
+``complementary``, ``phone``): the four builtins carry their kind's name; variants
+(``lab-approx``, ``robust-no-rejection``, ...) are added with :meth:`Bench.add` and run
+beside them. :meth:`Bench.step` takes the samples released by a stream, in time order,
+and runs them through **each instance's batch run** (``Estimator.run``: the compiled
+``robust_run`` for ``robust``, the same code the CLI uses), one call per chunk, so the
+live path costs what the batch path costs. It returns :class:`Records`: per instance the
+estimate and the flag record after every row.
+
+Per row and instance the bench keeps, vectorised over the chunk: how many samples of
+each sensor ended with each :class:`~app.estimators.Reason`, and the flag record of the
+last row of each sensor (``decision``). It also guards the estimators:
+
+- **a step that raises** is caught: the chunk is stepped again row by row from the last
+  good state, the sample that raises is skipped (logged with the sample, counted in
+  ``step_errors``) and every other sample is used;
+- **a non-finite estimate** after a chunk restores the instance's last good state (kept
+  every :data:`GOOD_EVERY_S` seconds) and counts it in ``restored``; the rows from the
+  first non-finite one on report the restored estimate.
+
+Pure and synchronous: no asyncio, no I/O; unit-tested without a server.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any, Iterable
+
+import numpy as np
+
+from ..estimators import NAMES, REJECTIONS, Estimator, Reason, StepFlags, estimator_class
+from ..estimators.base import F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags
+from ..params import replace_params, to_dict
+from ..protocol import Sample
+
+log = logging.getLogger("orientlab.bench")
+
+SENSORS = ("gyr", "acc", "mag")
+FLAG_COL = (F_GYR, F_ACC, F_MAG)
+KIND_OF_TAG = {"GYR": 0, "ACC": 1, "MAG": 2, "ORI": 3}     # row kinds: a sensor, or ORI
+NREASON = len(Reason)
+_FLAG_COL_ARR = np.array(FLAG_COL)
+_REJECTION_CODES = np.array(sorted(int(r) for r in REJECTIONS), dtype=np.int64)
+GOOD_EVERY_S = 1.0          # how often (wall clock) an instance's good state is kept
+NAME_RE = re.compile(r"[a-z][a-z0-9_-]{0,39}")
+
+
+class BenchError(ValueError):
+    """A refused bench operation (bad name, unknown base, builtin removed, ...)."""
+
+    def __init__(self, field_name: str, reason: str):
+        super().__init__(f"{field_name}: {reason}")
+        self.field = field_name
+        self.reason = reason
+
+
+@dataclass
+class Instance:
+    """One named estimator on the bench and what the bench keeps about it."""
+    name: str
+    base: str                       # the estimator kind
+    estimator: Estimator
+    builtin: bool
+    counts: np.ndarray = field(default_factory=lambda: np.zeros((3, NREASON), np.int64))
+    # per sensor: (t, flag record) of the last row holding a sample of it
+    last: list = field(default_factory=lambda: [None, None, None])
+    # per sensor: (t, flag record) of the last row whose sample a gate refused (the GUI's
+    # indicators show its gate and value even when the very last sample was accepted)
+    last_rejected: list = field(default_factory=lambda: [None, None, None])
+    step_errors: int = 0
+    restored: int = 0
+    last_error: str = ""
+    _good: Any = None
+    _good_at: float = -np.inf
+
+    def clear(self) -> None:
+        self.counts[:] = 0
+        self.last = [None, None, None]
+        self.last_rejected = [None, None, None]
+
+    def flags(self, sensor: str) -> StepFlags | None:
+        """The flag record of the last row that held a ``sensor`` sample."""
+        v = self.last[SENSORS.index(sensor)]
+        return None if v is None else StepFlags.from_row(v[0], v[1])
+
+    def rejected_flags(self, sensor: str) -> StepFlags | None:
+        """The flag record of the last row whose ``sensor`` sample a gate refused."""
+        v = self.last_rejected[SENSORS.index(sensor)]
+        return None if v is None else StepFlags.from_row(v[0], v[1])
+
+    @property
+    def rest(self) -> bool:
+        """Standstill, as the last gyroscope row said."""
+        v = self.last[0]
+        return bool(v is not None and v[1][F_REST] > 0.5)
+
+    def rejections(self, sensor: str) -> int:
+        """How many ``sensor`` samples a gate refused so far (see ``is_rejected``)."""
+        row = self.counts[SENSORS.index(sensor)]
+        return int(sum(row[r] for r in REJECTIONS if r < len(row)))
+
+    def updates(self) -> dict[str, dict[str, int]]:
+        """Per sensor, how many samples ended with each reason (nonzero only)."""
+        return {s: {Reason(i).label: int(x) for i, x in enumerate(row) if x}
+                for s, row in zip(SENSORS, self.counts)}
+
+
+@dataclass
+class Records:
+    """What one :meth:`Bench.step` made: one row per motion or ORI sample, in order."""
+    t: np.ndarray                   # (n,) s
+    kind: np.ndarray                # (n,) 0 gyr, 1 acc, 2 mag, 3 ori
+    values: np.ndarray              # (n, 4) the sample (3 values + NaN, or ORI's 4)
+    q: dict[str, np.ndarray]        # instance -> (n, 4) estimate after each row
+    flags: dict[str, np.ndarray]    # instance -> (n, NFLAGS)
+    primary: str
+    phone_q: np.ndarray             # (n, 4) the phone's own estimate after each row (NaN: none yet)
+    n_samples: int                  # samples consumed, ORI and non-motion tags included
+    t_last: float | None            # time of the last sample consumed (any tag)
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def tags(self) -> list[str]:
+        return [("GYR", "ACC", "MAG", "ORI")[k] for k in self.kind.tolist()]
+
+    @property
+    def primary_q(self) -> np.ndarray:
+        return self.q[self.primary]
+
+    def of(self, name: str):
+        """(q, flags) rows of one instance, as an :class:`~app.estimators.BatchResult`."""
+        from ..estimators import BatchResult
+        return BatchResult(t=self.t, q=self.q[name], flags=self.flags[name])
+
+
+def rows_of(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float | None]:
+    """The estimator rows of a chunk of samples: times (s), kinds, values (n, 4) for the
+    motion and ORI samples; and the number and last time of all samples."""
+    ts, kinds, vals = [], [], []
+    n_all = 0
+    t_last = None
+    for s in samples:
+        n_all += 1
+        t_last = s.time_ms
+        k = KIND_OF_TAG.get(s.tag)
+        if k is None:
+            continue
+        ts.append(s.time_ms)
+        kinds.append(k)
+        v = s.values
+        vals.append(v if len(v) == 4 else (*v, np.nan))
+    n = len(ts)
+    t = np.array(ts, dtype=float).reshape(n) / 1000.0
+    values = np.array(vals, dtype=float).reshape(n, 4)
+    return t, np.array(kinds, dtype=np.int8).reshape(n), values, n_all, \
+        (None if t_last is None else t_last / 1000.0)
+
+
+class Bench:
+    """The estimator instances and the primary (see the module doc)."""
+
+    def __init__(self, config: dict[str, Any] | None = None):
+        if config is None:
+            from ..config import load_config
+            config = load_config(None)
+        self.instances: dict[str, Instance] = {}
+        for name in NAMES:
+            try:
+                est = estimator_class(name)(**dict(config.get(name, {})))
+            except ImportError as e:  # an estimator not available: run the others
+                log.warning("estimator %s unavailable: %s", name, e)
+                continue
+            self.instances[name] = Instance(name, name, est, builtin=True)
+        if not self.instances:
+            raise RuntimeError("no estimator available")
+        p = config.get("primary")
+        self.primary = p if p in self.instances else next(iter(self.instances))
+
+    @classmethod
+    def from_config(cls, path=None) -> "Bench":
+        from ..config import load_config
+        return cls(load_config(path))
+
+    # ----------------------------------------------------------------- instances
+    @property
+    def names(self) -> list[str]:
+        return list(self.instances)
+
+    def estimator(self, name: str) -> Estimator:
+        return self.instances[name].estimator
+
+    def params_of(self, name: str):
+        return self.instances[name].estimator.params
+
+    def base_of(self, name: str) -> str:
+        return self.instances[name].base
+
+    def check_new(self, name: str, base: str, params: dict[str, Any] | None = None):
+        """Validate a new instance; returns its parameter set. Raises BenchError or
+        ParamError (field named), nothing changed."""
+        if not isinstance(name, str) or not NAME_RE.fullmatch(name):
+            raise BenchError("name", "1-40 lower-case letters, digits, '-' or '_', starting "
+                                     "with a letter")
+        if name in self.instances:
+            raise BenchError("name", f"{name!r} is already on the bench")
+        if base not in NAMES:
+            raise BenchError("base", f"must be one of {', '.join(NAMES)}")
+        if params is not None and not isinstance(params, dict):
+            raise BenchError("params", "must be an object {param: value}")
+        builtin = self.instances.get(base)
+        start = builtin.estimator.params if builtin is not None else estimator_class(base).Params()
+        return replace_params(start, params or {})
+
+    def add(self, name: str, base: str, params: dict[str, Any] | None = None,
+            estimator: Estimator | None = None) -> Instance:
+        """A variant: estimator kind ``base`` with the builtin's current parameters changed by
+        ``params``; it starts afresh (aligns on the next samples). ``estimator``: run this
+        object instead (an instance of ``base``'s class or a subclass; tests, experiments)."""
+        p = self.check_new(name, base, params)
+        if estimator is not None and not isinstance(estimator, estimator_class(base)):
+            raise BenchError("estimator", f"must be a {estimator_class(base).__name__}")
+        inst = Instance(name, base, estimator if estimator is not None else estimator_class(base)(p),
+                        builtin=False)
+        self.instances[name] = inst
+        return inst
+
+    def remove(self, name: str) -> None:
+        inst = self.instances.get(name)
+        if inst is None:
+            raise BenchError("name", f"no instance {name!r} (known: {', '.join(self.instances)})")
+        if inst.builtin:
+            raise BenchError("name", f"{name} is built in and cannot be removed")
+        del self.instances[name]
+        if self.primary == name:
+            self.primary = inst.base
+
+    def set_primary(self, name: str) -> None:
+        if name not in self.instances:
+            raise BenchError("primary", f"must be one of {', '.join(self.instances)}; got {name!r}")
+        self.primary = name
+
+    def set_params(self, name: str, changes: dict[str, Any]) -> None:
+        """Validate and apply (nothing applied on a ParamError)."""
+        self.instances[name].estimator.set_params(**changes)
+
+    def reset(self) -> None:
+        """Every instance forgets its orientation and its bookkeeping."""
+        for inst in self.instances.values():
+            inst.estimator.reset()
+            inst.clear()
+            inst._good, inst._good_at = None, -np.inf
+
+    @property
+    def phone_q(self) -> np.ndarray | None:
+        """The phone's own estimate (ORI), as the builtin ``phone`` validates and holds it;
+        None before the stream's first good ORI."""
+        inst = self.instances.get("phone")
+        est = None if inst is None else inst.estimator
+        return est.q if est is not None and est.initialized else None
+
+    # ----------------------------------------------------------------- stepping
+    def step(self, samples: list[Sample]) -> Records:
+        """Run every instance over the samples (time order), one batch run per instance;
+        the per-row bookkeeping (counts per reason, last decision per sensor) vectorised."""
+        t, kind, values, n_all, t_last = rows_of(samples)
+        n = t.shape[0]
+        G = np.full((n, 3), np.nan)
+        A = np.full((n, 3), np.nan)
+        M = np.full((n, 3), np.nan)
+        O = np.full((n, 4), np.nan)
+        for k, arr in ((0, G), (1, A), (2, M)):
+            sel = kind == k
+            arr[sel] = values[sel, :3]
+        sel = kind == 3
+        O[sel] = values[sel]
+        phone = self.instances.get("phone")
+        phone_init = phone is not None and phone.estimator.initialized
+        qs: dict[str, np.ndarray] = {}
+        fls: dict[str, np.ndarray] = {}
+        # the sensor rows, and which flag column holds their sensor's reason
+        rows = np.flatnonzero(kind < 3)
+        cols = _FLAG_COL_ARR[kind[rows]]
+        offset = kind[rows].astype(np.int64) * NREASON
+        lasts = [(k, int(rows[kind[rows] == k][-1])) for k in range(3) if (kind[rows] == k).any()]
+        for name, inst in self.instances.items():
+            q, f = self._run(inst, t, G, A, M, O, kind, values)
+            qs[name], fls[name] = q, f
+            if rows.size:
+                codes = f[rows, cols].astype(np.int64)
+                ok = (codes >= 0) & (codes < NREASON)
+                inst.counts += np.bincount(offset[ok] + codes[ok],
+                                           minlength=3 * NREASON).reshape(3, NREASON)
+                for k, i in lasts:
+                    inst.last[k] = (float(t[i]), f[i])
+                rej = rows[ok & np.isin(codes, _REJECTION_CODES)]
+                for k in (1, 2):
+                    rk = rej[kind[rej] == k]
+                    if rk.size:
+                        inst.last_rejected[k] = (float(t[rk[-1]]), f[rk[-1]].copy())
+        if phone is not None and n:
+            valid = sel & np.all(np.isfinite(O), axis=1) & np.any(O != 0.0, axis=1)
+            init = np.logical_or.accumulate(valid) | phone_init
+            phone_q = np.where(init[:, None], qs["phone"], np.nan)
+        else:
+            phone_q = np.full((n, 4), np.nan)
+        return Records(t=t, kind=kind, values=values, q=qs, flags=fls, primary=self.primary,
+                       phone_q=phone_q, n_samples=n_all, t_last=t_last)
+
+    def _run(self, inst: Instance, t, G, A, M, O, kind, values) -> tuple[np.ndarray, np.ndarray]:
+        est = inst.estimator
+        now = time.perf_counter()
+        if inst._good is None or now - inst._good_at >= GOOD_EVERY_S:
+            inst._good, inst._good_at = est.snapshot(), now
+        try:
+            res = est.run(t, G, A, M, O)
+            q, f = res.q, res.flags
+        except Exception:
+            q, f = self._rerun(inst, t, G, A, M, O, kind, values)
+        if t.shape[0] and not np.isfinite(q).all():
+            bad = int(np.flatnonzero(~np.isfinite(q).all(axis=1))[0])
+            est.restore(inst._good)
+            inst.restored += 1
+            log.warning("%s: estimate not finite at t = %.3f s (row %d of the chunk): last good "
+                        "state restored", inst.name, t[bad], bad)
+            q = q.copy()
+            q[bad:] = est.q
+        return q, f
+
+    def _rerun(self, inst: Instance, t, G, A, M, O, kind, values) -> tuple[np.ndarray, np.ndarray]:
+        """The chunk again, row by row from the last good state; a row that raises is
+        skipped (state before it restored), logged with its sample and counted."""
+        est = inst.estimator
+        est.restore(inst._good)
+        n = t.shape[0]
+        q = np.empty((n, 4))
+        f = np.empty((n, NFLAGS))
+        for k in range(n):
+            before = est.snapshot()
+            try:
+                fl = est.step(t[k], G[k], A[k], M[k], O[k])
+                f[k] = (fl.gyr, fl.acc, fl.acc_value, fl.acc_nis, fl.mag, fl.mag_value,
+                        fl.mag_nis, float(fl.rest), fl.time)
+            except Exception as e:
+                est.restore(before)
+                inst.step_errors += 1
+                tag = ("GYR", "ACC", "MAG", "ORI")[int(kind[k])]
+                inst.last_error = f"{type(e).__name__}: {e}"
+                log.exception("%s raised on the sample %.0f %s %s (skipped)", inst.name,
+                              t[k] * 1000.0, tag, values[k].tolist())
+                f[k] = new_flags()
+            q[k] = est.q
+        return q, f
+
+    # ----------------------------------------------------------------- read-outs
+    def step_errors(self) -> int:
+        return sum(i.step_errors for i in self.instances.values())
+
+    def restored(self) -> int:
+        return sum(i.restored for i in self.instances.values())
+
+
+def params_dicts(bench: Bench) -> dict[str, dict[str, Any]]:
+    return {n: to_dict(i.estimator.params) for n, i in bench.instances.items()}
+
+
+__all__ = ["Bench", "BenchError", "Instance", "Records", "rows_of"]

@@ -1,0 +1,243 @@
+"""The live core: the stream on show, the bench, the history; synchronous and pure.
+
+One :class:`LiveCore` per dashboard. The async shell (:mod:`app.server.engine`) calls:
+
+- :meth:`LiveCore.open_session` / :meth:`close_session` / :meth:`feed`: a stream's lines
+  in, the samples it releases out (parse, count, reorder; the raw-line listeners see
+  every line: the recorder's hook);
+- :meth:`LiveCore.start` (a new stream: the estimators start afresh) and
+  :meth:`LiveCore.process` (released samples -> every instance steps; the plots' rings,
+  counters and the record listeners follow);
+- :meth:`LiveCore.validate` / :meth:`apply`: a PATCH body or a preset -> a validated
+  change -> applied between two chunks;
+- the read models: :meth:`snapshot`, :meth:`state`, :meth:`params_view`, :meth:`counts`,
+  :meth:`status_text`, :meth:`source_kind`.
+
+Nothing here knows asyncio, viser or FastAPI; tests build one and feed it lines.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from ..params import describe, to_dict
+from ..protocol import Sample
+from . import views
+from .bench import Bench, Records
+from .changes import Change, apply_change, change_from_config, common_names, validate_patch
+from .history import History
+from .session import Session, Totals
+
+log = logging.getLogger("orientlab.live")
+
+_IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+RawListener = Callable[[Session, list], None]          # (session, lines of one chunk)
+RecordListener = Callable[[Session, Records], None]    # (session, what one chunk made)
+
+
+class LiveCore:
+    """See the module doc. ``config``: :func:`app.config.load_config`'s dict (read once)."""
+
+    def __init__(self, config: dict[str, Any] | None = None, *, history_s: float = 20.0,
+                 reorder_window_s: float = 0.05, history_rate_hz: float = 2000.0):
+        self.bench = Bench(config)
+        self.history = History(int(history_s * history_rate_hz) + 1)
+        self.reorder_window_s = reorder_window_s
+        self.totals = Totals()
+        self.session: Session | None = None
+        self.raw_listeners: list[RawListener] = []
+        # line stages run first and may rewrite a chunk's lines (the lab toolkit: virtual
+        # disturbances, the magnetometer calibration): (session, lines) -> lines
+        self.line_filters: list[Callable[[Session, list], list]] = []
+        self.record_listeners: list[RecordListener] = []
+        self._reset_stream_state()
+
+    def _reset_stream_state(self) -> None:
+        self.t_sent: float | None = None          # time of the last processed sample (s)
+        self.t_first: float | None = None         # the stream's first motion sample (s)
+        self.last_vec: list[np.ndarray | None] = [None, None, None]   # gyr, acc, mag
+        self.history.clear()
+
+    # ----------------------------------------------------------------- streams
+    def open_session(self, kind: str, label: str, truth=None) -> Session:
+        """A new stream replaces the one on show (which is closed)."""
+        s = Session(kind, label, self.reorder_window_s, truth)
+        if self.session is not None and self.session.open:
+            self.session.close(f"replaced by {kind} {label}")
+        self.session = s
+        self.totals.sessions += 1
+        return s
+
+    def close_session(self, s: Session, reason: str = "end of stream") -> list[Sample]:
+        """End a stream; the samples its reorder buffer still held (to process)."""
+        return s.close(reason)
+
+    def feed(self, s: Session, lines: list) -> list[Sample]:
+        """Lines of one received chunk into the stream; the samples it releases."""
+        for f in self.line_filters:
+            try:
+                lines = f(s, lines)
+            except Exception:  # a stage's bug must not stop the stream
+                log.exception("line stage failed")
+        for cb in self.raw_listeners:
+            try:
+                cb(s, lines)
+            except Exception:  # a listener's bug must not stop the stream
+                log.exception("raw line listener failed")
+        return s.push_lines(lines)
+
+    def start(self, s: Session) -> None:
+        """A new stream is on: every instance starts afresh (a new clock)."""
+        self.bench.reset()
+        self._reset_stream_state()
+
+    def process(self, s: Session, samples: list[Sample]) -> Records | None:
+        """Step every instance on the samples of the stream on show (others: None)."""
+        if s is not self.session or not samples:
+            return None
+        lk0 = self._primary_lk()
+        init0 = self.bench.estimator(self.bench.primary).initialized
+        rec = self.bench.step(samples)
+        self._record(rec, lk0, init0)
+        s.count_processed(rec.n_samples)
+        self.totals.samples += rec.n_samples
+        for cb in self.record_listeners:
+            try:
+                cb(s, rec)
+            except Exception:
+                log.exception("record listener failed")
+        return rec
+
+    def _record(self, rec: Records, lk0: float, init0: bool) -> None:
+        """The plots' rows (primary) and the last sensor vectors; ``lk0``: the primary's
+        L_k before the chunk, ``init0``: whether it was initialised then."""
+        if rec.t_last is not None:
+            self.t_sent = rec.t_last
+        n = len(rec)
+        if not n:
+            return
+        if self.t_first is None:
+            self.t_first = float(rec.t[0])
+        h = self.history
+        q = rec.primary_q
+        if not init0:   # no estimate before the alignment (the identity): a gap in the plots
+            moved = np.logical_or.accumulate(np.any(q != _IDENTITY, axis=1))
+            q = np.where(moved[:, None], q, np.nan)
+        blk = h.pose.block(n)
+        h.pose.put(blk, "t", rec.t)
+        h.pose.put(blk, "q", q)
+        h.pose.put(blk, "phone_q", rec.phone_q)
+        h.pose.append(blk)
+        sel = rec.kind == 0
+        if sel.any():
+            blk = h.gyr.block(int(sel.sum()))
+            h.gyr.put(blk, "t", rec.t[sel])
+            h.gyr.put(blk, "w", rec.values[sel, :3])
+            h.gyr.append(blk)
+        flags = rec.flags[rec.primary]
+        est = self.bench.estimator(rec.primary)
+        for k, ring, nis_col in ((1, h.acc, 3), (2, h.mag, 6)):
+            sel = rec.kind == k
+            m = int(sel.sum())
+            if not m:
+                continue
+            v = rec.values[sel, :3]
+            self.last_vec[k] = v[-1].copy()
+            blk = ring.block(m)
+            ring.put(blk, "t", rec.t[sel])
+            ring.put(blk, "norm", np.sqrt(np.einsum("ij,ij->i", v, v)))
+            ring.put(blk, "nis", flags[sel, nis_col])
+            if k == 2:
+                lk = est.field_strength_rows(flags[sel], lk0)
+                if lk is not None:
+                    ring.put(blk, "L_k", lk)
+            ring.append(blk)
+
+    def _primary_lk(self) -> float:
+        lk = self.bench.estimator(self.bench.primary).diagnostics().L_k
+        return math.nan if lk is None else float(lk)
+
+    # ----------------------------------------------------------------- changes
+    def validate(self, body: Any) -> Change:
+        """A PATCH body -> a validated change (PatchError naming the field)."""
+        return validate_patch(self.bench, body)
+
+    def change_from_config(self, config: dict[str, Any]) -> Change:
+        return change_from_config(self.bench, config)
+
+    def apply(self, ch: Change) -> dict[str, Any]:
+        """Apply a validated change (PatchError if it no longer fits); the new parameters."""
+        apply_change(self.bench, ch)
+        if ch.reset:
+            self._reset_stream_state()
+        return self.params_view()
+
+    # ----------------------------------------------------------------- read models
+    def snapshot(self) -> views.Snapshot:
+        return views.snapshot(self)
+
+    def state(self) -> dict[str, Any]:
+        return views.state(self)
+
+    def params_view(self) -> dict[str, Any]:
+        """GET /api/params: the primary, the switches every instance has (the primary's
+        values), each instance's parameters (SI units) and its base kind."""
+        b = self.bench
+        prim = to_dict(b.params_of(b.primary))
+        out: dict[str, Any] = {"primary": b.primary}
+        for k in common_names(b):
+            out[k] = prim[k]
+        out["estimators"] = {n: to_dict(b.params_of(n)) for n in b.names}
+        out["bases"] = {n: b.base_of(n) for n in b.names}
+        return out
+
+    def preset_sections(self) -> dict[str, Any]:
+        """The builtins' parameters and the primary (its base if it is a variant), as a
+        preset's tables (variants are not part of a preset)."""
+        b = self.bench
+        out: dict[str, Any] = {"primary": b.base_of(b.primary)}
+        for n, inst in b.instances.items():
+            if inst.builtin:
+                out[n] = to_dict(inst.estimator.params)
+        return out
+
+    def params_schema(self) -> dict[str, Any]:
+        return {n: describe(type(self.bench.params_of(n))) for n in self.bench.names}
+
+    def truth_q(self) -> np.ndarray | None:
+        s = self.session
+        return None if s is None else s.truth_at(self.t_sent)
+
+    def source_kind(self) -> str:
+        s = self.session
+        if s is None:
+            return "none"
+        if s.kind == "phone" and not s.open:
+            return "phone-disconnected"
+        return s.kind
+
+    def status_text(self) -> str:
+        s = self.session
+        if s is None:
+            return "waiting for a phone"
+        if s.kind == "demo":
+            return "demo: simulated phone (a phone that connects takes over)"
+        if s.kind == "replay":
+            return f"replaying log {s.label}" + ("" if s.open else " (ended)")
+        if s.open:
+            return f"phone {s.label} streaming"
+        return (f"phone {s.label} disconnected ({s.close_reason}): showing its last state; "
+                "waiting for a phone")
+
+    def counts(self) -> dict[str, Any]:
+        c = self.session.counts() if self.session else {"lines": 0, "samples": 0, "malformed": 0}
+        tot = self.totals.as_dict()
+        tot["step_errors"] = self.bench.step_errors()
+        tot["restored"] = self.bench.restored()
+        c.update({f"total_{k}": v for k, v in tot.items()})
+        c["updates"] = {n: i.updates() for n, i in self.bench.instances.items()}
+        return c

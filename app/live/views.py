@@ -1,0 +1,178 @@
+"""Read models: what the scene, the GUI and the API read (and nothing else).
+
+- :class:`Snapshot`: what the 3D scene draws;
+- :func:`state`: GET /api/state (see :class:`app.server.models.State`);
+- :func:`estimator_state` with :func:`app.live.bench.decision`: one instance's read-out;
+- :class:`Latency` and :func:`percentiles`: GET /api/stats.
+
+Pure functions of the live core; JSON-safe (NaN and inf become None).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..estimators import REASON_TEXT, Diagnostics, Reason, StepFlags
+from ..estimators.base import is_rejected
+from ..quaternion import angle_between, q2euler
+
+if TYPE_CHECKING:
+    from .core import LiveCore
+
+
+def num(x) -> float | None:
+    """A JSON-safe float (NaN and inf become None)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def qlist(q) -> list[float] | None:
+    return None if q is None else [float(v) for v in q]
+
+
+def json_safe(x):
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, (float, np.floating)):
+        return num(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def decision(f: StepFlags | None, sensor: str) -> dict[str, Any]:
+    """How an estimator treated the last sample of ``sensor`` (the API's Decision)."""
+    if f is None:
+        return {"reason": "absent", "text": REASON_TEXT[Reason.ABSENT], "rejected": False,
+                "value": None, "nis": None, "t": None}
+    r: Reason = getattr(f, sensor)
+    return {"reason": r.label, "text": REASON_TEXT[r], "rejected": is_rejected(r),
+            "value": num(getattr(f, f"{sensor}_value", None)),
+            "nis": num(getattr(f, f"{sensor}_nis", None)), "t": num(f.t)}
+
+
+
+@dataclass
+class Snapshot:
+    """What the scene draws: the state after the last processed sample."""
+    t: float | None
+    primary: str
+    q: np.ndarray
+    initialized: bool
+    phone_q: np.ndarray | None
+    truth_q: np.ndarray | None
+    cov: np.ndarray | None
+    acc: np.ndarray | None          # last accelerometer sample (sensor frame)
+    mag: np.ndarray | None          # last magnetometer sample (sensor frame)
+    acc_flags: StepFlags | None     # primary's flags of the last accelerometer row
+    mag_flags: StepFlags | None
+    rest: bool
+    diag: Diagnostics
+
+
+def snapshot(core: "LiveCore") -> Snapshot:
+    b = core.bench
+    inst = b.instances[b.primary]
+    est = inst.estimator
+    return Snapshot(t=core.t_sent, primary=b.primary, q=est.q, initialized=est.initialized,
+                    phone_q=b.phone_q, truth_q=core.truth_q(), cov=est.attitude_cov(),
+                    acc=core.last_vec[1], mag=core.last_vec[2],
+                    acc_flags=inst.flags("acc"), mag_flags=inst.flags("mag"),
+                    rest=inst.rest, diag=est.diagnostics())
+
+
+def error_deg(qa, qb) -> float | None:
+    """Formula (2c) between two orientations, in degrees (None if either is missing)."""
+    if qa is None or qb is None:
+        return None
+    return num(math.degrees(angle_between(qa, qb)))
+
+
+def estimator_state(core: "LiveCore", name: str, phone_q=None, truth_q=None) -> dict[str, Any]:
+    inst = core.bench.instances[name]
+    est = inst.estimator
+    q = est.q
+    return {"q": qlist(q), "euler_deg": [float(np.degrees(a)) for a in q2euler(q)],
+            "base": inst.base, "initialized": bool(est.initialized),
+            "error_to_phone_deg": error_deg(phone_q, q),
+            "error_to_truth_deg": error_deg(truth_q, q),
+            "acc": decision(inst.flags("acc"), "acc"), "mag": decision(inst.flags("mag"), "mag"),
+            "gyr_bias": None if est.gyr_bias is None else qlist(est.gyr_bias),
+            "step_errors": inst.step_errors, "restored": inst.restored}
+
+
+def state(core: "LiveCore") -> dict[str, Any]:
+    """GET /api/state."""
+    b = core.bench
+    phone_q = b.phone_q
+    truth_q = core.truth_q()
+    ests = {n: estimator_state(core, n, phone_q, truth_q) for n in b.names}
+    prim = ests[b.primary]
+    inst = b.instances[b.primary]
+    est = inst.estimator
+    cov = est.attitude_cov()
+    sigma = None if cov is None else [num(math.degrees(math.sqrt(max(c, 0.0)))) for c in np.diag(cov)]
+    s = core.session
+    return {
+        "t": core.t_sent, "source": core.source_kind(), "status": core.status_text(),
+        "primary": b.primary, "q": prim["q"], "euler_deg": prim["euler_deg"],
+        "initialized": prim["initialized"],
+        "phone_q": qlist(phone_q),
+        "phone_euler_deg": None if phone_q is None else [float(np.degrees(a)) for a in q2euler(phone_q)],
+        "truth_q": qlist(truth_q),
+        "error_to_phone_deg": prim["error_to_phone_deg"],
+        "error_to_truth_deg": prim["error_to_truth_deg"],
+        "acc_rejected": prim["acc"]["rejected"], "mag_rejected": prim["mag"]["rejected"],
+        "acc": prim["acc"], "mag": prim["mag"],
+        "standstill": inst.rest,
+        "sigma_deg": sigma,
+        "diagnostics": json_safe(est.diagnostics().as_dict()),
+        "rates_hz": {k: num(v) for k, v in s.rates().items()} if s else {},
+        "counts": core.counts(),
+        "clock_offsets_s": s.clock_offsets if s else {},
+        "estimators": ests,
+    }
+
+
+class Latency:
+    """Per processed chunk: (arrival -> pose queued, arrival -> taken, n samples), and how
+    late the display timers ran (the event loop's lag). Written by the async shell."""
+
+    def __init__(self, maxlen: int = 200_000):
+        self.chunks: deque = deque(maxlen=maxlen)
+        self.loop_lag: deque = deque(maxlen=maxlen // 2)
+        self.backlog_max = 0
+        self.batches = 0
+
+    def clear(self) -> None:
+        self.chunks.clear()
+        self.loop_lag.clear()
+        self.backlog_max = 0
+
+    def figures(self) -> dict[str, Any]:
+        """Median, p99 and max (ms) of the per-sample latency, the wait and the loop lag
+        (vectorised: this runs on the event loop)."""
+        chunks = np.array(self.chunks, dtype=float).reshape(-1, 3)
+        rows = np.repeat(chunks[:, :2], chunks[:, 2].astype(np.int64), axis=0)
+        return {"latency_ms": percentiles(rows[:, 0]), "wait_ms": percentiles(rows[:, 1]),
+                "loop_lag_ms": percentiles(np.array(self.loop_lag, dtype=float))}
+
+
+def percentiles(x: np.ndarray) -> dict[str, Any]:
+    """Median, 99th percentile and max of durations in seconds, in ms."""
+    if not x.size:
+        return {"n": 0, "median": None, "p99": None, "max": None}
+    ms = x * 1e3
+    return {"n": int(ms.size), "median": num(np.median(ms)), "p99": num(np.percentile(ms, 99)),
+            "max": num(ms.max())}
