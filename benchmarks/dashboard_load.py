@@ -54,7 +54,8 @@ import websockets
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from app.server.harness import free_port, wait_for  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
+from harness import free_port, wait_for  # noqa: E402
 from app.simulate import SimConfig, format_line, simulate  # noqa: E402
 
 RATE_HZ = 500
@@ -71,10 +72,37 @@ def cpu_seconds(pid: int) -> np.ndarray:
     return np.array([int(fields[11]), int(fields[12])]) / tck   # utime, stime
 
 
-def start_server(port: int, viewer_port: int, phone_port: int) -> subprocess.Popen:
-    code = ("import types, sys; from app.server.run import serve; "
-            f"sys.exit(serve(types.SimpleNamespace(host='127.0.0.1', port={port}, "
-            f"viewer_port={viewer_port}, phone_port={phone_port}, config=None, source='none')))")
+# The server process: ``orientlab serve``; with variants, they are put on the bench as the
+# live core is built (the two ready-made ones of app/variants.py, as a lab would run them).
+SERVER_CODE = """
+import sys, types
+from app.live import core
+from app.server.run import serve
+from app.variants import ready_made
+
+N_VARIANTS = {variants}
+_init = core.LiveCore.__init__
+
+def init_with_variants(self, *args, **kwargs):
+    _init(self, *args, **kwargs)
+    for name, (base, params) in list(ready_made(self.bench.primary).items())[:N_VARIANTS]:
+        self.bench.add(name, base, params)
+
+core.LiveCore.__init__ = init_with_variants
+args = types.SimpleNamespace(host="127.0.0.1", port={port}, viewer_port={viewer_port},
+                             phone_port={phone_port}, config=None, source="none", open=True)
+if {profile!r}:
+    import cProfile
+    cProfile.run("rc = serve(args)", {profile!r})
+    sys.exit(0)
+sys.exit(serve(args))
+"""
+
+
+def start_server(port: int, viewer_port: int, phone_port: int, variants: int,
+                 profile: str = "") -> subprocess.Popen:
+    code = SERVER_CODE.format(port=port, viewer_port=viewer_port, phone_port=phone_port,
+                              variants=variants, profile=profile)
     return subprocess.Popen([sys.executable, "-c", code], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
@@ -131,14 +159,20 @@ def play(port: int, lines: list[tuple[int, str]], stop: threading.Event) -> None
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--variants", type=int, default=2, choices=(0, 1, 2),
+                    help="variants running beside the four estimators (default 2: "
+                         "<primary>-no-rejection and lab-approx)")
+    ap.add_argument("--profile", default="", metavar="FILE",
+                    help="write a cProfile of the server's event-loop thread to FILE")
     args = ap.parse_args()
     warm = 3.0
     port, vport, pport = free_port(), free_port(), free_port()
-    proc = start_server(port, vport, pport)
+    proc = start_server(port, vport, pport, args.variants, args.profile)
     base = f"http://127.0.0.1:{port}"
     http = httpx.Client(base_url=base, timeout=10.0)
     try:
         wait_for(lambda: _ok(http), 300.0, 0.2, "server start")
+        names = list(http.get("/api/params").json()["estimators"])
         urls = [f"ws://127.0.0.1:{vport}"] * N_VIEWERS + [f"ws://127.0.0.1:{port}/ws/state"] * N_STATE
         counters = [[0] for _ in urls]
         stop_clients = threading.Event()
@@ -179,6 +213,7 @@ def main() -> int:
     lat = stats["latency_ms"]
     print(f"dashboard load: phone {RATE_HZ} Hz x ACC/GYR/MAG on loopback, "
           f"{N_VIEWERS} viser clients + {N_STATE} /ws/state clients, {wall:.1f} s")
+    print(f"  estimators       {len(names)}: {', '.join(names)}")
     print(f"  processed        {rate:8.0f} samples/s (sent {3 * RATE_HZ}/s)")
     print(f"  backlog          queued samples first third mean {b[:third, 0].mean():.1f}, "
           f"last third mean {b[-third:, 0].mean():.1f}, max {b[:, 0].max()}; "
@@ -193,7 +228,7 @@ def main() -> int:
           f"over {g['n']} timer runs (data waiting in the socket meanwhile is not in the latency)")
     cpu = 100 * (cpu1 - cpu0) / wall
     print(f"  server CPU       {cpu.sum():.1f} % of one core (user {cpu[0]:.1f} %, system {cpu[1]:.1f} %; "
-          "target < 25 %)")
+          "target < 15 % with 4 estimators + 2 variants)")
     print(f"  received         viser clients {sum(c[0] for c in counters[:N_VIEWERS]) / wall / 1e3:.0f} kB/s, "
           f"/ws/state clients {sum(c[0] for c in counters[N_VIEWERS:]) / wall / 1e3:.0f} kB/s (all)")
     print(f"  Ctrl-C           the server process ended {stop_s:.2f} s after SIGINT "

@@ -8,7 +8,7 @@ import time
 import httpx
 import pytest
 
-from app.server.harness import Phone, running_server, wait_for
+from harness import Phone, running_server, wait_for
 from app.protocol import LineSplitter
 from app.simulate import simulate
 
@@ -73,8 +73,8 @@ def test_ten_megabyte_line_closes_only_that_connection(srv, api):
     n0 = sessions(api)
     too_long0 = state(api)["counts"]["total_too_long"]
     with Phone(srv.phone_port) as ph:
+        ph.send_lines(LINES[:50])     # a connection is a phone once it sends a valid sample
         wait_for(lambda: sessions(api) > n0, what="session")
-        ph.send_lines(LINES[:50])
         try:
             ph.send_bytes(b"1" * (10 * 1024 * 1024))
         except (BrokenPipeError, ConnectionResetError):
@@ -87,8 +87,8 @@ def test_ten_megabyte_line_closes_only_that_connection(srv, api):
     assert "longer than" in st["status"]
     # the server is fine: the next phone streams normally
     with Phone(srv.phone_port) as ph:
-        wait_for(lambda: sessions(api) > n0 + 1, what="second session")
         ph.send_lines(LINES)
+        wait_for(lambda: sessions(api) > n0 + 1, what="second session")
     st = wait_for(lambda: finished(api), what="second stream")
     assert st["counts"]["samples"] == len(LINES)
     assert api.get("/api/health").json()["status"] == "ok"
@@ -97,8 +97,8 @@ def test_ten_megabyte_line_closes_only_that_connection(srv, api):
 def test_disconnect_mid_line_then_reconnect(srv, api):
     n0 = sessions(api)
     with Phone(srv.phone_port) as ph:
-        wait_for(lambda: sessions(api) > n0, what="session")
         ph.send_lines(LINES[:200])
+        wait_for(lambda: sessions(api) > n0, what="session")
         ph.send_bytes(LINES[200][:9].encode())   # cut in the middle of a line
     st = wait_for(lambda: finished(api), what="EOF noticed")
     assert st["counts"]["samples"] == 200
@@ -109,8 +109,8 @@ def test_disconnect_mid_line_then_reconnect(srv, api):
     assert state(api)["t"] == t_last and state(api)["q"] == st["q"]
     # ... and the next connection is accepted without a restart
     with Phone(srv.phone_port) as ph:
-        wait_for(lambda: sessions(api) > n0 + 1, what="next session")
         ph.send_lines(LINES[:300], end="\r\n")
+        wait_for(lambda: sessions(api) > n0 + 1, what="next session")
     st = wait_for(lambda: finished(api), what="next stream")
     assert st["counts"]["samples"] == 300 and st["counts"]["malformed"] == 0
 
@@ -119,8 +119,8 @@ def test_second_phone_is_refused_while_one_streams(srv, api):
     n0 = sessions(api)
     refused0 = state(api)["counts"]["total_refused"]
     with Phone(srv.phone_port) as first:
-        wait_for(lambda: sessions(api) > n0, what="first session")
         first.send_lines(LINES[:100])
+        wait_for(lambda: sessions(api) > n0, what="first session")
         with Phone(srv.phone_port) as second:
             assert second.closed_by_server()            # refused at once
             assert state(api)["counts"]["total_refused"] == refused0 + 1
@@ -137,13 +137,13 @@ def test_silent_phone_is_taken_over(srv, api):
     closing) gives way to a new phone."""
     n0 = sessions(api)
     with Phone(srv.phone_port) as first:
-        wait_for(lambda: sessions(api) > n0, what="first session")
         first.send_lines(LINES[:50])
+        wait_for(lambda: sessions(api) > n0, what="first session")
         wait_for(lambda: state(api)["counts"]["samples"] >= 1, what="first samples")
         time.sleep(1.5)                                   # silent longer than phone_idle_s
         with Phone(srv.phone_port) as second:
+            second.send_lines(LINES[:120])
             wait_for(lambda: sessions(api) > n0 + 1, what="takeover")
             assert first.closed_by_server()
-            second.send_lines(LINES[:120])
         st = wait_for(lambda: finished(api), what="second stream")
         assert st["counts"]["samples"] == 120

@@ -14,7 +14,8 @@ import pytest
 import websockets
 
 from app.protocol import MOTION_TAGS
-from app.server.harness import Phone, free_port, log_lines, running_server, wait_for
+from app.quaternion import angle_between_many
+from harness import Phone, free_port, log_lines, running_server, wait_for
 from app.simulate import simulate
 from app.stream import SampleOrderer
 
@@ -41,9 +42,9 @@ def play(srv, api, lines: list[str], *, end: str = "\n") -> dict:
     """Stream ``lines`` as a phone, hang up, wait until the server has processed all."""
     n_before = api.get("/api/state").json()["counts"].get("total_sessions", 0)
     with Phone(srv.phone_port) as ph:
+        ph.send_lines(lines, end=end)   # a connection is a phone once it sends a valid sample
         wait_for(lambda: api.get("/api/state").json()["counts"]["total_sessions"] > n_before,
                  what="the phone session")
-        ph.send_lines(lines, end=end)
     return wait_for(lambda: (lambda st: st if st["source"] == "phone-disconnected"
                              and st["counts"]["buffered"] == 0 and st["counts"]["queued"] == 0
                              else None)(api.get("/api/state").json()),
@@ -120,28 +121,62 @@ def test_an_unusable_ori_line_is_not_the_phones_estimate(srv, api):
     np.testing.assert_allclose(st["phone_q"], good, atol=1e-6)
 
 
+def watch(srv, api, lines: list[str]) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Play ``lines`` while reading WS /ws/state: the final state, and the primary's
+    estimate after every motion sample (t in s, q (N, 4))."""
+    n_motion = sum(1 for ln in lines if ln.split("\t")[1] in MOTION_TAGS)
+
+    async def collect():
+        got = []
+        async with websockets.connect(f"{srv.ws_url}/ws/state", max_size=None) as ws:
+            json.loads(await ws.recv())
+            st = await asyncio.to_thread(play, srv, api, lines)
+            while len(got) < n_motion:
+                got.extend(json.loads(await asyncio.wait_for(ws.recv(), 30.0))["estimates"])
+        return st, got
+
+    st, got = asyncio.run(collect())
+    return st, np.array([g["t"] for g in got]), np.array([g["q"] for g in got])
+
+
 def test_use_mag_off_changes_behaviour(srv, api):
+    """A magnet next to the phone pulls lab's heading while it uses the magnetometer;
+    with the magnetometer off the magnet changes nothing: lab's error to the truth grows
+    only as its uncorrected gyroscope bias lets it (lab does not estimate the bias)."""
     sim = simulate(("still", "magnet"), seed=5)
-    st_on = play(srv, api, sim.lines())
+    magnet_from = sim.boot_ms / 1000.0 + sim.sim.starts[1]
+
+    def pull_deg(t, q):
+        """How much the error to the truth grew during the magnet scene (deg)."""
+        err = np.degrees(angle_between_many(q, sim.truth_at_ms(t * 1000.0)))
+        return float(np.max(err[t >= magnet_from]) - err[t < magnet_from][-1])
+
+    api.patch("/api/params", json={"primary": "lab"})
+    st_on, t, q = watch(srv, api, sim.lines())
     upd_on = st_on["counts"]["updates"]["lab"]["mag"]
     assert upd_on.get("used", 0) > 100
+    pull_on = pull_deg(t, q)
     r = api.patch("/api/params", json={"use_mag": False})
     assert r.status_code == 200 and r.json()["use_mag"] is False
     assert all(p["use_mag"] is False for p in r.json()["estimators"].values())
-    st_off = play(srv, api, sim.lines())
+    st_off, t, q = watch(srv, api, sim.lines())
+    api.patch("/api/params", json={"primary": "robust"})
     for name, e in st_off["estimators"].items():
         assert e["mag"]["reason"] == "disabled", name
     upd_off = st_off["counts"]["updates"]["lab"]["mag"]
     assert upd_off.get("used", 0) == 0 and upd_off.get("disabled", 0) > 100
     # the magnet no longer pulls the heading: the estimate stays nearer the truth
+    pull_off = pull_deg(t, q)
+    gyro_drift = math.degrees(np.linalg.norm(sim.sim.config.gyr_bias)) * sim.sim.durations[1]
+    assert pull_off < gyro_drift < pull_on
     assert st_off["mag_rejected"] is False
 
 
 def test_patch_refuses_bad_input_and_applies_nothing(srv, api):
     before = api.get("/api/params").json()
     for body, loc in (({"bogus": 1}, ["body", "bogus"]),
-                      ({"use_mag": False, "estimators": {"lab": {"acc_noise": -1.0}}},
-                       ["body", "estimators", "lab", "acc_noise"]),
+                      ({"use_mag": False, "estimators": {"lab": {"acc_std": -1.0}}},
+                       ["body", "estimators", "lab", "acc_std"]),
                       ({"use_acc": False, "gyr_noise": 1e9}, ["body", "gyr_noise"]),
                       ({"primary": "nope"}, ["body", "primary"]),
                       ({"estimators": {"nope": {}}}, ["body", "estimators", "nope"]),
@@ -151,38 +186,47 @@ def test_patch_refuses_bad_input_and_applies_nothing(srv, api):
         assert r.json()["detail"][0]["loc"] == loc
         assert api.get("/api/params").json() == before
 
+    # one meaning per name: a renamed key says its new name; a name some estimators give a
+    # meaning of their own is not taken at the top level
+    r = api.patch("/api/params", json={"estimators": {"lab": {"gyr_noise": 0.02}}})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["msg"] == "gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"
+    r = api.patch("/api/params", json={"gyr_noise": 0.01})
+    assert r.status_code == 422 and "robust's own" in r.json()["detail"][0]["msg"]
+    assert api.get("/api/params").json() == before
+
 
 def test_patch_primary_specific_and_gui_follows(srv, api):
     gui = srv.app.state.gui
     r = api.patch("/api/params", json={"primary": "lab",
-                                       "estimators": {"lab": {"time_update": "approx", "acc_noise": 0.3}}})
+                                       "estimators": {"lab": {"time_update": "approx", "acc_std": 0.3}}})
     assert r.status_code == 200
     p = r.json()
     assert p["primary"] == "lab"
     assert p["estimators"]["lab"]["time_update"] == "approx"
-    assert p["estimators"]["lab"]["acc_noise"] == pytest.approx(0.3)
+    assert p["estimators"]["lab"]["acc_std"] == pytest.approx(0.3)
     assert api.get("/api/state").json()["primary"] == "lab"
     # the GUI shows what the API set (one source of truth)
     ctl = {(c.estimator, c.name): c for c in gui.controls}
     wait_for(lambda: gui.primary.value == "lab", what="GUI primary")
     assert ctl[("lab", "time_update")].handle.value == "approx"
-    assert ctl[("lab", "acc_noise")].from_gui(ctl[("lab", "acc_noise")].handle.value) == pytest.approx(0.3)
+    assert ctl[("lab", "acc_std")].from_gui(ctl[("lab", "acc_std")].handle.value) == pytest.approx(0.3)
     api.patch("/api/params", json={"use_mag": False})
     assert wait_for(lambda: gui.switches["use_mag"].value is False, what="GUI switch")
     # and a GUI change reaches the API (the callback validates and posts)
     gui.switches["use_gyr"].value = False
     wait_for(lambda: api.get("/api/params").json()["use_gyr"] is False, what="GUI -> params")
     # a sync back does not post a change again (no loop): the value stays
-    assert api.get("/api/params").json()["estimators"]["lab"]["acc_noise"] == pytest.approx(0.3)
+    assert api.get("/api/params").json()["estimators"]["lab"]["acc_std"] == pytest.approx(0.3)
     api.patch("/api/params", json={"primary": "robust", "use_gyr": True,
-                                   "estimators": {"lab": {"time_update": "exact", "acc_noise": 0.5}}})
+                                   "estimators": {"lab": {"time_update": "exact", "acc_std": 0.5}}})
 
 
 def test_every_gui_control_is_patchable(srv, api):
     gui = srv.app.state.gui
     assert gui.controls
     for c in gui.controls:
-        value = getattr(srv.engine.params_of(c.estimator), c.name)
+        value = getattr(srv.engine.core.bench.params_of(c.estimator), c.name)
         r = api.patch("/api/params", json={"estimators": {c.estimator: {c.name: value}}})
         assert r.status_code == 200, (c.estimator, c.name, r.text)
 
@@ -212,16 +256,16 @@ def test_websocket_streams_every_estimate(srv, api):
 
 
 def test_presets_save_and_load(srv, api):
-    api.patch("/api/params", json={"estimators": {"lab": {"acc_noise": 0.77}}})
+    api.patch("/api/params", json={"estimators": {"lab": {"acc_std": 0.77}}})
     r = api.post("/api/presets/save", json={"name": "test-preset"})
     assert r.status_code == 200 and Path(r.json()["saved"]).is_file()
-    api.patch("/api/params", json={"estimators": {"lab": {"acc_noise": 0.5}}})
+    api.patch("/api/params", json={"estimators": {"lab": {"acc_std": 0.5}}})
     r = api.post("/api/presets/load", json={"name": "test-preset"})
     assert r.status_code == 200
-    assert r.json()["estimators"]["lab"]["acc_noise"] == pytest.approx(0.77)
+    assert r.json()["estimators"]["lab"]["acc_std"] == pytest.approx(0.77)
     assert api.post("/api/presets/save", json={"name": "../evil"}).status_code == 422
     assert api.post("/api/presets/load", json={"name": "missing"}).status_code == 422
-    api.patch("/api/params", json={"estimators": {"lab": {"acc_noise": 0.5}}})
+    api.patch("/api/params", json={"estimators": {"lab": {"acc_std": 0.5}}})
 
 
 def test_reset_forgets_orientation(srv, api):
@@ -281,36 +325,24 @@ def test_busy_port_is_reported():
         assert serve(args) != 0
 
 
-def test_ring_window_spans_the_time_window_across_the_wrap():
-    from app.server.engine import Ring
-    ring = Ring(100, 2)
-    for k in range(250):                      # wrapped twice; times 0.00 .. 2.49 s
-        row = ring.next_row()
-        row[0], row[1] = k / 100.0, k
-    w = ring.window(0.505, 1000)              # every row of the last ~0.5 s, oldest first
-    assert w[:, 1].tolist() == list(range(199, 250))
-    w = ring.window(10.0, 7)                  # longer than held: the whole ring, thinned
-    assert w.shape == (7, 2) and w[0, 1] == 150 and w[-1, 1] == 249
-    assert np.all(np.diff(w[:, 0]) > 0)
-    w[:] = -1                                 # a copy: the ring is untouched
-    assert ring.window(0.0, 5)[:, 1].tolist() == [249]
-    ring.clear()
-    assert ring.window(1.0, 5).shape == (0, 2)
-
-
 def test_scene_draws_a_rejected_sensor(srv):
     """A refused magnetometer sample turns its arrow red (viser takes the colour as an
-    array) and names the gate in the indicator line."""
+    array); the indicators name the gate, the same text in the pill and the 3D label."""
     from app.estimators.base import F_MAG, F_MAG_VAL, R_NORM, StepFlags, new_flags
+    from app.server.gui import _indicators_html
+    from app.server.scene import Indicators, describe_rejection
     f = new_flags()
     f[F_MAG], f[F_MAG_VAL] = R_NORM, 80.0
     flags = StepFlags.from_row(1.0, f)
     eng, scene = srv.engine, srv.app.state.scene
-    snap = eng.snapshot()
+    snap = eng.core.snapshot()
     snap.mag, snap.mag_flags, snap.initialized = np.array([0.0, 20.0, -75.0]), flags, True
     scene.draw(snap)
     assert scene.mag.colors.tolist() == [230, 30, 30]
-    assert "MAG disturbed: |m| = 80.0 µT" in scene.status.text
+    ind = Indicators(mag=describe_rejection("mag", flags))
+    scene.set_indicators(ind)
+    assert scene.status.text == "mag disturbed: |m| = 80.0 µT"
+    assert "mag disturbed: |m| = 80.0 µT" in _indicators_html(ind)
     snap.mag_flags = StepFlags.from_row(1.0, new_flags())
     scene.draw(snap)
     assert scene.mag.colors.tolist() != [230, 30, 30]

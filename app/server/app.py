@@ -16,30 +16,44 @@ import logging
 from pathlib import Path
 
 import viser
-from fastapi import FastAPI
-from fastapi.responses import FileResponse
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 from ..config import load_config
 from .engine import Engine
+from .access import COOKIE, Access, guard_viewer
 from .gui import Gui, run_gui
+from .limits import BodyLimit, install_error_handlers
 from .net import lan_ipv4
 from .receiver import PhoneServer
-from .routers import health, params, state
+from .routers import calibrate, estimators, health, params, phone, recordings, replay, state
+from .routers import inject as inject_router
+from .gui_lab import LabGui, run_lab_gui
+from .lab import LabTools
 from .scene import Scene
 from .settings import Settings
-from .sources import run_demo, run_replay
+from .sources import ReplayControl, run_demo, run_replay
 
 log = logging.getLogger("orientlab.server")
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 
 
-def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, http_port: int) -> str:
+def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, http_port: int,
+           access: Access | None = None) -> str:
     host = lan_ip if settings.host in ("0.0.0.0", "") else settings.host
+    if access is None or access.open:
+        page = [f"    open the page:      http://{host}:{http_port}/   (on this PC: http://localhost:{http_port}/)",
+                "    access:             --open: anyone on the network may change the session"]
+    else:
+        page = [f"    presenter's link:   {access.presenter_link(f'http://{host}:{http_port}/')}",
+                f"                        (on this PC: {access.presenter_link(f'http://localhost:{http_port}/')})",
+                "                        (keep it to yourself: it holds the token that allows changes)",
+                f"    students watch at:  http://{host}:{http_port}/   (watch-only)"]
     return "\n".join([
         "",
         "  orientlab is running",
-        f"    open the page:      http://{host}:{http_port}/   (on this PC: http://localhost:{http_port}/)",
+        *page,
         f"    3D viewer only:     http://{host}:{viewer_port}/",
         f"    phone app address:  {lan_ip}   port {phone_port}   (Sensor Fusion app: Stream, 100 Hz)",
         f"    source:             {settings.source}",
@@ -48,13 +62,17 @@ def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, h
     ])
 
 
-def start_source(engine: Engine, settings: Settings) -> asyncio.Task | None:
+def start_source(engine: Engine, settings: Settings, lab: LabTools | None = None) -> asyncio.Task | None:
     if settings.source == "demo":
         return asyncio.create_task(run_demo(engine, settings.demo_seed), name="demo")
     if settings.source == "none":
         engine.pause_background()
         return None
-    return asyncio.create_task(run_replay(engine, settings.source, settings.replay_pause_s),
+    path = Path(settings.source)
+    control = ReplayControl(path.read_bytes().splitlines(), path.name)
+    if lab is not None:  # the page and /api/replay control it
+        lab.replay, lab.replay_name = control, path.stem
+    return asyncio.create_task(run_replay(engine, path, settings.replay_pause_s, control=control),
                                name="replay")
 
 
@@ -62,13 +80,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     if settings.source not in ("demo", "none") and not Path(settings.source).is_file():
         raise FileNotFoundError(f"--source: no such log file: {settings.source}")
-    load_config(settings.config)  # a bad preset is refused before anything starts
+    config = load_config(settings.config)  # read once; a bad preset is refused before anything starts
+    access = Access.from_settings(settings)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         st = app.state
         loop = asyncio.get_running_loop()
-        engine = Engine(settings)
+        engine = Engine(settings, config)
         engine.bind(loop)
         await loop.run_in_executor(None, engine.warm_up)
         st.engine = engine
@@ -78,6 +97,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             st.scene = Scene(st.viewer)
             st.gui = Gui(st.viewer, engine, st.scene, settings)
+            guard_viewer(st.viewer, access)
             engine.pose_listeners.append(st.scene.draw_pose)
             engine.listeners.append(st.scene.draw)
             st.phone = PhoneServer(engine, settings)
@@ -85,12 +105,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.lan_ip = lan_ipv4()
             st.tasks["engine"] = asyncio.create_task(engine.run(), name="engine")
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.plot_hz), name="gui")
-            src = start_source(engine, settings)
+            st.lab = LabTools(engine, settings, config)      # the lab toolkit (issue 9)
+            st.lab.app_state = st
+            st.lab.engine_server = st.viewer       # the variants' ghosts join the 3D scene
+            st.lab_gui = LabGui(st.viewer.gui, st.gui.tabs, st.lab, loop)
+            st.tasks["lab"] = asyncio.create_task(run_lab_gui(st.lab_gui), name="lab")
+            src = start_source(engine, settings, st.lab)
             if src is not None:
                 st.tasks["source"] = src
             if settings.verbose:
                 print(banner(settings, st.lan_ip, st.viewer.get_port(), st.phone.port,
-                             settings.port), flush=True)
+                             settings.port, access), flush=True)
             yield
         finally:
             for t in st.tasks.values():
@@ -98,18 +123,34 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if getattr(st, "phone", None) is not None:
                 await st.phone.stop()
             await asyncio.gather(*st.tasks.values(), return_exceptions=True)
+            lab = getattr(st, "lab", None)
+            if lab is not None and lab.recorder is not None:   # a recording ends cleanly
+                lab.stop_recording()
             st.viewer.stop()
 
     app = FastAPI(title="orientlab", lifespan=lifespan,
                   description="Live orientation estimation from a phone's sensors: state, "
                               "parameters and a WebSocket stream of every estimate.")
+    app.state.access = access
+    app.state.settings = settings
+    install_error_handlers(app)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.include_router(health.router)
     app.include_router(state.router)
     app.include_router(params.router)
+    app.include_router(phone.router)
+    for r in (recordings, calibrate, replay, estimators, inject_router):
+        app.include_router(r.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
     @app.get("/", include_in_schema=False)
-    async def index() -> FileResponse:
+    async def index(request: Request, token: str | None = None):
+        if token is not None and not access.open:
+            # the presenter's link: keep the token in a cookie, then show a clean URL
+            resp = RedirectResponse("/", status_code=303)
+            if access.token_ok(token):
+                resp.set_cookie(COOKIE, token, httponly=True, samesite="strict")
+            return resp
         return FileResponse(STATIC_DIR / "index.html")
 
     return app

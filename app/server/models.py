@@ -9,6 +9,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 class Health(BaseModel):
     status: str = Field(description="'ok' while the filter task runs")
+    restarts: int = Field(0, description="times the filter task ended and its supervisor restarted it")
+    loop_errors: int = Field(0, description="items the filter task skipped after an error")
+    step_errors: int = Field(0, description="samples an estimator raised on (logged, skipped)")
+    restored: int = Field(0, description="times an estimator's state went non-finite and its "
+                          "last good state was restored")
+    dropped_subscribers: int = Field(0, description="WS /ws/state clients dropped for not reading")
     source: str
     estimators: list[str]
     primary: str
@@ -20,6 +26,10 @@ class Info(BaseModel):
     phone_port: int
     lan_ip: str
     source: str
+    presenter: bool = Field(False, description="this browser holds the presenter's token "
+                            "(or the server runs with --open): it may change the session")
+    viewer_token: str | None = Field(None, description="for the presenter only: the token "
+                                     "the page passes to the embedded viewer")
 
 
 class Decision(BaseModel):
@@ -36,12 +46,15 @@ class Decision(BaseModel):
 class EstimatorState(BaseModel):
     q: list[float]
     euler_deg: list[float]
+    base: str = Field(description="the estimator kind (a variant's base)")
     initialized: bool
     error_to_phone_deg: float | None
     error_to_truth_deg: float | None
     acc: Decision
     mag: Decision
     gyr_bias: list[float] | None
+    step_errors: int = 0
+    restored: int = 0
 
 
 class State(BaseModel):
@@ -66,7 +79,10 @@ class State(BaseModel):
     mag: Decision
     standstill: bool
     sigma_deg: list[float] | None = Field(description="1σ attitude uncertainty about E, N, Up")
-    diagnostics: dict[str, Any]
+    diagnostics: dict[str, Any] = Field(description="the primary estimator's Diagnostics (app.estimators."
+                                        "base.Diagnostics), every field by name: references, "
+                                        "gate bands and gates, learned state; null where "
+                                        "the estimator has no such thing")
     rates_hz: dict[str, float | None]
     counts: dict[str, Any] = Field(description="lines, samples, malformed (+ by reason), late, "
                                    "clamped, tags, updates per estimator and sensor, totals")
@@ -83,15 +99,19 @@ class Params(BaseModel):
 
 
 class PresetRequest(BaseModel):
-    name: str = Field(description="letters, digits, '-' or '_'", examples=["lecture-3"])
+    name: str | None = Field(None, description="letters, digits, '-' or '_'", examples=["lecture-3"])
+    path: str | None = Field(None, description="load only: a preset file on this PC (e.g. written "
+                             "by orientlab calibrate)", examples=["~/calib/pixel7.toml"])
 
 
 PATCH_DOC = """A partial JSON object; every field is validated before anything is applied
 (an unknown key or an out-of-range value: 422 naming the field, nothing applied). Values in SI
 units (rad/s, m/s², µT, s), as in GET /api/params.
 
-- a top-level parameter (`use_gyr`, `use_acc`, `use_mag`, `max_gap`, or any parameter some
-  estimator has) applies to **every** estimator that has it;
+- a top-level parameter must be a **shared** one (`use_gyr`, `use_acc`, `use_mag`, `max_gap`,
+  `gyr_hold`, `gyr_bias`, `acc_band_rel`: one meaning and unit in every estimator); it
+  applies to **every** estimator that has it. Any other goes under `estimators`;
+- a renamed key is refused naming its new name (e.g. `gyr_noise was renamed gyr_std in lab`);
 - `primary`: the estimator drawn and plotted (`robust`, `lab`, `complementary`, `phone`);
 - `estimators`: `{"<estimator>": {"<param>": value}}` for one estimator (wins over top level);
 - `reset`: `true` forgets the orientation (the filters align again).
@@ -101,5 +121,5 @@ Changes apply from the next sample on. The response is the new GET /api/params."
 PATCH_EXAMPLES = {
     "magnetometer off": {"value": {"use_mag": False}},
     "lab filter, approximate time update": {
-        "value": {"primary": "lab", "estimators": {"lab": {"time_update": "approx", "acc_noise": 0.3}}}},
+        "value": {"primary": "lab", "estimators": {"lab": {"time_update": "approx", "acc_std": 0.3}}}},
 }

@@ -1,24 +1,40 @@
 """Presets: load a TOML preset into the engine, save the current parameters as one.
 
-Used by the GUI's Presets tab and the API (``/api/presets``). A preset name is a plain
-word (letters, digits, ``-``, ``_``) stored as ``<preset_dir>/<name>.toml``; loading
-also accepts the presets shipped in ``configs/``. ``default`` cannot be overwritten.
+Used by the GUI's Presets tab and the API (``/api/presets``).
+
+- **Where.** Presets saved from the dashboard go to the user's folder
+  (``Settings.preset_dir``: ``--presets-dir``, ``$ORIENTLAB_PRESETS``, else
+  ``~/.local/share/orientlab/presets``), never into the source tree. The presets shipped
+  in ``configs/`` are read-only: a saved preset cannot take a shipped name.
+- **Names** are checked with ``re.fullmatch`` (1-64 letters, digits, ``-``, ``_``; no
+  trailing newline, no path): ``<preset_dir>/<name>.toml``. At most
+  ``Settings.max_presets`` are saved (then saving a new name is refused).
+- **Writes are atomic**: a temporary file in the same folder, then ``os.replace``.
+- **Loading** by name (the user's folder first, then the shipped ones), from a **path**
+  (a file written by ``orientlab calibrate``, anywhere on this PC), or from the **text**
+  of an uploaded file (at most :data:`MAX_PRESET_BYTES`); each sets every estimator to
+  its defaults plus the preset, after the same validation as ``--config``.
 """
 
 from __future__ import annotations
 
+import os
 import re
+import tempfile
+import tomllib
 from pathlib import Path
 
-from ..config import ConfigError, load_config
-from ..params import CONFIG_DIR, dump_toml
-from .engine import Change, Engine, PatchError
+from ..config import DEFAULT_CONFIG, ConfigError, _merge, load_config, validate_config
+from ..params import CONFIG_DIR, dump_toml, load_toml
+from ..live import Change, PatchError
+from .engine import Engine
 
-NAME_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+NAME_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+MAX_PRESET_BYTES = 64 * 1024
 
 
-def _check_name(name: str) -> str:
-    if not isinstance(name, str) or not NAME_RE.match(name):
+def _check_name(name) -> str:
+    if not isinstance(name, str) or NAME_RE.fullmatch(name) is None:
         raise PatchError(("name",), "a preset name is 1-64 letters, digits, '-' or '_'")
     return name
 
@@ -27,12 +43,17 @@ def preset_path(settings, name: str) -> Path:
     return Path(settings.preset_dir) / f"{_check_name(name)}.toml"
 
 
+def shipped_names() -> set[str]:
+    return {p.stem for p in CONFIG_DIR.glob("*.toml")} if CONFIG_DIR.is_dir() else set()
+
+
+def _saved(settings) -> list[Path]:
+    d = Path(settings.preset_dir)
+    return [p for p in d.glob("*.toml") if NAME_RE.fullmatch(p.stem)] if d.is_dir() else []
+
+
 def list_presets(settings) -> list[str]:
-    names = set()
-    for d in {Path(settings.preset_dir), CONFIG_DIR}:
-        if d.is_dir():
-            names.update(p.stem for p in d.glob("*.toml"))
-    return sorted(names)
+    return sorted(shipped_names() | {p.stem for p in _saved(settings)})
 
 
 def load_preset(engine: Engine, name: str) -> Change:
@@ -41,22 +62,100 @@ def load_preset(engine: Engine, name: str) -> Change:
     if not path.is_file():
         path = CONFIG_DIR / f"{name}.toml"
     if not path.is_file():
-        raise PatchError(("name",), f"no preset named {name!r} (known: {', '.join(list_presets(engine.settings))})")
+        raise PatchError(("name",), f"no preset named {name!r} "
+                                    f"(known: {', '.join(list_presets(engine.settings))})")
+    return _change_from_path(engine, path, ("name",))
+
+
+def load_preset_path(engine: Engine, path) -> Change:
+    """A change from the preset file at ``path`` (e.g. written by ``orientlab calibrate``)."""
+    if not isinstance(path, str) or not path.strip() or len(path) > 4096:
+        raise PatchError(("path",), "the path of a preset file (.toml)")
+    p = Path(path.strip()).expanduser()
+    if not p.is_file():
+        raise PatchError(("path",), f"no such file: {str(p)[:200]}")
+    if p.stat().st_size > MAX_PRESET_BYTES:
+        raise PatchError(("path",), f"larger than {MAX_PRESET_BYTES // 1024} KB: not a preset")
+    return _change_from_path(engine, p, ("path",))
+
+
+def _change_from_path(engine: Engine, path: Path, loc: tuple) -> Change:
     try:
         config = load_config(path)
     except ConfigError as e:
-        raise PatchError(("name",), str(e)) from None
-    return engine.change_from_config(config)
+        raise PatchError(loc, str(e)[:300]) from None
+    return engine.core.change_from_config(config)
+
+
+def config_from_text(text: str | bytes, source: str = "upload") -> dict:
+    """``configs/default.toml`` merged with a preset given as text; ConfigError if bad."""
+    if isinstance(text, bytes):
+        if len(text) > MAX_PRESET_BYTES:
+            raise ConfigError(f"{source}: larger than {MAX_PRESET_BYTES // 1024} KB: not a preset")
+        text = text.decode("utf-8", errors="replace")
+    if len(text) > MAX_PRESET_BYTES:
+        raise ConfigError(f"{source}: larger than {MAX_PRESET_BYTES // 1024} KB: not a preset")
+    try:
+        over = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{source}: not valid TOML: {str(e)[:200]}") from None
+    validate_config(over, source)
+    raw = load_toml(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else {}
+    return validate_config(_merge(raw, over), source)
+
+
+def load_preset_text(engine: Engine, text: str | bytes, source: str = "upload") -> Change:
+    """A change from a preset's text (an uploaded file)."""
+    try:
+        config = config_from_text(text, source)
+    except ConfigError as e:
+        raise PatchError(("file",), str(e)[:300]) from None
+    return engine.core.change_from_config(config)
+
+
+def _check_writable(settings, name: str) -> Path:
+    _check_name(name)
+    if name in shipped_names():
+        raise PatchError(("name",), f"{name!r} is a shipped preset (read-only): "
+                                    "save under another name")
+    path = preset_path(settings, name)
+    cap = int(getattr(settings, "max_presets", 200))
+    if not path.exists() and len(_saved(settings)) >= cap:
+        raise PatchError(("name",), f"already {cap} saved presets: delete some in "
+                                    f"{settings.preset_dir} first")
+    return path
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
 
 
 def save_preset(engine: Engine, name: str) -> Path:
-    """Write the current parameters of every estimator (and the primary) as a preset."""
-    if name == "default":
-        raise PatchError(("name",), "the default preset cannot be overwritten")
-    path = preset_path(engine.settings, name)
-    sections = {"primary": engine.primary}
-    for n, est in engine.estimators.items():
-        sections[n] = est.params_dict()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(dump_toml(sections, header=f"orientlab preset {name!r}, saved from the dashboard"))
+    """Write the current parameters of every estimator (and the primary) as a preset in
+    the user's folder (atomically)."""
+    path = _check_writable(engine.settings, name)
+    sections = engine.core.preset_sections()
+    _write_atomic(path, dump_toml(sections, header=f"orientlab preset {name!r}, saved from the dashboard"))
+    return path
+
+
+def save_preset_text(settings, name: str, text: str | bytes) -> Path:
+    """Keep an uploaded preset (already validated) in the user's folder under ``name``."""
+    path = _check_writable(settings, name)
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", errors="replace")
+    _write_atomic(path, text)
     return path

@@ -15,11 +15,21 @@ Robustness:
   (``truncated``) and dropped: a cut number would otherwise parse as a wrong value;
 - malformed lines are counted by reason and skipped (by the stream's orderer).
 
+**A connection takes the slot only with valid sensor data**: until its first valid
+motion sample (ACC/GYR/MAG/ORI, parsed, finite, within the physical limits) it changes
+nothing: the demo goes on, the filters are not reset, the phone on show stays. A
+connection that sends no valid sample within ``phone_hello_s`` (3 s) is closed and
+counted (``no_data``): an empty connect, a port scan or a stray script never stops the
+demo. The lines before the first valid sample are kept and fed with it.
+
 **A second phone while one streams is refused** (its connection is closed at once and
 counted as ``refused``): a stray phone in a classroom must not hijack the projector.
-Exception: if the streaming phone has sent nothing for ``phone_idle_s`` seconds (a
-connection that died without a FIN, e.g. the phone lost Wi-Fi), the new phone takes
-over and the silent connection is closed.
+Exception: if the streaming phone has sent no valid sample for ``phone_idle_s`` seconds
+(a connection that died without a FIN, or one that sends only empty lines), the new
+phone takes over and the silent connection is closed.
+
+**The presenter may lock the phone slot** (``POST /api/phone {"locked": true}``): then
+no new phone is accepted at all, valid data or not, until it is unlocked.
 
 When a phone connects, the demo (or log replay) stops. When the phone leaves, the
 dashboard keeps the phone's last state and says so; the demo does **not** resume by
@@ -31,14 +41,22 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import socket
 import time
 
-from ..protocol import LineSplitter
+from ..protocol import MOTION_TAGS, LineSplitter, MalformedLine, parse_line
 
 log = logging.getLogger("orientlab.receiver")
 
-READ_CHUNK = 65536
+# Fairness: the phone's data is parsed on the event loop that also answers the API. A
+# read returns at most READ_CHUNK bytes (~110 lines: ~1 ms of parsing, ~10 ms of filtering); after each chunk
+# the receiver yields the loop, and while the engine has more than MAX_BACKLOG samples
+# waiting it stops reading (TCP flow control then holds the phone back: nothing is
+# lost). So a phone sending as fast as TCP carries it cannot starve the API or grow the
+# queue without bound.
+READ_CHUNK = 4096
+MAX_BACKLOG = 256
 
 
 def quick_ack(sock: socket.socket | None) -> None:
@@ -58,6 +76,26 @@ def quick_ack(sock: socket.socket | None) -> None:
         pass
 
 
+HELLO_MAX_LINES = 2000     # lines without a valid sample before a connection is dropped
+
+
+def valid_sample_line(line) -> bool:
+    """A line holding a usable motion sample (the test for a new connection)."""
+    try:
+        smp = parse_line(line)
+    except MalformedLine:
+        return False
+    return smp.tag in MOTION_TAGS and all(math.isfinite(v) for v in smp.values)
+
+
+def _n_samples(session) -> int:
+    """Samples the session's stream has accepted so far (parsed and valid)."""
+    try:
+        return sum(session.orderer.counters.tags.values())
+    except AttributeError:
+        return session.lines
+
+
 class PhoneServer:
     """asyncio TCP server feeding phone connections into the engine."""
 
@@ -66,6 +104,9 @@ class PhoneServer:
         self.settings = settings
         self.server: asyncio.base_events.Server | None = None
         self.current: tuple | None = None          # (session, writer) of the streaming phone
+        self.current_valid_at = 0.0                # monotonic time of its last valid sample
+        self.locked = False                        # the presenter's lock: no new phone
+        self.counts = {"no_data": 0, "refused_locked": 0}
         self._writers: set = set()
 
     async def start(self) -> None:
@@ -86,17 +127,78 @@ class PhoneServer:
         if self.current is None:
             return False
         session, _ = self.current
-        return session.open and time.monotonic() - session.last_rx < self.settings.phone_idle_s
+        return session.open and time.monotonic() - self.current_valid_at < self.settings.phone_idle_s
+
+    def status(self) -> dict:
+        cur = self.current[0] if self.current is not None else None
+        return {"locked": self.locked, "streaming": cur.label if cur is not None and cur.open else None,
+                "refused": self.engine.core.totals.refused, **self.counts}
+
+    async def _hello(self, reader, splitter: LineSplitter) -> list | None:
+        """The lines up to and including the first valid sample, or None if none comes
+        within ``phone_hello_s`` (or the connection ends, or sends junk only)."""
+        held: list = []
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.settings.phone_hello_s
+        while len(held) < HELLO_MAX_LINES:
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                return None
+            try:
+                chunk = await asyncio.wait_for(reader.read(READ_CHUNK), remaining)
+            except (asyncio.TimeoutError, ConnectionError, OSError):
+                return None
+            if not chunk:
+                return None
+            lines = splitter.feed(chunk)
+            held.extend(lines)
+            if splitter.overflows:
+                return None
+            if any(valid_sample_line(ln) for ln in lines):
+                return held
+        return None
+
+    async def _let_others_run(self, session) -> None:
+        """Yield the event loop after a chunk; wait while the engine is behind."""
+        eng = self.engine
+        if getattr(eng, "queued", 0) <= MAX_BACKLOG:
+            await asyncio.sleep(0)
+            return
+        while getattr(eng, "queued", 0) > MAX_BACKLOG // 2 and session is eng.core.session:
+            await asyncio.sleep(0.002)
+
+    def _refuse(self, writer, label: str, why: str) -> None:
+        self.engine.core.totals.count_refused()
+        log.warning("refused phone %s: %s", label, why)
+        writer.close()
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
         label = f"{peer[0]}:{peer[1]}" if peer else "?"
         eng = self.engine
+        if self.locked:
+            self.counts["refused_locked"] += 1
+            return self._refuse(writer, label, "the presenter has locked the phone slot")
         if self._busy():
-            eng.counts_total["refused"] += 1
-            log.warning("refused phone %s: another phone is streaming", label)
+            return self._refuse(writer, label, "another phone is streaming")
+        splitter = LineSplitter(self.settings.max_line_bytes)
+        self._writers.add(writer)
+        try:
+            held = await self._hello(reader, splitter)
+        except asyncio.CancelledError:
+            self._writers.discard(writer)
+            writer.close()
+            raise
+        if held is None:   # nothing valid: this connection never takes the slot
+            self._writers.discard(writer)
+            self.counts["no_data"] += 1
+            log.info("phone %s closed: no valid sample within %g s", label,
+                     self.settings.phone_hello_s)
             writer.close()
             return
+        if self.locked or self._busy():   # another phone got in meanwhile
+            self._writers.discard(writer)
+            return self._refuse(writer, label, "another phone is streaming")
         if self.current is not None:  # a silent connection: the new phone takes over
             old_session, old_writer = self.current
             eng.close_session(old_session, f"silent for {self.settings.phone_idle_s:g} s, "
@@ -105,12 +207,12 @@ class PhoneServer:
         eng.pause_background()
         session = eng.open_session("phone", label)
         self.current = (session, writer)
-        self._writers.add(writer)
         log.info("phone %s connected", label)
-        splitter = LineSplitter(self.settings.max_line_bytes)
         reason = "end of stream"
         sock = writer.get_extra_info("socket")
         try:
+            self.current_valid_at = time.monotonic()
+            eng.feed_lines(session, held, time.perf_counter())
             while True:
                 quick_ack(sock)
                 chunk = await reader.read(READ_CHUNK)
@@ -118,16 +220,21 @@ class PhoneServer:
                     break
                 t_arr = time.perf_counter()
                 lines = splitter.feed(chunk)
-                if session is not eng.session:  # replaced meanwhile
+                if session is not eng.core.session:  # replaced meanwhile
                     reason = "replaced"
                     break
                 if lines:
+                    n0 = _n_samples(session)
                     eng.feed_lines(session, lines, t_arr)
+                    if _n_samples(session) > n0 and self.current is not None \
+                            and self.current[0] is session:
+                        self.current_valid_at = time.monotonic()
                 if splitter.overflows:  # not this format: the lines before it are kept
-                    eng.counts_total["too_long"] += 1
+                    eng.core.totals.count_too_long()
                     session.count_malformed("too_long")
                     reason = f"a line longer than {splitter.max_line} bytes without a newline"
                     break
+                await self._let_others_run(session)
         except (ConnectionError, OSError) as e:
             reason = f"connection lost ({type(e).__name__})"
         except asyncio.CancelledError:

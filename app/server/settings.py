@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..params import CONFIG_DIR
+
+def user_preset_dir() -> Path:
+    """Where presets saved from the dashboard go: ``$ORIENTLAB_PRESETS``, else
+    ``$XDG_DATA_HOME/orientlab/presets`` (``~/.local/share/orientlab/presets``); never
+    the source tree (the shipped presets in ``configs/`` are read-only)."""
+    env = os.environ.get("ORIENTLAB_PRESETS")
+    if env:
+        return Path(env).expanduser()
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "orientlab" / "presets"
 
 
 @dataclass(frozen=True)
@@ -22,8 +32,19 @@ class Settings:
     phone_host: str | None = None    # phone receiver; None: all interfaces
     phone_port: int = 3400
     source: str = "demo"
+    recordings: Path = Path("recordings")   # --recordings: the lab's recordings folder
     config: str | None = None        # a preset file or name (configs/<name>.toml)
-    preset_dir: Path = field(default_factory=lambda: CONFIG_DIR)
+    preset_dir: Path = field(default_factory=user_preset_dir)   # saved presets (user folder)
+    max_presets: int = 200           # saving more is refused
+    # access (see app/server/access.py)
+    open_access: bool = False        # --open: no token, anyone may change the session
+    token: str | None = None         # the presenter's token; None: a random one at start
+    # resources
+    max_body_bytes: int = 1 << 20    # a longer HTTP request body is answered 413
+    max_connections: int = 200       # HTTP connections at once; more are closed at once
+    header_timeout_s: float = 10.0   # a request's headers must arrive within this
+    keep_alive_s: int = 5            # an idle HTTP connection is closed after this
+    phone_hello_s: float = 3.0       # a phone must send a valid sample within this
     # receiver
     max_line_bytes: int = 65536      # a longer line without newline closes the connection
     phone_idle_s: float = 3.0        # a second phone may take over after this much silence
@@ -32,7 +53,7 @@ class Settings:
     demo_seed: int = 0
     replay_pause_s: float = 1.0      # pause between two loops of a replayed log
     # display
-    plot_hz: float = 10.0
+    plot_hz: float = 5.0             # plots resent whole each time: 5 Hz halves a viewer's cost
     scene_hz: float = 30.0           # cones, arrows, other phones, indicators (the pose: every batch)
     ws_hz: float = 20.0              # WS /ws/state messages (each holds every estimate since the last)
     history_s: float = 20.0
@@ -50,8 +71,12 @@ class Settings:
     def from_args(cls, args) -> "Settings":
         """From an argparse namespace with host, port, viewer_port, phone_port, config, source."""
         kw = {}
-        for name in ("host", "port", "viewer_port", "phone_port", "config", "source"):
+        for name in ("host", "port", "viewer_port", "phone_port", "config", "source", "recordings"):
             v = getattr(args, name, None)
             if v is not None:
-                kw[name] = str(v) if name in ("config", "source") else v
+                kw[name] = str(v) if name in ("config", "source") else (Path(v) if name == "recordings" else v)
+        if getattr(args, "open", False):
+            kw["open_access"] = True
+        if getattr(args, "presets_dir", None):
+            kw["preset_dir"] = Path(args.presets_dir).expanduser()
         return cls(**kw)

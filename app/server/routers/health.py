@@ -12,15 +12,16 @@ router = APIRouter(prefix="/api", tags=["health"])
 @router.get("/health", response_model=Health)
 async def health(request: Request, engine: Engine = Depends(get_engine)) -> Health:
     """Is the filter task running?"""
-    task = request.app.state.tasks.get("engine")
-    ok = task is not None and not task.done()
-    return Health(status="ok" if ok else "stopped", source=engine.source_kind(),
-                  estimators=list(engine.estimators), primary=engine.primary)
+    h = engine.health(request.app.state.tasks.get("engine"))
+    return Health(**h, source=engine.core.source_kind(), estimators=engine.core.bench.names,
+                  primary=engine.core.bench.primary)
 
 
 @router.get("/info", response_model=Info)
 async def info(request: Request, engine: Engine = Depends(get_engine)) -> Info:
     """Ports and the PC's LAN address (for the landing page)."""
     st = request.app.state
+    presenter = st.access.is_presenter(request)
     return Info(viewer_port=st.viewer.get_port(), phone_port=st.phone.port, lan_ip=st.lan_ip,
-                source=engine.source_kind())
+                source=engine.core.source_kind(), presenter=presenter,
+                viewer_token=st.access.token if presenter and not st.access.open else None)

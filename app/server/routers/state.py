@@ -1,15 +1,18 @@
 """GET /api/state, GET /api/stats, WS /ws/state, POST /api/source/resume."""
 
 import asyncio
+import contextlib
 
-from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
+
+from ..access import require_presenter, websocket_origin_ok
 
 from ..engine import Engine
 from ..models import State
 from . import get_engine
 
 router = APIRouter(tags=["state"])
-WS_QUEUE_MAX = 10_000   # batches; a client that falls this far behind is dropped
+WS_SEND_TIMEOUT_S = 10.0   # a client that takes longer to accept one message is closed
 
 
 @router.get("/api/state", response_model=State)
@@ -19,13 +22,15 @@ async def state(engine: Engine = Depends(get_engine)) -> dict:
 
 
 @router.get("/api/stats")
-async def stats(reset: bool = False, engine: Engine = Depends(get_engine)) -> dict:
+async def stats(request: Request, reset: bool = False, engine: Engine = Depends(get_engine)) -> dict:
     """Backlog and latency (line arrival to viser update queued), for the load benchmark.
-    ``reset=true`` starts a new measurement."""
+    ``reset=true`` starts a new measurement (the presenter only)."""
+    if reset:
+        require_presenter(request)
     return engine.stats(reset)
 
 
-@router.post("/api/source/resume")
+@router.post("/api/source/resume", dependencies=[Depends(require_presenter)])
 async def resume(engine: Engine = Depends(get_engine)) -> dict:
     """Restart the demo (or log replay) after a phone has left."""
     engine.resume_background()
@@ -37,12 +42,16 @@ async def ws_state(ws: WebSocket) -> None:
     """Every estimate: JSON messages (at most ``ws_hz``, default 20, a second) each
     holding the estimates made since the previous one,
     ``{"primary", "source", "estimates": [{"t", "tag", "q"}]}`` (q of the primary, [w,x,y,z]);
-    no estimate is skipped. The first message is the full state (as GET /api/state)."""
+    no estimate is skipped. The first message is the full state (as GET /api/state).
+    A client that stops reading (a sleeping laptop) is dropped once it is
+    :data:`app.server.engine.SUBSCRIBER_BACKLOG` messages behind, or when one message
+    takes longer than ``WS_SEND_TIMEOUT_S`` to send; it never holds up the filter."""
     engine: Engine = ws.app.state.engine
+    if not websocket_origin_ok(ws):   # a foreign page's script may not listen in
+        await ws.close(code=1008)
+        return
     await ws.accept()
-    q: asyncio.Queue = asyncio.Queue(maxsize=WS_QUEUE_MAX)
-    await ws.send_json({"state": engine.state()})
-    engine.subscribers.add(q)
+    sub = engine.subscribe()
 
     async def watch_close():
         try:
@@ -50,17 +59,21 @@ async def ws_state(ws: WebSocket) -> None:
                 await ws.receive_text()
         except (WebSocketDisconnect, RuntimeError):
             pass
-        q.put_nowait(None)
+        sub.close()
 
     watcher = asyncio.create_task(watch_close())
     try:
+        await asyncio.wait_for(ws.send_json({"state": engine.state()}), WS_SEND_TIMEOUT_S)
         while True:
-            msg = await q.get()
+            msg = await sub.next()
             if msg is None:
                 break
-            await ws.send_text(msg)
-    except (WebSocketDisconnect, RuntimeError, asyncio.QueueFull):
+            await asyncio.wait_for(ws.send_text(msg), WS_SEND_TIMEOUT_S)
+    except (WebSocketDisconnect, RuntimeError, OSError, asyncio.TimeoutError):
         pass
     finally:
-        engine.subscribers.discard(q)
+        engine.unsubscribe(sub)
         watcher.cancel()
+        if sub.dropped:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=1013), 1.0)

@@ -1,0 +1,61 @@
+"""Presenter control in real browsers (issue 10): the presenter opens the link with the
+token and can switch the magnetometer off; a second browser (a student's, no token)
+sees the same controls disabled, and its forced clicks change nothing."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import httpx
+import pytest
+
+from harness import running_server, wait_for
+
+CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
+                             shutil.which("chromium-browser") or "") if p and Path(p).exists()), None)
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+TOKEN = "browser-test-token"
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(CHROMIUM is None,
+                       reason="NO CHROMIUM FOUND: the browser test is SKIPPED "
+                              "(install Debian's chromium to run it)"),
+]
+
+
+def test_only_the_presenters_browser_can_change_the_session(tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with running_server(source="demo", open_access=False, token=TOKEN, preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, \
+            sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        try:
+            student = browser.new_context(viewport={"width": 1400, "height": 850}).new_page()
+            student.goto(srv.url + "/")
+            s_frame = student.frame_locator("iframe#viewer")
+            s_mag = s_frame.get_by_label("Magnetometer", exact=True)
+            s_mag.wait_for(state="visible", timeout=60_000)
+            wait_for(lambda: s_mag.is_disabled(), 30.0, 0.2, what="the student's controls disabled")
+            s_mag.click(force=True, no_wait_after=True, timeout=30_000)   # a determined student
+            student.wait_for_timeout(1000)
+            assert api.get("/api/params").json()["use_mag"] is True
+
+            presenter = browser.new_context(viewport={"width": 1400, "height": 850}).new_page()
+            presenter.goto(f"{srv.url}/?token={TOKEN}")      # the link printed at start
+            assert "token" not in presenter.url              # kept in a cookie, not the URL
+            p_frame = presenter.frame_locator("iframe#viewer")
+            p_mag = p_frame.get_by_label("Magnetometer", exact=True)
+            p_mag.wait_for(state="visible", timeout=60_000)
+            presenter.wait_for_timeout(1500)
+            assert p_mag.is_enabled()
+            p_mag.click(no_wait_after=True, timeout=60_000)
+            wait_for(lambda: api.get("/api/params").json()["use_mag"] is False, 30.0,
+                     what="use_mag false after the presenter's click")
+            # the student's page follows the presenter's change and stays disabled
+            wait_for(lambda: not s_mag.is_checked(), 30.0, 0.2, what="the student's view follows")
+            assert s_mag.is_disabled()
+        finally:
+            browser.close()
