@@ -1,0 +1,32 @@
+"""Disturbance injection: ``POST /api/inject {"kind": "magnet", "strength_uT", "direction",
+"seconds", "frame"?}`` or ``{"kind": "shake", "amplitude_ms2", "seconds", "frequency_hz"?}``
+adds a virtual magnet or shake to the stream on show (phone, demo or replay); ``GET
+/api/inject`` lists the active ones and the marks (see :mod:`app.inject`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Body, Depends
+
+from ..access import require_presenter
+from ..lab import LabError, LabTools
+from ._lab import get_lab, lab_error
+
+router = APIRouter(prefix="/api", tags=["disturbances"])
+
+
+@router.get("/inject")
+async def injections(lab: LabTools = Depends(get_lab)) -> dict:
+    return lab.inject_status()
+
+
+@router.post("/inject", dependencies=[Depends(require_presenter)])
+async def inject(body: Any = Body(..., examples=[
+        {"kind": "magnet", "strength_uT": 50, "direction": "east", "seconds": 5},
+        {"kind": "shake", "amplitude_ms2": 8, "seconds": 3}]),
+        lab: LabTools = Depends(get_lab)) -> dict:
+    try:
+        return lab.inject(body)
+    except LabError as e:
+        raise lab_error(e) from None

@@ -1,0 +1,129 @@
+"""Virtual magnet and shake (app/inject.py): what they add to the lines, their marks,
+and what the estimators make of them on a real still phone."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.estimators import make_estimator
+from app.estimators.base import F_MAG
+from app.estimators import REJECTIONS
+from app.inject import InjectError, Injector, marks_in_log, parse_request
+from app.protocol import parse_line
+from app.quaternion import Q, error_angles, quat_from_rotvec
+from app.stream import SampleOrderer, samples_to_rows
+from app.variants import no_rejection_changes
+
+
+def _lines(seconds=4.0, mag=(10.0, 20.0, -40.0), acc=(0.0, 0.0, 9.81)):
+    out = []
+    for k in range(int(seconds * 100)):
+        ms = 1000 + 10 * k
+        out.append(f"{ms}\tACC\t{acc[0]}\t{acc[1]}\t{acc[2]}".encode())
+        if k % 2 == 0:
+            out.append(f"{ms + 3}\tMAG\t{mag[0]}\t{mag[1]}\t{mag[2]}".encode())
+        out.append(f"{ms + 5}\tGYR\t0.01\t0.0\t0.0".encode())
+    return out
+
+
+def test_requests_are_validated_with_the_field_named():
+    d = parse_request({"kind": "magnet", "strength_uT": 50, "direction": "east", "seconds": 3})
+    assert d.kind == "magnet" and d.frame == "world" and d.direction == (1.0, 0.0, 0.0)
+    assert parse_request({"kind": "shake", "amplitude_ms2": 5, "seconds": 2}).frame == "sensor"
+    for body, field in [({"kind": "laser"}, "kind"),
+                        ({"kind": "magnet", "seconds": 3}, "strength_uT"),
+                        ({"kind": "magnet", "strength_uT": "x", "seconds": 3}, "strength_uT"),
+                        ({"kind": "magnet", "strength_uT": 50, "seconds": -1}, "seconds"),
+                        ({"kind": "magnet", "strength_uT": 50, "seconds": 1, "direction": [0, 0, 0]}, "direction"),
+                        ({"kind": "magnet", "strength_uT": 50, "seconds": 1, "frame": "moon"}, "frame"),
+                        ({"kind": "shake", "amplitude_ms2": 5, "seconds": 1, "strength_uT": 3}, "strength_uT"),
+                        ({"kind": "magnet", "strength_uT": math.nan, "seconds": 1}, "strength_uT")]:
+        with pytest.raises(InjectError) as e:
+            parse_request(body)
+        assert e.value.field == field
+
+
+def test_magnet_in_the_sensor_frame_adds_its_field_for_its_seconds_only():
+    lines = _lines()
+    inj = Injector()
+    before, _ = inj.feed(lines[:90])                 # nothing requested: unchanged
+    assert before == lines[:90]
+    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": [0, 0, 1],
+                             "frame": "sensor", "seconds": 1.0}))
+    out, marks = inj.feed(lines[90:])
+    assert [m["event"] for m in marks] == ["start", "end"]
+    assert not inj.busy
+    mags = [parse_line(ln) for ln in out if b"\tMAG\t" in ln]
+    changed = [s for s in mags if abs(s.values[2] + 40.0) > 1e-6]
+    assert changed and all(abs(s.values[2] - 10.0) < 1e-4 for s in changed)    # -40 + 50
+    span = (changed[-1].time_ms - changed[0].time_ms) / 1000.0
+    assert 0.95 <= span <= 1.0
+    assert all(s.values[:2] == (10.0, 20.0) for s in changed)
+    # ACC/GYR untouched, marks are TXT lines of the app's format at their place
+    assert [ln for ln in out if b"\tACC\t" in ln] == [ln for ln in lines[90:] if b"\tACC\t" in ln]
+    txt = marks_in_log(out)
+    assert len(txt) == 2 and txt[0]["text"].startswith("magnet 50 uT")
+    assert txt[0]["time_ms"] == changed[0].time_ms
+
+
+def test_world_frame_magnet_turns_with_the_phone():
+    q = quat_from_rotvec(np.array([0.0, 0.0, math.pi / 2]))     # turned 90° about up
+    inj = Injector(orientation=lambda: q)
+    inj.start(parse_request({"kind": "magnet", "strength_uT": 30, "direction": "east",
+                             "seconds": 0.5}))
+    out, _ = inj.feed(_lines(1.0))
+    s = next(parse_line(ln) for ln in out if b"\tMAG\t" in ln)
+    added = np.array(s.values) - np.array([10.0, 20.0, -40.0])
+    np.testing.assert_allclose(added, Q(q).T @ np.array([30.0, 0, 0]), atol=1e-4)
+    assert inj.history[-1].frame_used == "world"
+
+
+def test_shake_adds_a_sinusoid_to_the_accelerometer():
+    inj = Injector()
+    inj.start(parse_request({"kind": "shake", "amplitude_ms2": 8, "seconds": 2,
+                             "frequency_hz": 2, "ramp_s": 0}))
+    out, _ = inj.feed(_lines(3.0))
+    acc = np.array([parse_line(ln).values for ln in out if b"\tACC\t" in ln])
+    dx = acc[:, 0]
+    assert 7.9 < dx.max() <= 8.0 and -8.0 <= dx.min() < -7.9
+    np.testing.assert_allclose(acc[:, 1:], [[0.0, 9.81]] * len(acc), atol=1e-6)
+
+
+def _rows(lines):
+    o = SampleOrderer(window=2.0)
+    s = [x for ln in lines for x in o.push_line(ln)] + o.flush()
+    return samples_to_rows([x for x in s if x.tag in ("ACC", "GYR", "MAG", "ORI")])
+
+
+def test_primary_rides_out_a_50uT_magnet_and_the_no_rejection_variant_does_not(shared_dir):
+    """A real still phone (standstill log) with a 50 µT magnet for 5 s: with the
+    defaults the primary refuses it and its heading moves < 3°; the same filter with
+    every gate off turns by tens of degrees."""
+    path = (shared_dir / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
+            / "sensorLog_20221024T182616_standstill.txt")
+    lines = path.read_bytes().splitlines()
+    t0 = int(lines[0].split(b"\t")[0])
+    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
+    inj = Injector()
+    head, _ = inj.feed(lines[:k])
+    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": "x",
+                             "frame": "sensor", "seconds": 5}))
+    tail, marks = inj.feed(lines[k:])
+    assert [m["event"] for m in marks] == ["start", "end"]
+    clean, dist = _rows(lines), _rows(head + tail)
+    w = (dist.t >= dist.t[0] + 6.0) & (dist.t <= dist.t[0] + 13.0)
+    moved = {}
+    for name, params in (("robust", {}), ("robust-no-rejection", no_rejection_changes("robust"))):
+        a = make_estimator("robust", params).run(clean.t, clean.gyr, clean.acc, clean.mag, clean.ori)
+        b = make_estimator("robust", params).run(dist.t, dist.gyr, dist.acc, dist.mag, dist.ori)
+        _, heading, _ = error_angles(b.q[w], a.q[w])
+        moved[name] = math.degrees(heading.max())
+        if name == "robust":
+            mag_rows = b.flags[w][~np.isnan(dist.mag[w, 0]), F_MAG].astype(int)
+            in_magnet = mag_rows[5:200]     # MAG at ~50 Hz: the first 4 s of the magnet
+            assert np.mean(np.isin(in_magnet, [int(r) for r in REJECTIONS])) > 0.9
+    assert moved["robust"] < 3.0, moved
+    assert moved["robust-no-rejection"] > 20.0, moved
