@@ -1,55 +1,122 @@
-"""Take the README's screenshot (docs/dashboard.png) of the dashboard running the demo.
+"""Take the README's screenshots of the dashboard, from a real phone log streamed over TCP.
 
-Starts the real server on free loopback ports (``app.server.harness``), opens the page
-in Debian's headless Chromium (Playwright with ``executable_path``; no browser
-download), lets the demo run into its magnet scene so the disturbance shows, closes
-the software-rendering notice and saves the page at 1600x900.
-Run: ``.venv/bin/python docs/make_screenshot.py [--seconds 40]``.
+Starts the real server on free loopback ports (``tests/harness.py``, no demo), plays a
+real Sensor Fusion app log from ``../shared/data/sensorfusion-app`` into its phone port
+over TCP at the log's own pace (a thread plays the phone), opens the page in Debian's
+headless Chromium (Playwright with ``executable_path``; no browser download) at
+1600x900, and saves:
+
+- ``docs/dashboard.png``: the page while the log streams (plots panel, 3D view, the
+  control panel on its Tuning tab);
+- ``docs/dashboard-demo.png`` (with ``--demo``): the built-in demo at its magnet.
+
+Run: ``.venv/bin/python docs/make_screenshot.py [--log PATH] [--seconds 8] [--demo]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
+import threading
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from app.server.harness import running_server  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
+from app.protocol import MalformedLine, parse_line  # noqa: E402
+from harness import Phone, log_lines, running_server  # noqa: E402
 
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+DEFAULT_LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
+               / "sensorLog_20221024T182635_walking_hand.txt")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=40.0, help="demo time before the shot")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "dashboard.png")
-    args = ap.parse_args(argv)
+def play_paced(port: int, lines: list[str], stop: threading.Event) -> None:
+    """Send ``lines`` to the phone port at the pace of their timestamps (per tag clock)."""
+    first: dict[str, int] = {}
+    due = []
+    prev = 0.0
+    for ln in lines:
+        try:
+            s = parse_line(ln)
+            prev = max(0.0, (s.time_ms - first.setdefault(s.tag, s.time_ms)) / 1000.0)
+        except MalformedLine:
+            pass
+        due.append(prev)
+    with Phone(port) as ph:
+        t0 = time.monotonic()
+        i = 0
+        while i < len(lines) and not stop.is_set():
+            now = time.monotonic() - t0
+            j = i
+            while j < len(lines) and due[j] <= now:
+                j += 1
+            if j > i:
+                ph.send_lines(lines[i:j])
+                i = j
+            time.sleep(0.02)
+        stop.wait()          # keep the connection open until the shots are taken
+
+
+def hide_notices(frame) -> None:
+    """Hide viser's notices (the software-WebGL one covers the 3D view in headless
+    Chromium) for the picture."""
+    frame.locator("body").evaluate(
+        "b => { const s = document.createElement('style');"
+        " s.textContent = '.mantine-Notifications-root { display: none !important; }';"
+        " b.appendChild(s); }")
+
+
+def shoot(url: str, out_main: Path, seconds: float, start=None) -> None:
+    """Open the page, call ``start()`` (if given) once it shows, wait ``seconds``, shoot."""
     from playwright.sync_api import sync_playwright
-    import tempfile
-    with running_server(source="demo") as srv, sync_playwright() as pw, \
-            tempfile.TemporaryDirectory() as profile:
+    with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
         ctx = pw.chromium.launch_persistent_context(
             profile, executable_path="/usr/bin/chromium", headless=True, args=ARGS,
             viewport={"width": 1600, "height": 900})
         page = ctx.new_page()
-        page.goto(srv.url + "/")
+        page.goto(url)
         frame = page.frame_locator("iframe#viewer")
         frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
-        page.wait_for_timeout(args.seconds * 1000)
-        for button in frame.locator("button.mantine-Notification-closeButton, "
-                                    "[class*=Notification] button").all():
-            try:
-                button.click(timeout=1000)
-            except Exception:
-                pass
+        if start is not None:
+            start()
+        page.wait_for_timeout(seconds * 1000)
+        hide_notices(page.frames[1] if len(page.frames) > 1 else page.main_frame)
         page.mouse.move(5, 890)
         page.wait_for_timeout(1500)
-        page.screenshot(path=str(args.out))
+        page.screenshot(path=str(out_main))
+        print(f"saved {out_main}")
         ctx.close()
-    print(f"saved {args.out}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--log", type=Path, default=DEFAULT_LOG, help="a Sensor Fusion app log")
+    ap.add_argument("--seconds", type=float, default=8.0,
+                    help="seconds of streaming before the shot (the default log lasts 16.7 s)")
+    ap.add_argument("--demo", action="store_true", help="also shoot the demo at its magnet")
+    ap.add_argument("--outdir", type=Path, default=ROOT / "docs")
+    args = ap.parse_args(argv)
+    if not args.log.is_file():
+        print(f"no such log: {args.log} (the real logs live in ../shared beside the repository)")
+        return 2
+    with running_server(source="none") as srv:
+        stop = threading.Event()
+        phone = threading.Thread(target=play_paced, args=(srv.phone_port, log_lines(args.log), stop),
+                                 daemon=True)
+        try:
+            shoot(srv.url + "/", args.outdir / "dashboard.png", args.seconds, start=phone.start)
+        finally:
+            stop.set()
+            phone.join(5.0)
+    if args.demo:
+        with running_server(source="demo") as srv:
+            # the demo's magnet passes 26-32 s into its loop (the page takes a few s to open)
+            shoot(srv.url + "/", args.outdir / "dashboard-demo.png", 22.0)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The viser 3D scene, drawn from an engine :class:`~app.server.engine.Snapshot`.
+"""The viser 3D scene, drawn from the live core's :class:`~app.live.Snapshot`.
 
 An ENU world (x east, y north, z up) with a grid and E/N/Up labels; the phone as a
 flat slab in its sensor frame (x right, y top of the screen, z out of the screen): a
@@ -13,7 +13,9 @@ sensor axes (x red, y green, z blue). Beside it:
   magnetometer turned to world coordinates by the estimate) beside the expected
   one (the estimator's references), so a disturbance shows as a mismatch;
 - a floating status line (standstill, accelerometer / magnetometer disturbed with
-  the reason and the value that tripped the gate).
+  the reason and the value that tripped the gate): the GUI computes it once per
+  refresh (:class:`Indicators`) and hands the same text to its pills and to
+  :meth:`Scene.set_indicators`, so both always say the same.
 
 Pure drawing: no filter state is touched. Quaternion math comes from
 :mod:`app.quaternion`.
@@ -22,12 +24,13 @@ Pure drawing: no filter state is touched. Quaternion math comes from
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimators import REJECTIONS, Reason
+from ..estimators import Diagnostics, Reason
+from ..live import Snapshot
 from ..quaternion import Q, quat_from_matrix
-from .engine import Snapshot
 
 W, H, D = 0.7, 1.4, 0.08            # phone size in scene units (x, y, z)
 AXIS_LEN = 1.0
@@ -75,6 +78,12 @@ def _phone_body(scene, name: str, color, opacity=None) -> None:
                       position=(0.0, H / 2 - 0.1, D / 2 + 0.006))
         scene.add_icosphere(f"{name}/camera", radius=0.022, color=(10, 10, 10),
                             position=(0.14, H / 2 - 0.1, D / 2 + 0.006))
+        # the back (-z): plain, a shade darker, with the rear camera near the top, so a
+        # phone lying screen down reads as its back at a glance (no labels on it)
+        scene.add_box(f"{name}/back", color=(160, 165, 175), dimensions=(W - 0.04, H - 0.04, 0.006),
+                      position=(0.0, 0.0, -D / 2 - 0.003))
+        scene.add_box(f"{name}/rear_camera", color=(40, 40, 45), dimensions=(0.16, 0.16, 0.014),
+                      position=(W / 2 - 0.14, H / 2 - 0.14, -D / 2 - 0.007))  # top left seen from the back
 
 
 def _arrow_points(vec: np.ndarray | None) -> np.ndarray:
@@ -106,12 +115,13 @@ class Scene:
         self.phone = sc.add_frame("/phone", show_axes=False)
         _phone_body(sc, "/phone", (225, 225, 232))
         sc.add_frame("/phone/axes", axes_length=AXIS_LEN, axes_radius=0.018, origin_radius=0.03)
-        for i, text in enumerate("xyz"):
+        # one label per axis at its tip, nothing else on the phone: labels face the
+        # camera, so more of them overlap when the phone turns (the orange band and the
+        # earpiece mark the top; the darker back with its camera marks the back)
+        for i, text in enumerate(("x", "y (top)", "z (screen)")):
             pos = [0.0, 0.0, 0.0]
-            pos[i] = AXIS_LEN + 0.1
-            sc.add_label(f"/phone/axis_{text}", text, position=tuple(pos), anchor="center-center")
-        sc.add_label("/phone/top_label", "top", position=(0.0, H / 2 + 0.12, 0.0),
-                     anchor="center-center", font_screen_scale=0.9)
+            pos[i] = AXIS_LEN + 0.12
+            sc.add_label(f"/phone/axis_{'xyz'[i]}", text, position=tuple(pos), anchor="center-center")
         verts, faces = _cone_mesh()
         self.cones = []
         for i in range(3):
@@ -186,10 +196,13 @@ class Scene:
                 self._set_visible(what, self._want[what] and q is not None)
             self._draw_cones(R, s.cov)
             self._draw_arrows(R, s)
-            text = indicator_text(s)
-            if text != self._status_text:
-                self.status.text = text
-                self._status_text = text
+
+    def set_indicators(self, ind: "Indicators") -> None:
+        """The floating status line (the same text as the GUI's pills)."""
+        text = ind.text()
+        if text != self._status_text:
+            self.status.text = text
+            self._status_text = text
 
     def _draw_cones(self, R: np.ndarray, cov: np.ndarray | None) -> None:
         if cov is None:
@@ -208,7 +221,7 @@ class Scene:
                 self._cone_scale[i] = scale
 
     def _draw_arrows(self, R: np.ndarray, s: Snapshot) -> None:
-        g0 = np.asarray(s.diag.get("g0") or (0.0, 0.0, 9.81), float)
+        g0 = np.asarray(s.diag.g0 or (0.0, 0.0, 9.81), float)
         gn = float(np.linalg.norm(g0))
         self._set_expected("grav", self.grav_expected, g0 / gn * ARROW_LEN)
         if s.acc is not None:
@@ -231,7 +244,7 @@ class Scene:
 
     def _color(self, sensor: str, handle, flags, good) -> None:
         """Red while the sensor's last sample was refused by a gate."""
-        bad = flags is not None and getattr(flags, sensor) in REJECTIONS
+        bad = flags is not None and flags.rejected(sensor)
         if bad != self._bad[sensor]:
             # an array: viser's property setter does not convert a tuple of colours
             handle.colors = np.array(C_BAD if bad else good, dtype=np.uint8)
@@ -244,27 +257,35 @@ def _close(a, b, atol: float) -> bool:
     return len(a) == len(b) and all(abs(x - y) <= atol for x, y in zip(a, b))
 
 
-def expected_field(diag: dict) -> np.ndarray | None:
+def expected_field(diag: Diagnostics) -> np.ndarray | None:
     """The reference magnetic field in world coordinates (µT) from an estimator's
     diagnostics (``m0``: lab's nominal field, robust's learned reference), else None."""
-    m0 = diag.get("m0")
+    m0 = diag.m0
     return None if m0 is None else np.asarray(m0, float)
 
 
-def indicator_text(s: Snapshot) -> str:
-    """OrientationView's indicators as one line: standstill, acc / mag disturbed."""
-    parts = []
-    if s.rest:
-        parts.append("standstill")
-    for sensor, f in (("acc", s.acc_flags), ("mag", s.mag_flags)):
-        if f is None:
-            continue
-        r: Reason = getattr(f, sensor)
-        if r in REJECTIONS:
-            parts.append(f"{sensor.upper()} disturbed: {describe_rejection(sensor, f)}")
-    if not s.initialized:
-        parts.append("aligning…")
-    return " · ".join(parts)
+@dataclass(frozen=True)
+class Indicators:
+    """What the indicators say: standstill, and for a disturbed sensor the gate that
+    refused it and the value (``"|a| = 14.2 m/s²"``), else None."""
+    rest: bool = False
+    acc: str | None = None
+    mag: str | None = None
+    aligning: bool = False
+    waiting_for: str = "aligning…"     # what the estimate waits for while it has none
+
+    def text(self) -> str:
+        """OrientationView's indicators as one line."""
+        parts = []
+        if self.rest:
+            parts.append("standstill")
+        for sensor in ("acc", "mag"):
+            v = getattr(self, sensor)
+            if v is not None:
+                parts.append(f"{sensor} disturbed: {v}")
+        if self.aligning:
+            parts.append(self.waiting_for)
+        return " · ".join(parts)
 
 
 def describe_rejection(sensor: str, f) -> str:
@@ -281,4 +302,6 @@ def describe_rejection(sensor: str, f) -> str:
         return f"dip off by {math.degrees(v):.1f}°"
     if r == Reason.NIS:
         return f"NIS = {v:.1f}"
+    if getattr(Reason, "ACCEL", None) is not None and r == Reason.ACCEL:
+        return f"accelerating, {math.degrees(v):.0f}° off gravity"
     return f"{r.label} {v:.3g}"

@@ -1,0 +1,145 @@
+"""The live plots: uPlot charts in viser's panel, fed from the engine's history rings.
+
+Why the data goes out as lists with ``null`` and not as arrays with NaN: viser sends a
+float array as a ``Float64Array``, where a missing value can only be NaN, and uPlot
+does not treat NaN as a gap: a series whose first value in view is NaN (or that is NaN
+throughout) turns its chart's y range into NaN and the *whole chart* is drawn empty,
+every series of it. uPlot's own gap marker is ``null``; viser's handle would cast a
+list back to a float array (``plot.data = ...``), so :func:`send_data` queues the
+update itself with plain lists (``None`` for every non-finite value). Checked with
+viser 1.1.1 in Chromium (``tests/test_plots_browser.py`` looks at the pixels).
+
+Every x axis is seconds since the stream started. Angles are kept in their usual
+ranges only when the phone spun round: yaw and roll are unwrapped over the window
+(no vertical strokes at ±180°, no comb when the phone faces south), see
+:func:`unwrap_deg`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from ..quaternion import angle_between_many
+
+EULER_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
+
+
+def wire(a: np.ndarray, digits: int = 4) -> list:
+    """A float array as a list for uPlot: ``None`` (a gap) where it is not finite.
+    Rounded to ``digits`` decimals: the chart cannot show more, msgpack sends less."""
+    a = np.asarray(a, dtype=float)
+    ok = np.isfinite(a)
+    out = np.round(a, digits).tolist()
+    if not ok.all():
+        for i in np.flatnonzero(~ok).tolist():
+            out[i] = None
+    return out
+
+
+def send_data(handle, columns: Sequence[np.ndarray]) -> None:
+    """Replace a uPlot chart's data; NaN and inf become gaps (see the module doc)."""
+    cols = tuple(wire(c) for c in columns)
+    queue = getattr(handle, "_queue_update", None)
+    if queue is None:  # pragma: no cover - another viser: fall back to its own setter
+        handle.data = tuple(np.where(np.isfinite(np.asarray(c, float)), c, 0.0) for c in columns)
+        return
+    queue("data", cols)
+
+
+def break_wraps(deg: np.ndarray, jump: float = 180.0) -> np.ndarray:
+    """An angle series (deg, rows) with NaN put where it wraps around (a jump of more
+    than ``jump`` between neighbours), so the chart shows a break, not a spike."""
+    out = np.array(deg, dtype=float, copy=True)
+    if out.shape[0] < 2:
+        return out
+    d = np.abs(np.diff(out, axis=0))
+    wrap = np.zeros(out.shape, dtype=bool)
+    wrap[1:] = d > jump
+    out[wrap] = np.nan
+    return out
+
+
+def unwrap_deg(deg: np.ndarray, max_span: float = 540.0) -> np.ndarray:
+    """Angle columns (deg, ±180) unwrapped over the window (no jump of 360° between
+    neighbours, across NaN gaps too), shifted by whole turns so that each column's
+    newest value lies in [-180, 180]: a phone facing south draws a calm line near 180°
+    instead of a comb between +180 and -180. A column that turned more than
+    ``max_span`` degrees in the window (a phone spun round and round) stays in ±180
+    with a break (a gap) where it wraps, so the chart keeps a readable scale."""
+    out = np.array(deg, dtype=float, copy=True)
+    for k in range(out.shape[1]):
+        col = out[:, k]
+        ok = np.flatnonzero(np.isfinite(col))
+        if ok.size < 2:
+            continue
+        u = np.degrees(np.unwrap(np.radians(col[ok])))
+        u -= 360.0 * np.round(u[-1] / 360.0)
+        if np.ptp(u) <= max_span:
+            col[ok] = u
+        else:
+            out[:, k] = break_wraps(col)
+    return out
+
+
+def angle_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+    """Row-wise angle between two arrays of unit quaternions (deg): formula 2c."""
+    return np.degrees(angle_between_many(qa, qb))
+
+
+def series(specs: Iterable[tuple], x_label: str = "t [s]") -> tuple[dict[str, Any], ...]:
+    """uPlot series: the x series, then one per ``(label, colour, dashed, span_gaps)``."""
+    out: list[dict[str, Any]] = [{"label": x_label}]
+    for spec in specs:
+        label, color, dash = spec[:3]
+        span = spec[3] if len(spec) > 3 else False
+        s: dict[str, Any] = {"label": label, "stroke": color, "width": 1.5}
+        if dash:
+            s["dash"] = [6, 4]
+        if span:
+            s["spanGaps"] = True
+        out.append(s)
+    return tuple(out)
+
+
+class Plot:
+    """One chart and what it needs to be worth showing."""
+
+    def __init__(self, gui, key: str, title: str, specs: list[tuple], *, height: int = 150,
+                 y_scale: dict | None = None):
+        self.key = key
+        self.title = title
+        self.specs = specs
+        scales: dict[str, Any] = {"x": {"time": False}}
+        if y_scale:
+            scales["y"] = y_scale
+        s = series(specs)
+        self.handle = gui.add_uplot(data=tuple(np.zeros(2) for _ in s), series=s, title=title,
+                                    scales=scales, height=height, aspect=2.0)
+        self.visible = True
+        self.has_data = False          # something finite was drawn at the last update
+        self._nudge = False
+
+    @property
+    def colors(self) -> list[str]:
+        return [s[1] for s in self.specs]
+
+    def update(self, x: np.ndarray, *ys: np.ndarray) -> None:
+        """New data. Every other update the last x moves by 0.1 ms (invisible): viser's
+        chart re-ranges its scales only when the x extent changes (its data updates keep
+        the scales), so a chart laid out while hidden (another tab) would stay blank
+        once the stream stops; with the nudge it re-ranges at every refresh."""
+        self._nudge = not self._nudge
+        if self._nudge and len(x):
+            x = np.array(x, dtype=float, copy=True)
+            x[-1] += 1e-4
+        send_data(self.handle, (x, *ys))
+        self.has_data = any(np.isfinite(np.asarray(y, float)).any() for y in ys)
+
+    def show(self, on: bool) -> None:
+        """Whether the chart has something to show. It stays on the page either way
+        (empty axes, the note under the plots says why): a chart mounted again by
+        viser's client starts at zero width and keeps a broken x window (drawn empty)
+        when data are already there."""
+        self.visible = on
