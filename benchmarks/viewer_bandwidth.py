@@ -10,7 +10,8 @@ What it does
 - **breakdown**: the same server in this process with one viewer; every message queued
   for the viewers is serialised and its size added up per message type (what is
   queued: viser merges some pose updates before sending, so the total is an upper
-  bound).
+  bound), raw and zstd-compressed one message at a time (viser compresses a window of
+  messages at once with zstd level 1: near what is received).
 
 What it prints
 --------------
@@ -130,25 +131,31 @@ def _plot_labels(gui) -> dict:
 
 def breakdown(seconds: float) -> None:
     import msgspec
+    import zstandard
     from harness import running_server
 
-    tally: dict[str, list] = collections.defaultdict(lambda: [0, 0])
+    zstd = zstandard.ZstdCompressor(level=1)
+
+    tally: dict[str, list] = collections.defaultdict(lambda: [0, 0, 0])
     with running_server(source="demo") as srv:
         ws = srv.app.state.viewer._websock_server
         original = ws.queue_message
-        labels = {**_labels(srv.app.state.gui), **_plot_labels(srv.app.state.gui)}
+        labels = {**_labels(srv.app.state.lab_gui), **_labels(srv.app.state.gui),
+                  **_plot_labels(srv.app.state.gui)}
 
         def counting(message):
             try:
-                n = len(msgspec.msgpack.encode(message.as_serializable_dict()))
+                raw = msgspec.msgpack.encode(message.as_serializable_dict())
+                n, nz = len(raw), len(zstd.compress(raw))
             except Exception:
-                n = 0
+                n = nz = 0
             name = type(message).__name__
             if name == "GuiUpdateMessage":
                 name = f"GuiUpdate {labels.get(message.uuid, message.uuid[:8])}.{','.join(message.updates)}"
             t = tally[name]
             t[0] += 1
             t[1] += n
+            t[2] += nz
             return original(message)
         counters = [[0]]
         stop = threading.Event()
@@ -164,10 +171,13 @@ def breakdown(seconds: float) -> None:
         stop.set()
         th.join(10)
     total = sum(v[1] for v in tally.values()) / wall / 1e3
-    print(f"  breakdown (1 viewer, queued, {wall:.0f} s): {total:.1f} kB/s queued, {got:.1f} kB/s received")
-    print(f"    {'message (GuiUpdate: handle.fields)':60s} {'msg/s':>7s} {'kB/s':>8s}")
-    for name, (k, b) in sorted(tally.items(), key=lambda kv: -kv[1][1])[:14]:
-        print(f"    {name[:60]:60s} {k / wall:7.1f} msg/s {b / wall / 1e3:8.1f} kB/s")
+    total_z = sum(v[2] for v in tally.values()) / wall / 1e3
+    print(f"  breakdown (1 viewer, queued, {wall:.0f} s): {total:.1f} kB/s queued "
+          f"({total_z:.1f} kB/s compressed), {got:.1f} kB/s received")
+    print(f"    {'message (GuiUpdate: handle.fields)':60s} {'msg/s':>7s} {'kB/s':>8s} {'zstd':>8s}")
+    for name, (k, b, bz) in sorted(tally.items(), key=lambda kv: -kv[1][2])[:14]:
+        print(f"    {name[:60]:60s} {k / wall:7.1f} msg/s {b / wall / 1e3:8.1f} kB/s "
+              f"{bz / wall / 1e3:8.1f} kB/s")
 
 
 def main() -> int:

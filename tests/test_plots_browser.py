@@ -170,10 +170,11 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path, browser):
         ctx, page, _ = open_page(browser, srv, tmp_path)
         try:
             frame = viewer_frame(page)
-            # the demo: the phone's own estimate (ORI) and the truth: both error series
+            # the demo: the phone's own estimate (ORI) and the truth: both error series;
+            # robust's |mag| band (grey) goes out as its two ends and spans the gaps
             wait_drawn(frame, gui, {"euler": ["yaw", "pitch", "roll"],
                                     "error": ["to phone's own", "to truth"],
-                                    "acc": ["|acc|"], "mag": ["|mag|"],
+                                    "acc": ["|acc|"], "mag": ["|mag|", "band lo"],
                                     "nis": ["acc NIS", "mag NIS"]}, timeout=60.0)
             # the Tuning tab: values in the user's unit with three significant digits,
             # a hover text with meaning, unit and effect; the bias button answers

@@ -104,7 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await st.phone.start()
             st.lan_ip = lan_ipv4()
             st.tasks["engine"] = asyncio.create_task(engine.run(), name="engine")
-            st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.plot_hz), name="gui")
+            st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
             st.lab = LabTools(engine, settings, config)      # the lab toolkit (issue 9)
             st.lab.app_state = st
             st.lab.engine_server = st.viewer       # the variants' ghosts join the 3D scene

@@ -43,7 +43,7 @@ from ..quaternion import q2euler_many
 from .controls import Control, build_control, show_value
 from ..live.bench import SENSORS
 from .engine import Engine, PatchError
-from .plots import EULER_COLORS, Plot, angle_deg, unwrap_deg
+from .plots import EULER_COLORS, Plot, angle_deg, ends, unwrap_deg
 from .presets import (NAME_RE, list_presets, load_preset, load_preset_path, load_preset_text,
                       save_preset, save_preset_text, shipped_names)
 from .scene import Indicators, Scene, describe_rejection
@@ -335,14 +335,16 @@ class Gui:
                                                                ("to truth", "#17becf", False)],
                           height=h)
         self.p_acc = Plot(gui, "acc", "|acc| [m/s²] and its gate band",
-                          [("|acc|", "#1f77b4", False), ("band lo", "#7f7f7f", True),
-                           ("band hi", "#7f7f7f", True)], height=h)
+                          [("|acc|", "#1f77b4", False), ("band lo", "#7f7f7f", True, True),
+                           ("band hi", "#7f7f7f", True, True)], height=h)
         self.p_mag = Plot(gui, "mag", "|mag| and L_k [µT] and its gate band",
                           [("|mag|", "#9467bd", False), ("L_k", "#e377c2", False),
-                           ("band lo", "#7f7f7f", True), ("band hi", "#7f7f7f", True)], height=h)
+                           ("band lo", "#7f7f7f", True, True), ("band hi", "#7f7f7f", True, True)],
+                          height=h)
         self.p_nis = Plot(gui, "nis", "NIS (log scale) and its gates",
                           [("acc NIS", "#1f77b4", False, True), ("mag NIS", "#9467bd", False, True),
-                           ("acc gate", "#1f77b4", True), ("mag gate", "#9467bd", True)], height=h,
+                           ("acc gate", "#1f77b4", True, True), ("mag gate", "#9467bd", True, True)],
+                          height=h,
                           y_scale={"distr": 3, "log": 10})
         self.plot_note = gui.add_markdown("")
         self.plots = (self.p_euler, self.p_err, self.p_acc, self.p_mag, self.p_nis)
@@ -376,8 +378,8 @@ class Gui:
             t0 = pose["t"][0]
         notes = []
 
-        def const(x, v):
-            return np.full(x.shape, np.nan if v is None else float(v))
+        def const(x, v):     # a gate's line: its two ends (the series spans the gaps)
+            return ends(x, v)
 
         x = pose["t"] - t0
         q_ours, q_phone = pose["q"], pose["phone_q"]
@@ -584,19 +586,23 @@ def _readouts_html(st: dict) -> str:
     return f"<table style='font-size:0.9em'>{body}</table>"
 
 
-async def run_gui(gui: Gui, hz: float) -> None:
-    """Refresh the read-outs and plots at ``hz``, giving the event loop a turn between
-    the read-outs and each plot: the filter task (and its latency) never waits for a
-    whole refresh."""
+async def run_gui(gui: Gui, hz: float, plot_hz: float | None = None) -> None:
+    """Refresh the read-outs ``hz`` and the plots ``plot_hz`` times a second (each plot
+    is resent whole to every viewer: the plots cost a viewer most), giving the event
+    loop a turn between the read-outs and each plot: the filter task (and its latency)
+    never waits for a whole refresh."""
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
-    due = loop.time()
+    plot_period = period if plot_hz is None else 1.0 / plot_hz
+    due = plot_due = loop.time()
     while True:
         try:
             gui.refresh_text()
-            await asyncio.sleep(0)
-            for _ in gui.plot_steps():
+            if loop.time() >= plot_due - 0.5 * period:
+                plot_due = max(plot_due + plot_period, loop.time())
                 await asyncio.sleep(0)
+                for _ in gui.plot_steps():
+                    await asyncio.sleep(0)
         except Exception:
             log.exception("GUI refresh failed")
         due = max(due + period, loop.time())      # a steady hz, no catching up after a stall

@@ -9,6 +9,15 @@ list back to a float array (``plot.data = ...``), so :func:`send_data` queues th
 update itself with plain lists (``None`` for every non-finite value). Checked with
 viser 1.1.1 in Chromium (``tests/test_plots_browser.py`` looks at the pixels).
 
+What a viewer receives (every chart is resent whole: viser has no append): at most
+:data:`~app.server.gui.MAX_POINTS` rows per chart (about the chart's width in pixels),
+a few times a second, each value put on a binary grid (:func:`quantize`: x to
+:data:`X_STEP`, y to 1/2^:data:`Y_BITS` of its column's span, or to :data:`Y_BITS`
+significant bits on a log scale). The grid is far finer than a pixel, and a float on
+it ends in zero bytes, which viser's zstd compression then nearly removes: a value
+costs about 2 bytes on the wire instead of 8. A constant line (a gate band) goes out
+as its two ends with gaps between (:func:`ends`; its series spans gaps).
+
 Every x axis is seconds since the stream started. Angles are kept in their usual
 ranges only when the phone spun round: yaw and roll are unwrapped over the window
 (no vertical strokes at ±180°, no comb when the phone faces south), see
@@ -17,6 +26,7 @@ ranges only when the phone spun round: yaw and roll are unwrapped over the windo
 
 from __future__ import annotations
 
+import math
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -26,26 +36,65 @@ from ..quaternion import angle_between_many
 EULER_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
 
 
-def wire(a: np.ndarray, digits: int = 4) -> list:
-    """A float array as a list for uPlot: ``None`` (a gap) where it is not finite.
-    Rounded to ``digits`` decimals: the chart cannot show more, msgpack sends less."""
+X_STEP = 2.0 ** -14   # s: finer than the 0.1 ms nudge of Plot.update, so it survives
+Y_BITS = 12           # a y value to 1/4096 of its column's span: sub-pixel at any chart height
+
+
+def quantize(a: np.ndarray, log: bool = False, step: float | None = None) -> np.ndarray:
+    """``a`` rounded to a binary grid: multiples of ``step`` if given (a power of two),
+    else of the power of two nearest below 1/2^:data:`Y_BITS` of the finite values'
+    span (their magnitude if they are all equal); with ``log``, each value to
+    :data:`Y_BITS` significant bits (a log scale shows relative size; no positive value
+    becomes zero). Non-finite values stay as they are. The result differs from ``a``
+    by at most half a step, and its floats end in zero bits (they compress well)."""
     a = np.asarray(a, dtype=float)
     ok = np.isfinite(a)
-    out = np.round(a, digits).tolist()
+    if not ok.any():
+        return a.copy()
+    if log:
+        m, e = np.frexp(np.where(ok, a, 0.0))
+        out = np.ldexp(np.round(m * 2.0 ** Y_BITS) / 2.0 ** Y_BITS, e)
+        return np.where(ok, out, a)
+    if step is None:
+        fin = a[ok]
+        span = float(fin.max() - fin.min()) or float(np.abs(fin).max())
+        if span == 0.0:
+            return a.copy()
+        step = 2.0 ** (math.floor(math.log2(span)) - Y_BITS)
+    return np.round(a / step) * step
+
+
+def wire(a: np.ndarray, log: bool = False, step: float | None = None) -> list:
+    """A float array as a list for uPlot: ``None`` (a gap) where it is not finite,
+    finite values on :func:`quantize`'s grid (the chart cannot show more; the wire
+    carries less)."""
+    a = quantize(a, log, step)
+    ok = np.isfinite(a)
+    out = a.tolist()
     if not ok.all():
         for i in np.flatnonzero(~ok).tolist():
             out[i] = None
     return out
 
 
-def send_data(handle, columns: Sequence[np.ndarray]) -> None:
-    """Replace a uPlot chart's data; NaN and inf become gaps (see the module doc)."""
-    cols = tuple(wire(c) for c in columns)
+def send_data(handle, columns: Sequence[np.ndarray], log: bool = False) -> None:
+    """Replace a uPlot chart's data (x, then the series; ``log``: a log y scale);
+    NaN and inf become gaps (see the module doc)."""
+    cols = (wire(columns[0], step=X_STEP),) + tuple(wire(c, log) for c in columns[1:])
     queue = getattr(handle, "_queue_update", None)
     if queue is None:  # pragma: no cover - another viser: fall back to its own setter
         handle.data = tuple(np.where(np.isfinite(np.asarray(c, float)), c, 0.0) for c in columns)
         return
     queue("data", cols)
+
+
+def ends(x: np.ndarray, v: float | None) -> np.ndarray:
+    """A constant line over ``x`` as its two ends (NaN between; NaN throughout when
+    ``v`` is None): drawn whole by a series that spans gaps, two numbers on the wire."""
+    out = np.full(np.shape(x), np.nan)
+    if v is not None and out.size:
+        out[0] = out[-1] = float(v)
+    return out
 
 
 def break_wraps(deg: np.ndarray, jump: float = 180.0) -> np.ndarray:
@@ -115,6 +164,7 @@ class Plot:
         if y_scale:
             scales["y"] = y_scale
         s = series(specs)
+        self.log = bool(y_scale and y_scale.get("distr") == 3)   # a log y scale
         self.handle = gui.add_uplot(data=tuple(np.zeros(2) for _ in s), series=s, title=title,
                                     scales=scales, height=height, aspect=2.0)
         self.visible = True
@@ -134,7 +184,7 @@ class Plot:
         if self._nudge and len(x):
             x = np.array(x, dtype=float, copy=True)
             x[-1] += 1e-4
-        send_data(self.handle, (x, *ys))
+        send_data(self.handle, (x, *ys), self.log)
         self.has_data = any(np.isfinite(np.asarray(y, float)).any() for y in ys)
 
     def show(self, on: bool) -> None:

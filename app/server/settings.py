@@ -53,7 +53,8 @@ class Settings:
     demo_seed: int = 0
     replay_pause_s: float = 1.0      # pause between two loops of a replayed log
     # display
-    plot_hz: float = 5.0             # plots resent whole each time: 5 Hz halves a viewer's cost
+    plot_hz: float = 2.0             # plots: each refresh resends every chart whole to every viewer
+    text_hz: float = 5.0             # read-outs, indicators, status line (sent only when changed)
     scene_hz: float = 30.0           # cones, arrows, other phones, indicators (the pose: every batch)
     ws_hz: float = 20.0              # WS /ws/state messages (each holds every estimate since the last)
     history_s: float = 20.0
