@@ -1,6 +1,14 @@
 """The page's "Lab" tab: record, calibrate, magnetometer calibration, replay, what-if,
 variants and disturbances (the same operations as the API, on :class:`LabTools`).
 
+The heading plot (every estimator's heading over the last 30 s, the injected disturbance
+beside it) is what a viewer would pay most for: viser resends a chart whole, and the
+server cannot know whether a browser shows the Lab tab (the tab choice stays in the
+browser). So it is sent only while it has something to show (:meth:`LabGui.monitor_live`:
+a variant on the bench, a disturbance in its window, or "Live heading plot" ticked),
+at most :data:`MONITOR_DRAW_HZ` times a second with :data:`MONITOR_POINTS` rows; at
+the default view it sends nothing.
+
 viser runs the callbacks on its own threads: each one hands its work to the server's
 event loop (``run_coroutine_threadsafe``), where :class:`LabTools` lives; a refused
 request comes back as a notification in the tab that clicked. :func:`run_lab_gui`
@@ -19,6 +27,7 @@ import numpy as np
 
 from ..quaternion import q2euler_many
 from .lab import LabError, LabTools
+from .plots import send_data
 
 log = logging.getLogger("orientlab.gui_lab")
 
@@ -26,6 +35,8 @@ COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e3
 AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
 MONITOR_S = 30.0
 MONITOR_HZ = 50.0
+MONITOR_DRAW_HZ = 2.0     # the heading plot's refreshes per second, while live
+MONITOR_POINTS = 300      # rows sent per refresh (about the chart's width in pixels)
 VARIANT_SLOTS = 3
 
 
@@ -146,6 +157,8 @@ class LabGui:
         self._rerun_result: dict[str, Any] | None = None
         self._cal_shown = None
         self._known_recordings: tuple = ()
+        self._monitor_due = 0.0           # loop time of the heading plot's next refresh
+        self.monitor_sent = 0             # heading plot refreshes sent (tests, benchmarks)
         with tabs.add_tab("Lab"):
             self._build()
 
@@ -179,6 +192,11 @@ class LabGui:
                                 hint="a variant of the primary with every gate off, beside it")
             nr.on_click(lambda ev: self._add_variant(ev, "no-rejection"))
             self.inject_md = gui.add_markdown("")
+            self.monitor_follow = gui.add_checkbox(
+                "Live heading plot", False,
+                hint="Keep the heading plot below following the stream. Without it the plot "
+                     "follows only while a variant runs or a disturbance is in its 30 s "
+                     "window (each viewer pays for every refresh of a chart).")
             # fixed series (the page's uPlot keeps the count it was made with): the
             # builtins, VARIANT_SLOTS variants in the order they were added, the disturbance
             self._mon_builtins = [n for n in self.lab.core.bench.names]
@@ -571,17 +589,34 @@ class LabGui:
             rows.append(f"| `{n}`{tag} | {e[0]:.1f} {e[1]:.1f} {e[2]:.1f} | {err} | {dec} |")
         return "\n".join(rows)
 
+    def monitor_live(self) -> bool:
+        """Whether the heading plot follows the stream: "Live heading plot" ticked, a
+        variant on the bench, a disturbance active or one in the plot's window."""
+        if self.monitor_follow.value or self.lab.injector.active:
+            return True
+        b = self.lab.core.bench
+        if any(b.base_of(n) != n for n in b.names):
+            return True
+        m = self.monitor
+        return bool(m.t) and any(mk["t"] >= m.t[-1] - MONITOR_S for mk in self.lab.marks)
+
     def _draw_monitor(self) -> None:
         m = self.monitor
-        if len(m.t) < 2:
+        if len(m.t) < 2 or not self.monitor_live():
             return
-        t = np.array(m.t)
+        now = self.loop.time()
+        if now < self._monitor_due:
+            return
+        self._monitor_due = now + 1.0 / MONITOR_DRAW_HZ
+        keep = np.unique(np.linspace(0, len(m.t) - 1, min(len(m.t), MONITOR_POINTS)).astype(np.int64))
+        t = np.array(m.t)[keep]
         b = self.lab.core.bench
         variants = [n for n in b.names if b.base_of(n) != n][:VARIANT_SLOTS]
         cols = []
         for n in self._mon_builtins + variants + [None] * (VARIANT_SLOTS - len(variants)):
             y = m.yaw.get(n) if n is not None else None
-            cols.append(np.array(y, float) if y is not None and len(y) == len(t) else np.zeros(len(t)))
+            cols.append(np.array(y, float)[keep] if y is not None and len(y) == len(m.t)
+                        else np.full(len(t), np.nan))
         labels = self._mon_builtins + [variants[i] if i < len(variants) else f"variant {i + 1}"
                                        for i in range(VARIANT_SLOTS)]
         current = [s["label"] for s in self.p_monitor.series][1:-1]
@@ -592,9 +627,9 @@ class LabGui:
                  "show": i < n_b + len(variants)}
                 for i, lab in enumerate(labels)) + (
                 {"label": "disturbance", "stroke": "#999", "width": 1, "dash": [4, 4]},)
-        # uPlot's autoscale fails on NaN: rows where an estimator had no value yet get 0
-        data = (t - t[-1],) + tuple(np.nan_to_num(c, nan=0.0) for c in cols) + (m.injected(t),)
-        self.p_monitor.data = data
+        # rows where an estimator had no value yet are gaps (null, never NaN: plots.py)
+        send_data(self.p_monitor, (t - t[-1], *cols, m.injected(t)))
+        self.monitor_sent += 1
 
 
 async def run_lab_gui(g: LabGui, hz: float = 4.0) -> None:
