@@ -40,8 +40,9 @@ from typing import Any, BinaryIO, Iterator
 
 import numpy as np
 
-from .protocol import MOTION_TAGS, LineSplitter, MalformedLine, impossible_rows, parse_line
-from .stream import SampleOrderer, samples_to_rows
+from .protocol import (MOTION_TAGS, TAG_ARITY, VALUE_LIMITS, LineSplitter, MalformedLine,
+                       impossible_rows, parse_line)
+from .stream import RATE_HISTORY, SampleOrderer, samples_to_rows
 
 # Reorder window for logs (s). Files are read at leisure, so the window can be far wider
 # than a live receiver's: it also puts back in place a block of lines written ~1 s out
@@ -124,7 +125,14 @@ def iter_chunks(path: str | Path, rows: int = DEFAULT_CHUNK_ROWS) -> Iterator[Re
 
 
 def read_recording(path: str | Path) -> Recording:
-    """The whole recording at ``path`` (see the module doc for formats)."""
+    """The whole recording at ``path`` (see the module doc for formats). An app log is
+    read at once with numpy when it fits (:func:`_applog_whole`: the same rows and
+    counts as reading it line by line, several times faster)."""
+    path = Path(path)
+    if detect_format(path) == "applog" and path.stat().st_size <= WHOLE_FILE_MAX_BYTES:
+        rec = _applog_whole(path)
+        if rec is not None:
+            return rec
     chunks = list(iter_chunks(path))
     return concat(chunks)
 
@@ -361,3 +369,265 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[Recording]:
         if start >= n:
             break
 
+
+
+# ---------------------------------------------------------------- app log, whole file at once
+
+# A whole-file read (:func:`read_recording`) of an app log takes the vectorised path
+# below when the file is not too large for memory; a log it cannot put in order exactly
+# as :class:`app.stream.SampleOrderer` would falls back to the line-by-line reader.
+WHOLE_FILE_MAX_BYTES = 1 << 30
+_FAST_TAGS = {b"ACC": 3, b"GYR": 3, b"MAG": 3, b"ORI": 4}   # tag -> values on the fast path
+_FAST_MAX_FIELD = 32        # a wider number goes the line-by-line way
+_FAST_MAX_TS_DIGITS = 14    # below MAX_TIME_MS (1e14): every such time stamp is valid
+_TAGS = tuple(TAG_ARITY)
+_TAG_ID = {t: i for i, t in enumerate(_TAGS)}
+_MOTION_IDS = np.array([_TAG_ID[t] for t in MOTION_TAGS])
+
+
+# bytes that may stand in a plain number line besides its 3-letter tag: digits, .eE+-,
+# the tab between fields and the line end
+_NOT_PLAIN = np.ones(256, dtype=bool)
+_NOT_PLAIN[np.frombuffer(b"0123456789.eE+-\t\n", dtype=np.uint8)] = False
+
+
+def _gather(buf: np.ndarray, lo: np.ndarray, hi: np.ndarray, width: int) -> np.ndarray:
+    """The byte ranges [lo, hi) (each at most ``width`` long) as a (..., width) uint8
+    array, NUL after each range's end."""
+    k = np.arange(width)
+    chars = buf[np.minimum(lo[..., None] + k, len(buf) - 1)]
+    chars[k >= (hi - lo)[..., None]] = 0
+    return chars
+
+
+def _digits(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, W) NUL-padded fields -> (int64 values, ok) where ``ok`` marks fields of
+    1 to W decimal digits only (at most 18, so they fit)."""
+    v = np.zeros(len(chars), dtype=np.int64)
+    ok = chars[:, 0] != 0
+    for k in range(chars.shape[1]):
+        c = chars[:, k].astype(np.int64)
+        more = c != 0
+        ok &= ~more | ((c >= 48) & (c <= 57))
+        v = np.where(more, v * 10 + (c - 48), v)
+    return v, ok
+
+
+def _to_float(fields: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Python's ``float`` of each field of an ``S`` array (values, bad) where ``bad``
+    marks the fields float() refuses. (float() through map is faster than numpy's own
+    cast from bytes, which gives the same bits.)"""
+    flat = fields.reshape(-1).tolist()
+    try:
+        out = np.fromiter(map(float, flat), dtype=np.float64, count=len(flat))
+        return out.reshape(fields.shape), np.zeros(fields.shape, dtype=bool)
+    except ValueError:
+        out = np.empty(len(flat))
+        bad = np.zeros(len(flat), dtype=bool)
+        for i, x in enumerate(flat):
+            try:
+                out[i] = float(x)
+            except ValueError:
+                bad[i] = True
+        return out.reshape(fields.shape), bad.reshape(fields.shape)
+
+
+def _applog_whole(path: Path, window: float = LOG_WINDOW) -> Recording | None:
+    """The app log at ``path`` read at once with numpy: the same rows and counts as the
+    line-by-line reader (:func:`_applog_chunks`), or None when the file needs it.
+
+    Lines of the usual shape (``<digits>\\t<ACC|GYR|MAG|ORI>\\t<number>...`` with the
+    tag's count of plain numbers) are split and converted in bulk; every other line
+    (other tags, NaN or Infinity, spaces, a wrong count, text, non-ASCII) goes through
+    :func:`app.protocol.parse_line`, so each is accepted or counted exactly as there.
+    The samples are then put in order on one clock as :class:`~app.stream.SampleOrderer`
+    does: offsets from each tag's first sample against the newest time, then a stable
+    sort on time. That equals the orderer's output when no sample is late or jumps
+    (each within the window of the newest time before it), which is checked; otherwise
+    None (the orderer's clamping, dropping and re-anchoring are left to it)."""
+    data = path.read_bytes()
+    if b"\r" in data:   # LineSplitter's framing: \r\n and a lone \r end a line too
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    buf = np.frombuffer(data, dtype=np.uint8)
+    nl = np.flatnonzero(buf == 10)
+    starts = np.concatenate(([0], nl + 1))
+    ends = np.concatenate((nl, [len(buf)]))
+    if starts[-1] == len(buf):          # the file ends with a line end: no last piece
+        starts, ends = starts[:-1], ends[:-1]
+    # per line, how many bytes cannot be in a plain number line (the tag's 3 letters)
+    odd = np.add.reduceat(_NOT_PLAIN[buf].view(np.uint8), starts, dtype=np.int64) \
+        if len(starts) else np.zeros(0, dtype=np.int64)
+    length = ends - starts
+    odd[length == 0] = 0
+    too_long = length > MAX_LINE_BYTES
+    overflows = int(too_long.sum())
+    if overflows:
+        keep = ~too_long
+        starts, ends, length, odd = starts[keep], ends[keep], length[keep], odd[keep]
+    n_lines = len(starts)
+
+    tabs = np.flatnonzero(buf == 9)
+    k0 = np.searchsorted(tabs, starts)
+    n_tabs = np.searchsorted(tabs, ends) - k0
+    tabs_x = np.concatenate((tabs, np.full(6, len(buf))))     # look-ups past the end
+    t1 = tabs_x[k0]
+    t2 = tabs_x[k0 + 1]
+    ts_len = t1 - starts
+    plain = ((odd == 3) & (n_tabs >= 2) & (t2 - t1 == 4) & (ts_len >= 1)
+             & (ts_len <= _FAST_MAX_TS_DIGITS))
+    tag_code = np.zeros(n_lines, dtype=np.int64)
+    if plain.any():
+        tb = buf[t1[plain, None] + np.arange(1, 4)].astype(np.int64)
+        tag_code[plain] = (tb[:, 0] << 16) | (tb[:, 1] << 8) | tb[:, 2]
+
+    # per line: -1 malformed / not a sample, else the row in the arrays below
+    line_tag = np.full(n_lines, -1, dtype=np.int64)
+    line_time = np.zeros(n_lines, dtype=np.int64)
+    line_vals = np.full((n_lines, 4), np.nan)
+    reasons: dict[str, list[int]] = {}
+    done = np.zeros(n_lines, dtype=bool)       # taken (or refused) on the fast path
+    if (length == 0).any():
+        reasons["empty"] = np.flatnonzero(length == 0).tolist()
+    for tag, nv in _FAST_TAGS.items():
+        code = (tag[0] << 16) | (tag[1] << 8) | tag[2]
+        rows = np.flatnonzero(plain & (tag_code == code) & (n_tabs == nv + 1))
+        if not rows.size:
+            continue
+        ts, ts_ok = _digits(_gather(buf, starts[rows], t1[rows], _FAST_MAX_TS_DIGITS))
+        kk = k0[rows]
+        lo = tabs_x[kk[:, None] + np.arange(1, nv + 1)] + 1
+        hi = np.concatenate((tabs_x[kk[:, None] + np.arange(2, nv + 1)], ends[rows, None]), axis=1)
+        w = hi - lo
+        fit = ts_ok & (w >= 1).all(axis=1) & (w <= _FAST_MAX_FIELD).all(axis=1)
+        rows, lo, hi, ts = rows[fit], lo[fit], hi[fit], ts[fit]
+        if not rows.size:
+            continue
+        width = int((hi - lo).max())
+        fields = np.ascontiguousarray(_gather(buf, lo, hi, width)).view(f"S{width}")[..., 0]
+        vals, bad = _to_float(fields)
+        good = ~bad.any(axis=1)
+        rows, vals, ts = rows[good], vals[good], ts[good]
+        done[rows] = True
+        name = tag.decode()
+        if name in VALUE_LIMITS:
+            imp = impossible_rows(name, vals[:, :3])
+            if imp.any():
+                reasons.setdefault("impossible", []).extend(rows[imp].tolist())
+                rows, vals, ts = rows[~imp], vals[~imp], ts[~imp]
+        line_tag[rows] = _TAG_ID[name]
+        line_time[rows] = ts
+        line_vals[rows, :nv] = vals
+    for i in np.flatnonzero(~done & (length > 0)).tolist():
+        try:
+            s = parse_line(data[starts[i]:ends[i]])
+        except MalformedLine as e:
+            reasons.setdefault(e.reason, []).append(i)
+            continue
+        line_tag[i] = _TAG_ID[s.tag]
+        line_time[i] = s.time_ms
+        if s.tag in _MOTION:
+            line_vals[i, :len(s.values)] = s.values
+
+    ok = line_tag >= 0
+    tag_id, raw_t, vals = line_tag[ok], line_time[ok], line_vals[ok]
+    ordered = _order_like_orderer(tag_id, raw_t, SampleOrderer(window=window))
+    if ordered is None:
+        return None     # late samples or clock jumps: the orderer's own rules apply
+    mapped, glitch, offsets, first, popped_at = ordered
+    if glitch.any():    # counted when the tag's next sample came (or at the end)
+        line_of = np.concatenate((np.flatnonzero(ok), [n_lines]))
+        reasons["time_jump"] = line_of[popped_at].tolist()
+    keep = ~glitch & np.isin(tag_id, _MOTION_IDS)
+    order = np.flatnonzero(keep)[np.argsort(mapped[keep], kind="stable")]
+
+    t = mapped[order].astype(float) / 1000.0
+    tid = tag_id[order]
+    v = vals[order]
+    cols = {}
+    for name, (fld, width) in (("GYR", ("gyr", 3)), ("ACC", ("acc", 3)), ("MAG", ("mag", 3)),
+                               ("ORI", ("ori", 4))):
+        a = np.full((len(order), width), np.nan)
+        m = tid == _TAG_ID[name]
+        a[m] = v[m, :width]
+        cols[fld] = a
+    ori = cols["ori"] if (tid == _TAG_ID["ORI"]).any() else None
+
+    malformed = {r: len(ix) for r, ix in sorted(reasons.items(), key=lambda kv: min(kv[1]))}
+    counts_tags = {_TAGS[i]: int(np.count_nonzero(tag_id == i)) for i in first}
+    rates = {}
+    for i in first:
+        times = mapped[(tag_id == i) & ~glitch][-RATE_HISTORY:].tolist()
+        span = (times[-1] - times[0]) / 1000.0 if len(times) > 1 else 0.0
+        rates[_TAGS[i]] = (len(times) - 1) / span if span > 0.0 else math.nan
+    counts = {"malformed": malformed, "tags": counts_tags, "late": 0, "clamped": 0, "jumps": 0,
+              "offsets_s": {_TAGS[i]: off / 1000.0 for i, off in offsets.items()},
+              "rates_hz": rates, "lines": n_lines}
+    if overflows:
+        counts["malformed"] = {**malformed, "too_long": overflows}
+    return Recording(t=t, gyr=cols["gyr"], acc=cols["acc"], mag=cols["mag"], ori=ori,
+                     kind="applog", counts=counts, done=1.0)
+
+
+def _order_like_orderer(tag_id: np.ndarray, raw_t: np.ndarray, orderer: SampleOrderer):
+    """What ``orderer`` (fresh) makes of these samples (arrival order; ``raw_t`` in ms),
+    computed at once: ``(mapped, glitch, offsets, first, popped_at)`` with the times on
+    the reference clock, the lone time stamps it drops as glitches (``time_jump``), the
+    offsets per tag id (in the orderer's order), each tag's first sample, and per glitch
+    the sample at which it is counted (``len(raw_t)``: at the end). None where its
+    result is not that simple: a sample late for the window, or a time jump that two
+    samples of a tag in a row confirm (a re-anchored clock, a new offset).
+
+    The orderer puts each sample in a buffer released in (time, arrival) order; when
+    every sample lies within its window of the newest time before it, nothing is ever
+    released ahead of a later-arriving sample, so its output is the stable sort on time.
+    A sample beyond ``jump_s`` of that newest time is held aside and dropped when the
+    tag's next sample is back on the clock."""
+    n = len(tag_id)
+    empty = np.zeros(0, dtype=np.int64)
+    if n == 0:
+        return raw_t, np.zeros(0, dtype=bool), {}, {}, empty
+    ids, first_at = np.unique(tag_id, return_index=True)
+    first = {int(i): int(f) for f, i in sorted(zip(first_at, ids))}
+    mot = np.flatnonzero(np.isin(tag_id, _MOTION_IDS))
+    # the reference: the first motion sample, unless too many others came before it
+    ref = int(mot[0]) if mot.size and mot[0] <= orderer.max_pending else 0
+    newest0 = int(raw_t[ref])
+    jump = orderer.jump_ms
+    glitch = np.zeros(n, dtype=bool)
+    for _ in range(8):   # glitches and offsets depend on each other: to a fixed point
+        offsets = {int(tag_id[ref]): 0}
+        mapped = raw_t.copy()
+        placed = np.where(glitch, np.iinfo(np.int64).min, mapped)
+        for tid, f in first.items():
+            if tid not in offsets:
+                before = placed[:f].max() if f else newest0
+                diff = int(raw_t[f]) - max(newest0, int(before))
+                offsets[tid] = diff if abs(diff) > orderer.offset_threshold * 1000.0 else 0
+            if offsets[tid]:
+                sel = tag_id == tid
+                mapped[sel] -= offsets[tid]
+                placed[sel & ~glitch] = mapped[sel & ~glitch]
+        newest = np.maximum(np.concatenate(([newest0], np.maximum.accumulate(placed)[:-1])), newest0)
+        gap = mapped - newest
+        now = np.abs(gap) > jump
+        if np.array_equal(now, glitch):
+            break
+        glitch = now
+    else:
+        return None
+    if (gap[~glitch] < -orderer.window * 1000.0).any():
+        return None                                    # late: clamped or dropped
+    popped_at = empty
+    if glitch.any():
+        if orderer.jump_confirm < 2 or glitch[list(first.values())].any():
+            return None
+        popped = []
+        for tid in np.unique(tag_id[glitch]).tolist():
+            idx = np.flatnonzero(tag_id == tid)
+            g = glitch[idx]
+            if (g[:-1] & g[1:]).any():
+                return None                            # two in a row: maybe a real jump
+            nxt = np.concatenate((idx[1:], [n]))
+            popped.append(nxt[g])
+        popped_at = np.sort(np.concatenate(popped))
+    return mapped, glitch, offsets, first, popped_at

@@ -272,3 +272,190 @@ def test_an_over_long_line_in_a_log_is_counted_and_the_rest_read(tmp_path):
     rec = read_recording(path)
     assert len(rec) == 50
     assert rec.counts["malformed"] == {"too_long": 1}
+
+
+# ---------------------------------------------------------------- whole-file read = line by line
+
+def _line_by_line(path):
+    from app.readers import concat
+    return concat(list(iter_chunks(path)))
+
+
+def _same_recording(a, b):
+    """Bit for bit the same rows, and the same counts in the same key order."""
+    assert a.kind == b.kind
+    for k in ("t", "gyr", "acc", "mag"):
+        x, y = getattr(a, k), getattr(b, k)
+        assert x.shape == y.shape and x.dtype == y.dtype, k
+        np.testing.assert_array_equal(x.view(np.int64), y.view(np.int64), err_msg=k)
+    assert (a.ori is None) == (b.ori is None)
+    if a.ori is not None:
+        np.testing.assert_array_equal(a.ori.view(np.int64), b.ori.view(np.int64))
+
+    def items(d):
+        return [(k, items(v) if isinstance(v, dict) else
+                 ("nan" if isinstance(v, float) and math.isnan(v) else v)) for k, v in d.items()]
+    assert items(a.counts) == items(b.counts)
+
+
+@pytest.mark.parametrize("ending", ["\n", "\r\n", "\r"], ids=["lf", "crlf", "cr"])
+def test_whole_file_read_of_the_quirks_log_is_the_line_by_line_read(tmp_path, ending):
+    from app.readers import _applog_whole
+    lines, expect = app_log_lines()
+    path = write_log(tmp_path / "log.txt", lines, ending)
+    fast = _applog_whole(path)
+    assert fast is not None, "a log with only in-window disorder takes the vectorised path"
+    _same_recording(fast, _line_by_line(path))
+    check_log_recording(read_recording(path), expect)
+
+
+def _damaged_log(seed: int) -> bytes:
+    """A plausible log with every kind of damage a line can have, at random."""
+    rng = np.random.default_rng(seed)
+    out = []
+    t = 200_000 + int(rng.integers(0, 10_000))
+    for k in range(1500):
+        t += int(rng.integers(1, 6))
+        tag = ["ACC", "GYR", "MAG", "ORI", "RAWGYR", "GPS", "PRX", "TXT"][
+            int(rng.choice(8, p=[.27, .27, .15, .15, .06, .04, .03, .03]))]
+        n = {"ACC": 3, "GYR": 3, "MAG": 3, "ORI": 4, "RAWGYR": 6, "GPS": 3, "PRX": 1, "TXT": 1}[tag]
+        stamp = t - int(rng.integers(0, 40))             # a little out of order
+        vals = [f"{v:.7g}" for v in rng.normal(0, 5, n)]
+        if tag == "TXT":
+            vals = ["hello world"]
+        r = rng.random()
+        if r < 0.02:
+            vals[int(rng.integers(n))] = str(rng.choice(["NaN", "Infinity", "-Infinity", "abc", "",
+                                                         "1.2.3", "1e", "+", "1_0", " 4.5 ",
+                                                         "1e999", "0x10", "-0", "5.", ".5e-3",
+                                                         "9" * 40, "1.234567890123456789"]))
+        elif r < 0.03:
+            vals = vals[:-1]                              # a value missing
+        elif r < 0.035:
+            vals = vals + [""]                            # a stray tab at the end
+        elif r < 0.04:
+            vals[0] = "3000"                              # impossible for GYR/MAG/ACC
+        elif r < 0.045 and tag == "ORI":
+            vals = vals[:3]                               # ORI with x y z only
+        ts = str(stamp)
+        r = rng.random()
+        if r < 0.01:
+            ts = rng.choice([f"{stamp}.7", f"0{stamp}", f"{stamp}e0", "x12", "", "-5", "1e99",
+                             f" {stamp}", "123456789012345678"])
+        line = ts + "\t" + tag + "\t" + "\t".join(vals)
+        r = rng.random()
+        if r < 0.005:
+            line = line.replace("\t", " ")                # spaces instead of tabs
+        elif r < 0.01:
+            line = ""
+        elif r < 0.012:
+            line = "   "
+        elif r < 0.014:
+            line = line + "\u00e9"
+        elif r < 0.016:
+            line = f"{stamp}\tWHAT\t1\t2\t3"
+        out.append(line)
+    text = "\n".join(out)
+    if seed % 3 == 1:
+        text = text.replace("\n", "\r\n")
+    data = text.encode("utf-8")
+    if seed % 4 == 2:
+        data += b"\n"
+    if seed % 5 == 3:                                     # an over-long line
+        cut = len(data) // 2
+        cut = data.index(b"\n", cut)
+        data = data[:cut] + b"\n" + b"7" * 70_000 + data[cut:]
+    return data
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_whole_file_read_of_a_damaged_log_is_the_line_by_line_read(tmp_path, seed):
+    """Every damaged line is accepted or counted by the same reason, every good one kept
+    with the same bits, in the same order, with the same counts."""
+    from app.readers import _applog_whole
+    path = tmp_path / "damaged.txt"
+    path.write_bytes(_damaged_log(seed))
+    fast = _applog_whole(path)
+    slow = _line_by_line(path)
+    assert sum(slow.counts["malformed"].values()) > 10
+    if fast is not None:
+        _same_recording(fast, slow)
+    _same_recording(read_recording(path), slow)
+
+
+def test_damaged_logs_mostly_take_the_vectorised_path(tmp_path):
+    from app.readers import _applog_whole
+    taken = 0
+    for seed in range(12):
+        path = tmp_path / f"d{seed}.txt"
+        path.write_bytes(_damaged_log(seed))
+        taken += _applog_whole(path) is not None
+    assert taken >= 10
+
+
+def test_a_clock_jump_leaves_the_log_to_the_orderer_a_lone_glitch_does_not(tmp_path):
+    """Where the orderer re-anchors its clock, the whole-file read gives way to it; one
+    wrong time stamp (+10 s, or 2.8 s back) is only that sample dropped, on the fast
+    path too. The same result either way."""
+    from app.readers import _applog_whole
+    good = [f"{10_000 + 10 * k}\tACC\t0.1\t0.2\t9.8" for k in range(500)]
+    jump = good[:200] + [f"{60_000 + 10 * k}\tACC\t0.1\t0.2\t9.8" for k in range(100)]
+    path = write_log(tmp_path / "jump.txt", jump)
+    assert _applog_whole(path) is None
+    _same_recording(read_recording(path), _line_by_line(path))
+    assert read_recording(path).counts["jumps"] == 1
+    for name, bad in (("ahead", 20_000 + 10 * 100), ("back", 10_000 + 10 * 100 - 2800)):
+        lines = good[:100] + [f"{bad}\tACC\t0.1\t0.2\t9.8"] + good[101:]
+        path = write_log(tmp_path / f"{name}.txt", lines)
+        fast = _applog_whole(path)
+        assert fast is not None and fast.counts["malformed"] == {"time_jump": 1}
+        assert len(fast) == 499
+        _same_recording(fast, _line_by_line(path))
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_vectorised_ordering_is_the_orderers_for_any_window(seed):
+    """The reordering of the whole-file read against SampleOrderer itself, with short
+    windows (where samples do come late: then it must decline), tag clocks, glitches."""
+    from app.protocol import Sample
+    from app.readers import _TAG_ID, _TAGS, _order_like_orderer
+    from app.stream import SampleOrderer
+    rng = np.random.default_rng(seed)
+    tags = ["ACC", "GYR", "MAG", "GPS", "PRX"]
+    clock = {"ACC": 0, "GYR": 0, "MAG": 0, "GPS": 0, "PRX": 0}
+    if seed % 3 == 0:
+        clock["ACC"] = 131_072_000
+    if seed % 2:
+        clock["GPS"] = 1_666_000_000_000
+    samples, t = [], 50_000
+    jitter_ms = [5, 60, 400][seed % 3]
+    for _ in range(400):
+        t += int(rng.integers(0, 8))
+        tag = tags[int(rng.choice(5, p=[.3, .3, .2, .1, .1]))]
+        stamp = t + clock[tag] - int(rng.integers(0, jitter_ms))
+        if rng.random() < 0.005:
+            stamp += int(rng.choice([-5000, 9000, 30_000]))
+        samples.append(Sample(stamp, tag, (0.0, 0.0, 0.0)))
+    window = [0.0, 0.05, 0.3, 2.0, 2.0][seed % 5]
+    o = SampleOrderer(window=window)
+    out = [x for s in samples for x in o.push(s)] + o.flush()
+    got = _order_like_orderer(np.array([_TAG_ID[s.tag] for s in samples]),
+                              np.array([s.time_ms for s in samples], dtype=np.int64),
+                              SampleOrderer(window=window))
+    c = o.counters
+    simple = c.late == 0 and c.clamped == 0 and c.jumps == 0
+    if got is None:
+        return
+    assert simple
+    mapped, glitch, offsets, first, popped_at = got
+    order = np.flatnonzero(~glitch)[np.argsort(mapped[~glitch], kind="stable")]
+    assert [(s.time_ms, s.tag) for s in out] == [(int(mapped[i]), samples[i].tag) for i in order]
+    assert {_TAGS[k]: v / 1000.0 for k, v in offsets.items()} == o.offsets
+    assert int(glitch.sum()) == c.malformed.get("time_jump", 0)
+
+
+def test_real_logs_whole_file_read_is_the_line_by_line_read(real_log):
+    from app.readers import _applog_whole
+    fast = _applog_whole(real_log)
+    assert fast is not None
+    _same_recording(fast, _line_by_line(real_log))
