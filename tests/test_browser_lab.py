@@ -1,9 +1,11 @@
 """The page's Lab tab in a real headless Chromium: one click adds the primary without
-rejection beside it, another brings a virtual magnet; both reach the server."""
+rejection beside it, another brings a virtual magnet; both reach the server. The
+Presets tab's load brings a preset's magnetometer calibration back."""
 
 from __future__ import annotations
 
 import httpx
+import numpy as np
 import pytest
 
 from harness import running_server, wait_for
@@ -50,5 +52,41 @@ def test_lab_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):
             page.screenshot(path=str(ARTIFACTS / "lab_magnet.png"))
             st = api.get("/api/state").json()
             assert "robust-no-rejection" in st["estimators"]
+        finally:
+            ctx.close()
+
+
+def test_loading_a_preset_from_the_page_applies_its_magnetometer_calibration(tmp_path):
+    """The Presets tab: type a preset's name, click Load: its [magcal] (hard and soft
+    iron) corrects the magnetometer again, as the API's load does."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    (tmp_path / "withmag.toml").write_text(
+        "[magcal]\noffset_uT = [15.0, -8.0, 25.0]\nmatrix = [1.1, 0, 0, 0, 0.9, 0, 0, 0, 1.0]\n")
+    with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, \
+            sync_api.sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=ARGS,
+            viewport={"width": 1600, "height": 1000})
+        try:
+            assert api.get("/api/magcal").json()["applied"] is None
+            page = ctx.new_page()
+            page.goto(srv.url + "/")
+            frame = page.frame_locator("iframe#viewer")
+            frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
+            click(page, frame.get_by_role("tab", name="Presets"))
+            # the text field after its label (the Lab tab's calibration has a "Preset
+            # name" too, hidden here)
+            fields = frame.get_by_text("Preset name", exact=True).locator("xpath=following::input[1]")
+            name = wait_for(lambda: next((f for f in fields.all() if f.is_visible()), None), 30.0,
+                            what="the Presets tab's name field")
+            name.fill("withmag")
+            name.press("Enter")
+            page.wait_for_timeout(500)
+            click(page, frame.get_by_role("button", name="Load preset", exact=True))
+            applied = wait_for(lambda: api.get("/api/magcal").json()["applied"], 30.0,
+                               what="the preset's magnetometer calibration")
+            assert applied["offset_uT"] == [15.0, -8.0, 25.0]
+            assert np.diag(applied["matrix"]) == pytest.approx([1.1, 0.9, 1.0])
         finally:
             ctx.close()

@@ -296,3 +296,43 @@ def test_magnetometer_calibration_from_the_stream(tmp_path):
                      what="second phone")
         snap = s.engine.core.snapshot()
         assert np.linalg.norm(snap.mag) < 0.5
+
+
+def test_a_presets_magnetometer_calibration_is_applied_when_it_is_loaded(tmp_path):
+    """A preset holding [magcal] (hard and soft iron) sets it again when loaded by name,
+    by path or uploaded; a preset without one clears it (a preset is the whole tuning);
+    saving keeps the one in force."""
+    b = [15.0, -8.0, 25.0]
+    (tmp_path / "withmag.toml").write_text(
+        "[magcal]\noffset_uT = [15.0, -8.0, 25.0]\nmatrix = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]\n")
+    with running_server(recordings=tmp_path, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        def applied():
+            a = api.get("/api/magcal").json()["applied"]
+            return None if a is None else a["offset_uT"]
+        assert applied() is None
+        r = api.post("/api/presets/load", json={"name": "withmag"})
+        assert r.status_code == 200, r.text
+        assert applied() == b
+        # every MAG sample is corrected from now on: a raw reading of the offset alone
+        # (zero field) reads ~0 µT
+        with Phone(s.phone_port) as phone:
+            lines = []
+            for k in range(0, 3000, 10):
+                lines.append(f"{100 + k}\tACC\t0\t0\t9.81".encode())
+                if k % 20 == 0:
+                    lines.append(f"{103 + k}\tMAG\t{b[0]}\t{b[1]}\t{b[2]}".encode())
+            _send(phone, lines)
+            wait_for(lambda: _state(api)["source"] == "phone" and _state(api)["counts"]["samples"] > 300,
+                     what="the phone's samples")
+        assert np.linalg.norm(s.engine.core.snapshot().mag) < 0.5
+        r = api.post("/api/presets/save", json={"name": "roundtrip"})
+        assert r.status_code == 200 and "[magcal]" in (tmp_path / "roundtrip.toml").read_text()
+        assert api.post("/api/presets/load", json={"name": "default"}).status_code == 200
+        assert applied() is None
+        assert api.post("/api/presets/load", json={"path": str(tmp_path / "roundtrip.toml")}).status_code == 200
+        assert applied() == b
+        assert api.post("/api/presets/load", json={"name": "default"}).status_code == 200
+        r = api.post("/api/presets/upload", content=(tmp_path / "withmag.toml").read_bytes())
+        assert r.status_code == 200, r.text
+        assert applied() == b

@@ -54,6 +54,11 @@ class Change:
     reset: bool = False
     add: list[Variant] = field(default_factory=list)
     remove: list[str] = field(default_factory=list)
+    # A preset also sets the magnetometer calibration (its [magcal] table; None: the
+    # preset has none, so none is applied). Only a preset's change carries it
+    # (magcal_set); the line stage that applies it listens (Engine.change_listeners).
+    magcal: dict[str, Any] | None = None
+    magcal_set: bool = False
 
 
 def shared_names(bench: Bench) -> list[str]:
@@ -140,10 +145,13 @@ def validate_patch(bench: Bench, body: Any) -> Change:
 
 
 def change_from_config(bench: Bench, config: dict[str, Any]) -> Change:
-    """A change setting every builtin to its defaults + the preset (load_config's dict);
-    variants keep their parameters."""
+    """A change setting every builtin to its defaults + the preset (load_config's dict)
+    and the magnetometer calibration to the preset's (none if it has none); variants
+    keep their parameters."""
     p = config.get("primary")
-    ch = Change(primary=p if p in bench.names else None)
+    mc = config.get("magcal")
+    ch = Change(primary=p if p in bench.names else None, magcal=dict(mc) if mc else None,
+                magcal_set=True)
     for name in bench.names:
         if not bench.instances[name].builtin:
             continue

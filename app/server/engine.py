@@ -147,7 +147,9 @@ class Engine:
         self.background_allowed: asyncio.Event | None = None
         self.pose_listeners: list[Callable[[np.ndarray], None]] = []  # after every batch
         self.listeners: list[Callable[[Snapshot], None]] = []       # at most scene_hz
+        self.change_listeners: list[Callable[[Change], None]] = []  # each change applied
         self.param_listeners: list[Callable[[], None]] = []         # after every change
+        self.preset_parts: list[Callable[[], dict]] = []            # more tables for a saved preset
         self.subscribers: set[Subscriber] = set()                   # WS /ws/state
         self.latency = Latency()
         self.queued = 0                     # samples waiting in the inbox
@@ -236,10 +238,15 @@ class Engine:
             return
         if done is not None and not done.done():
             done.set_result(view)
+        for on_change in self.change_listeners:   # before the parameter listeners
+            try:
+                on_change(ch)
+            except Exception:  # a listener's bug must not stop the filter
+                log.exception("change listener failed")
         for cb in self.param_listeners:
             try:
                 cb()
-            except Exception:  # a listener's bug must not stop the filter
+            except Exception:
                 log.exception("parameter listener failed")
 
     # ----------------------------------------------------------------- the task

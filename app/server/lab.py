@@ -143,7 +143,9 @@ class LabTools:
         self._recording_cache: dict = {}
         self.core.raw_listeners.append(self._on_raw)
         self.core.record_listeners.append(self._on_records)
+        engine.change_listeners.append(self._on_change)
         engine.param_listeners.append(self._on_params)
+        engine.preset_parts.append(self._preset_part)
         filters = getattr(self.core, "line_filters", None)
         if filters is not None:
             filters.append(self.filter_lines)
@@ -221,6 +223,18 @@ class LabTools:
         if cap is not None and cap.result is None and cap.error is None:
             if cap.add(rec.t, rec.kind, rec.values):
                 self._finish_capture(cap)
+
+    def _on_change(self, ch) -> None:
+        """A preset loaded (page or API): its magnetometer calibration, or none."""
+        if not getattr(ch, "magcal_set", False):
+            return
+        try:
+            self.magcal = magcal.from_preset(ch.magcal) if ch.magcal else None
+        except magcal.MagCalError as e:    # load_config validated it: not expected
+            log.error("preset's [magcal] not applied: %s", e)
+
+    def _preset_part(self) -> dict[str, Any]:
+        return {} if self.magcal is None else {"magcal": self.magcal.preset()}
 
     def _on_params(self) -> None:
         if self.recorder is not None:

@@ -13,7 +13,10 @@ Used by the GUI's Presets tab and the API (``/api/presets``).
 - **Loading** by name (the user's folder first, then the shipped ones), from a **path**
   (a file written by ``orientlab calibrate``, anywhere on this PC), or from the **text**
   of an uploaded file (at most :data:`MAX_PRESET_BYTES`); each sets every estimator to
-  its defaults plus the preset, after the same validation as ``--config``.
+  its defaults plus the preset, after the same validation as ``--config``, and the
+  magnetometer calibration to the preset's ``[magcal]`` (none when it has none: a preset
+  is the whole tuning; :class:`app.server.lab.LabTools` applies it). Saving writes the
+  magnetometer calibration in force too.
 """
 
 from __future__ import annotations
@@ -148,6 +151,8 @@ def save_preset(engine: Engine, name: str) -> Path:
     the user's folder (atomically)."""
     path = _check_writable(engine.settings, name)
     sections = engine.core.preset_sections()
+    for part in engine.preset_parts:      # e.g. the magnetometer calibration in force
+        sections.update(part())
     _write_atomic(path, dump_toml(sections, header=f"orientlab preset {name!r}, saved from the dashboard"))
     return path
 
