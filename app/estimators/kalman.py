@@ -84,17 +84,41 @@ def nis_and_gain(P, H, R, innov):
 
     Returns ``(nis, K, S, PHt)``; ``nis`` is ``innov' S^-1 innov`` (chi-square with
     ``len(innov)`` degrees of freedom when the model is honest). Zeros of H (most
-    of it, for these sensor models) are skipped by :func:`mm`.
+    of it, for these sensor models) are skipped. The products are written out (the
+    same sums, in the same order, as :func:`mm` would form them) so a call makes no
+    array beyond the four it returns and the inverse: in a filter running at a million
+    samples a second, an allocation costs more than the arithmetic.
     """
+    n = P.shape[0]
     m = H.shape[0]
-    PHt = np.ascontiguousarray(mm(H, P).T)  # P H' = (H P)' for a symmetric P
-    S = R + mm(H, PHt)
+    PHt = np.zeros((n, m))  # P H' = (H P)' for a symmetric P
+    for a in range(m):
+        for l in range(n):
+            h = H[a, l]
+            if h != 0.0:
+                for j in range(n):
+                    PHt[j, a] += h * P[l, j]
+    S = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            v = 0.0
+            for l in range(n):
+                h = H[a, l]
+                if h != 0.0:
+                    v += h * PHt[l, b]
+            S[a, b] = R[a, b] + v
     Sinv = inv_small(S)
     nis = 0.0
     for i in range(m):
         for j in range(m):
             nis += innov[i] * Sinv[i, j] * innov[j]
-    K = mm(PHt, Sinv)
+    K = np.zeros((n, m))
+    for i in range(n):
+        for l in range(m):
+            c = PHt[i, l]
+            if c != 0.0:
+                for j in range(m):
+                    K[i, j] += c * Sinv[l, j]
     return nis, K, S, PHt
 
 
@@ -115,23 +139,32 @@ def correct(P, H, R, innov, nis_gate, mask=None):
     nis, K, S, PHt = nis_and_gain(P, H, R, innov)
     n = P.shape[0]
     m = innov.shape[0]
+    dx = np.zeros(n)
     if not np.isfinite(nis) or (nis_gate > 0.0 and nis > nis_gate):
-        return False, nis, np.zeros(n)
+        return False, nis, dx
     if mask is not None:
         for i in range(n):
             if mask[i] == 0.0:
                 for j in range(m):
                     K[i, j] = 0.0
-    dx = np.zeros(n)
     for i in range(n):
         for j in range(m):
             dx[i] += K[i, j] * innov[j]
-    KS = mm(K, S)
+    # K S, row by row into S's place is not possible (S is used by every row): the
+    # rows of K S are formed where they are used, with mm's order of the sum
+    KSi = np.empty(m)
     for i in range(n):
+        for a in range(m):
+            KSi[a] = 0.0
+        for l in range(m):
+            c = K[i, l]
+            if c != 0.0:
+                for a in range(m):
+                    KSi[a] += c * S[l, a]
         for j in range(i, n):
             v = 0.0
             for a in range(m):
-                v += -K[i, a] * PHt[j, a] - PHt[i, a] * K[j, a] + KS[i, a] * K[j, a]
+                v += -K[i, a] * PHt[j, a] - PHt[i, a] * K[j, a] + KSi[a] * K[j, a]
             P[i, j] += v
             if j != i:
                 P[j, i] = P[i, j]

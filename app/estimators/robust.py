@@ -192,6 +192,7 @@ def _layout(name: str, fields) -> tuple:
 # coefficients derived from the parameters (appended to the parameter vector)
 DERIVED = (
     ("upd_dt", 1, "s between two measurement updates of a sensor (1/update_rate_hz; 0: every sample)"),
+    ("acc_flag_cos", 1, "cos(acc_flag_angle): the flag test compares cosines"),
 )
 
 STATE = (
@@ -227,6 +228,7 @@ STATE = (
     ("mag_upd_time", 1, "s of used magnetometer samples since the last heading update"),
     ("acc_lp_rest_t", 1, "time of the last accelerometer sample in the rest low-pass"),
     ("w_cur", 3, "scratch: the rate integrated over the current row"),
+    ("pred_T", 18, "scratch of the time update: R [Pbb | Pbt], 3x6 by rows"),
     ("seen", 1, "sensors seen at the time of the last row (bit mask)"),
     ("mag_nd", 2, "low-passed field strength (µT) and dip (rad)"),
     ("mag_nd_ok", 1, "1 once mag_nd holds a sample"),
@@ -281,14 +283,16 @@ def tilt_jacobian(a_world):
     a along +z it is [[0, -1, 0], [1, 0, 0]] (the tilt error, rotated)."""
     n = qm.norm3(a_world)
     u0, u1, u2 = a_world[0] / n, a_world[1] / n, a_world[2] / n
-    C = qm.skew(np.array([u0, u1, u2]))  # [â]×
     H = np.zeros((2, 6))
     u = (u0, u1, u2)
     for r in range(2):
         for c in range(3):
-            v = C[r, c]
-            for k in range(3):
-                v -= u[r] * u[k] * C[k, c]
+            # [â]× column c, without making the matrix
+            c0, c1, c2 = ((0.0, u2, -u1) if c == 0 else ((-u2, 0.0, u0) if c == 1 else (u1, -u0, 0.0)))
+            v = c0 if r == 0 else c1
+            v -= u[r] * u0 * c0
+            v -= u[r] * u1 * c1
+            v -= u[r] * u2 * c2
             H[r, c] = v
     return H
 
@@ -316,6 +320,17 @@ def heading_innovation(m_world):
 
 
 @njit(cache=True)
+def _rotate3(s, v):
+    """Q(q) v for the state's attitude, as three floats (no array made per sample)."""
+    w, x, y, z = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
+    tx = 2.0 * (y * v[2] - z * v[1])
+    ty = 2.0 * (z * v[0] - x * v[2])
+    tz = 2.0 * (x * v[1] - y * v[0])
+    return (v[0] + w * tx + (y * tz - z * ty), v[1] + w * ty + (z * tx - x * tz),
+            v[2] + w * tz + (x * ty - y * tx))
+
+
+@njit(cache=True)
 def _lp_coef(dt, tau):
     """First-order low-pass coefficient (the DNRF form 1 - τ/(τ+Δt))."""
     if tau <= 0.0:
@@ -327,11 +342,36 @@ def _lp_coef(dt, tau):
 def _inject(s, P, dx):
     """Apply an error-state correction: q <- exp(δθ) ⊗ q, b <- b + δb, and rotate
     the world-frame low-pass with the attitude so it stays in the estimate's frame."""
-    dq = qm.quat_from_rotvec(dx[0:3])
-    s[S.q:S.q + 4] = qm.normalize(qm.quat_mul(dq, s[S.q:S.q + 4]))
+    # dq = exp(δθ) (qm.quat_from_rotvec), q <- normalize(dq ⊗ q) (qm.quat_mul,
+    # qm.normalize) and the low-pass rotated by dq (qm.rotate), written out in scalars
+    # with the same arithmetic: an update makes no array here
+    vx, vy, vz = dx[0], dx[1], dx[2]
+    a = np.sqrt(vx * vx + vy * vy + vz * vz)
+    d0 = np.cos(0.5 * a)
+    k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
+    d1, d2, d3 = vx * k, vy * k, vz * k
+    q0, q1, q2, q3 = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
+    r0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
+    r1 = d0 * q1 + d1 * q0 + d2 * q3 - d3 * q2
+    r2 = d0 * q2 - d1 * q3 + d2 * q0 + d3 * q1
+    r3 = d0 * q3 + d1 * q2 - d2 * q1 + d3 * q0
+    n = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+    if n == 0.0 or not np.isfinite(n):
+        r0, r1, r2, r3, c = 1.0, 0.0, 0.0, 0.0, 1.0
+    else:
+        c = 1.0 / n
+        if r0 < 0.0:
+            c = -c
+    s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3] = r0 * c, r1 * c, r2 * c, r3 * c
     for i in range(3):
         s[S.bias + i] += dx[3 + i]
-    s[S.acc_lp:S.acc_lp + 3] = qm.rotate(dq, s[S.acc_lp:S.acc_lp + 3])
+    ax, ay, az = s[S.acc_lp], s[S.acc_lp + 1], s[S.acc_lp + 2]
+    tx = 2.0 * (d2 * az - d3 * ay)
+    ty = 2.0 * (d3 * ax - d1 * az)
+    tz = 2.0 * (d1 * ay - d2 * ax)
+    s[S.acc_lp] = ax + d0 * tx + (d2 * tz - d3 * ty)
+    s[S.acc_lp + 1] = ay + d0 * ty + (d3 * tx - d1 * tz)
+    s[S.acc_lp + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
 
 
 @njit(cache=True)
@@ -413,30 +453,42 @@ def _predict(s, P, p, w, dt):
         for i in range(3, 6):
             P[i, i] += bv
         return
-    R = qm.Q(s[S.q:S.q + 4])
+    # R = Q(q) (formula 2a) of the attitude before this step, as nine scalars
+    q0, q1, q2, q3 = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
+    r00 = 2.0 * (q0 * q0 + q1 * q1) - 1.0
+    r01 = 2.0 * (q1 * q2 - q0 * q3)
+    r02 = 2.0 * (q1 * q3 + q0 * q2)
+    r10 = 2.0 * (q1 * q2 + q0 * q3)
+    r11 = 2.0 * (q0 * q0 + q2 * q2) - 1.0
+    r12 = 2.0 * (q2 * q3 - q0 * q1)
+    r20 = 2.0 * (q1 * q3 - q0 * q2)
+    r21 = 2.0 * (q2 * q3 + q0 * q1)
+    r22 = 2.0 * (q0 * q0 + q3 * q3) - 1.0
     wx, wy, wz = w[0] - s[S.bias], w[1] - s[S.bias + 1], w[2] - s[S.bias + 2]
     _integrate(s, wx * dt, wy * dt, wz * dt)
     # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
     # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]
-    T = np.zeros((3, 6))
+    # (T lives in a scratch slot of the state: no array is made per sample)
+    T = s[S.pred_T:S.pred_T + 18]
     for i in range(3):
-        for k in range(3):
-            r = R[i, k]
-            for j in range(3):
-                T[i, j] += r * P[3 + k, 3 + j]      # R Pbb
-                T[i, 3 + j] += r * P[3 + k, j]      # R Pbt
+        ri0, ri1, ri2 = (r00, r01, r02) if i == 0 else ((r10, r11, r12) if i == 1 else (r20, r21, r22))
+        for j in range(3):
+            T[6 * i + j] = ri0 * P[3, 3 + j] + ri1 * P[4, 3 + j] + ri2 * P[5, 3 + j]      # R Pbb
+            T[6 * i + 3 + j] = ri0 * P[3, j] + ri1 * P[4, j] + ri2 * P[5, j]              # R Pbt
     dt2 = dt * dt
     for i in range(3):
         for j in range(i, 3):
-            v = -dt * (T[i, 3 + j] + T[j, 3 + i])
-            for l in range(3):
-                v += dt2 * T[i, l] * R[j, l]
+            rj0, rj1, rj2 = (r00, r01, r02) if j == 0 else ((r10, r11, r12) if j == 1 else (r20, r21, r22))
+            v = -dt * (T[6 * i + 3 + j] + T[6 * j + 3 + i])
+            v += dt2 * T[6 * i] * rj0
+            v += dt2 * T[6 * i + 1] * rj1
+            v += dt2 * T[6 * i + 2] * rj2
             P[i, j] += v
             if j != i:
                 P[j, i] = P[i, j]
     for i in range(3):
         for j in range(3):
-            P[i, 3 + j] -= dt * T[i, j]
+            P[i, 3 + j] -= dt * T[6 * i + j]
             P[3 + j, i] = P[i, 3 + j]
     # gyroscope noise, plus what grows with the turn rate (scale factor, misalignment, timing)
     gv = (p[PRM.gyr_noise] ** 2 + p[PRM.gyr_scale_noise] ** 2 * (wx * wx + wy * wy + wz * wz)) * dt
@@ -487,7 +539,9 @@ def _rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
         return
     elapsed = s[S.rest_upd_time]
     s[S.rest_upd_time] = 0.0
-    Rm = (p[PRM.rest_noise] ** 2 / elapsed) * np.eye(3)
+    Rm = np.zeros((3, 3))
+    for i in range(3):
+        Rm[i, i] = p[PRM.rest_noise] ** 2 / elapsed
     innov = s[S.gyr_lp:S.gyr_lp + 3] - s[S.bias:S.bias + 3]
     ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0)
     if ok:
@@ -508,7 +562,7 @@ def _acc_update(s, P, p, t, acc, f):
     age = t - s[S.t0]
     if age > 0.0 and dt / (age + dt) > k:
         k = dt / (age + dt)
-    aw = qm.rotate(s[S.q:S.q + 4], acc)
+    aw = _rotate3(s, acc)
     d2 = 0.0
     for i in range(3):
         s[S.acc_lp + i] += k * (aw[i] - s[S.acc_lp + i])
@@ -522,11 +576,12 @@ def _acc_update(s, P, p, t, acc, f):
     if p[PRM.acc_flag_angle] > 0.0 or p[PRM.acc_flag_rel] > 0.0:
         ln = qm.norm3(s[S.acc_lp:S.acc_lp + 3])
         c = (aw[0] * s[S.acc_lp] + aw[1] * s[S.acc_lp + 1] + aw[2] * s[S.acc_lp + 2]) / max(n * ln, 1e-12)
-        ang = np.arccos(min(1.0, max(-1.0, c)))
-        if ((p[PRM.acc_flag_angle] > 0.0 and ang > p[PRM.acc_flag_angle])
+        c = min(1.0, max(-1.0, c))
+        # angle > acc_flag_angle  <=>  cos(angle) < cos(acc_flag_angle): the arccos only for a flag
+        if ((p[PRM.acc_flag_angle] > 0.0 and c < p[PRM.acc_flag_cos])
                 or (p[PRM.acc_flag_rel] > 0.0 and abs(n - GRAVITY) > p[PRM.acc_flag_rel] * GRAVITY)):
             f[F_ACC] = R_ACCEL
-            f[F_ACC_VAL] = ang
+            f[F_ACC_VAL] = np.arccos(c)
     # Every valid sample enters the low-pass: the specific force only averages out if
     # none is left out (refusing the peaks of a movement would bias the mean). The norm
     # band gates the *correction* instead: no tilt update while |a| is far from g.
@@ -544,8 +599,10 @@ def _acc_update(s, P, p, t, acc, f):
     # noise density of the low-passed direction: the sensor's, plus what the specific force
     # leaves in it (its power over g², times its correlation time): a walking or running
     # phone's gravity estimate is trusted less than a still one's
-    Rm = ((p[PRM.tilt_noise] ** 2 + p[PRM.tilt_motion_time] * s[S.acc_var] / (GRAVITY * GRAVITY)) / dt
-          ) * np.eye(2)
+    r = (p[PRM.tilt_noise] ** 2 + p[PRM.tilt_motion_time] * s[S.acc_var] / (GRAVITY * GRAVITY)) / dt
+    Rm = np.zeros((2, 2))
+    Rm[0, 0] = r
+    Rm[1, 1] = r
     ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[PRM.acc_nis_gate])
     f[F_ACC_NIS] = nis
     if ok:
@@ -645,16 +702,15 @@ def _far(s, elapsed):
 
 
 @njit(cache=True)
-def _mag_update(s, P, p, t, mag, w, f):
-    mw = qm.rotate(s[S.q:S.q + 4], mag)
-    n = qm.norm3(mw)
+def _mag_update(s, P, p, t, mag, rate, f):
+    mw = _rotate3(s, mag)
+    n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
     dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
     dt = t - s[S.mag_t] if np.isfinite(s[S.mag_t]) else 0.0
     dt = min(max(dt, 0.0), DT_MAX)
     s[S.mag_t] = t
     f[F_MAG_VAL] = n
     f[F_MAG] = R_USED
-    rate = 0.0 if np.isnan(w[0]) else qm.norm3(w)
     ok = _field_check(s, p, n, dip, dt, rate, f)
     scale = 1.0
     if ok:
@@ -763,8 +819,12 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
     if as_ == R_USED:
         _acc_update(s, P, p, t, acc, f)
     if ms == R_USED:
-        wb = w - s[S.bias:S.bias + 3]
-        _mag_update(s, P, p, t, mag, wb, f)
+        # the turn rate (bias removed) that counts towards accepting a new field
+        rate = 0.0
+        if not np.isnan(w[0]):
+            bx, by, bz = w[0] - s[S.bias], w[1] - s[S.bias + 1], w[2] - s[S.bias + 2]
+            rate = np.sqrt(bx * bx + by * by + bz * bz)
+        _mag_update(s, P, p, t, mag, rate, f)
     if p[PRM.bias_max] > 0.0:
         bn = qm.norm3(s[S.bias:S.bias + 3])
         if bn > p[PRM.bias_max]:
@@ -835,7 +895,8 @@ def new_state() -> np.ndarray:
 
 def derived(p: RobustParams) -> dict[str, float]:
     """The coefficients derived from the parameters (see ``DERIVED``)."""
-    return {"upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0}
+    return {"upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0,
+            "acc_flag_cos": math.cos(p.acc_flag_angle)}
 
 
 def param_vector(p: RobustParams) -> np.ndarray:
