@@ -108,6 +108,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.lab = LabTools(engine, settings, config)      # the lab toolkit (issue 9)
             st.lab.app_state = st
             st.lab.engine_server = st.viewer       # the variants' ghosts join the 3D scene
+            st.gui.injections = st.lab.injected_spans   # marked in the Plots panel
             st.lab_gui = LabGui(st.viewer.gui, st.gui.tabs, st.lab, loop)
             st.tasks["lab"] = asyncio.create_task(run_lab_gui(st.lab_gui), name="lab")
             src = start_source(engine, settings, st.lab)

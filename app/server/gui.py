@@ -32,7 +32,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -43,7 +43,7 @@ from ..quaternion import q2euler_many
 from .controls import Control, build_control, show_value
 from ..live.bench import SENSORS
 from .engine import Engine, PatchError
-from .plots import EULER_COLORS, Plot, angle_deg, ends, unwrap_deg
+from .plots import EULER_COLORS, Plot, angle_deg, during, ends, unwrap_deg
 from .presets import (NAME_RE, list_presets, load_preset, load_preset_path, load_preset_text,
                       save_preset, save_preset_text, shipped_names)
 from .scene import Indicators, Scene, describe_rejection
@@ -102,6 +102,9 @@ class Gui:
         # beside the tuning controls, and never in a hidden tab (a uPlot chart laid out
         # at zero width keeps a broken x window in viser's client and stays blank).
         self.plot_panel = None
+        # (kind, start_s, end_s) of the disturbances injected into a stream (the lab's
+        # LabTools.injected_spans, set in the lifespan): drawn over |acc| and |mag|
+        self.injections: Callable[[Any], list[tuple[str, float, float]]] | None = None
         if hasattr(gui, "add_panel"):
             self.plot_panel = gui.add_panel()
             with self.plot_panel.add_tab("Plots"):
@@ -334,12 +337,14 @@ class Gui:
         self.p_err = Plot(gui, "error", "Error angle [deg]", [("to phone's own", "#ff7f0e", False),
                                                                ("to truth", "#17becf", False)],
                           height=h)
-        self.p_acc = Plot(gui, "acc", "|acc| [m/s²] and its gate band",
+        self.p_acc = Plot(gui, "acc", "|acc| [m/s²] and its gate band; red: shake injected",
                           [("|acc|", "#1f77b4", False), ("band lo", "#7f7f7f", True, True),
-                           ("band hi", "#7f7f7f", True, True)], height=h)
-        self.p_mag = Plot(gui, "mag", "|mag| and L_k [µT] and its gate band",
+                           ("band hi", "#7f7f7f", True, True),
+                           ("shake injected", "#d62728", False, False, 4)], height=h)
+        self.p_mag = Plot(gui, "mag", "|mag| and L_k [µT] and its gate band; red: magnet injected",
                           [("|mag|", "#9467bd", False), ("L_k", "#e377c2", False),
-                           ("band lo", "#7f7f7f", True, True), ("band hi", "#7f7f7f", True, True)],
+                           ("band lo", "#7f7f7f", True, True), ("band hi", "#7f7f7f", True, True),
+                           ("magnet injected", "#d62728", False, False, 4)],
                           height=h)
         self.p_nis = Plot(gui, "nis", "NIS (log scale) and its gates",
                           [("acc NIS", "#1f77b4", False, True), ("mag NIS", "#9467bd", False, True),
@@ -381,6 +386,11 @@ class Gui:
         def const(x, v):     # a gate's line: its two ends (the series spans the gaps)
             return ends(x, v)
 
+        injected = [] if self.injections is None or session is None else self.injections(session)
+
+        def spans(kind):     # when a disturbance of this kind was injected (stream s)
+            return [(a, b) for k, a, b in injected if k == kind]
+
         x = pose["t"] - t0
         q_ours, q_phone = pose["q"], pose["phone_q"]
         has_p = np.isfinite(q_phone[:, 0])
@@ -413,9 +423,10 @@ class Gui:
         if len(acc) > 1:
             band = diag.acc_band or (None, None)
             x = acc["t"] - t0
-            self.p_acc.update(x, acc["norm"], const(x, band[0]), const(x, band[1]))
+            self.p_acc.update(x, acc["norm"], const(x, band[0]), const(x, band[1]),
+                              during(acc["t"], acc["norm"], spans("shake")))
         else:                              # empty axes, not the last stream's lines
-            self.p_acc.update(x_pose, *(const(x_pose, None) for _ in range(3)))
+            self.p_acc.update(x_pose, *(const(x_pose, None) for _ in range(4)))
         self.p_acc.show(len(acc) > 1)
         if len(acc) <= 1:
             notes.append("|acc|: no accelerometer samples")
@@ -423,9 +434,10 @@ class Gui:
         if len(mag) > 1:
             band = diag.mag_band or (None, None)
             x = mag["t"] - t0
-            self.p_mag.update(x, mag["norm"], mag["L_k"], const(x, band[0]), const(x, band[1]))
+            self.p_mag.update(x, mag["norm"], mag["L_k"], const(x, band[0]), const(x, band[1]),
+                              during(mag["t"], mag["norm"], spans("magnet")))
         else:
-            self.p_mag.update(x_pose, *(const(x_pose, None) for _ in range(4)))
+            self.p_mag.update(x_pose, *(const(x_pose, None) for _ in range(5)))
         self.p_mag.show(len(mag) > 1)
         if len(mag) <= 1:
             notes.append("|mag|: no magnetometer samples in this stream")

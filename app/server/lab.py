@@ -135,6 +135,7 @@ class LabTools:
         self.replay = None              # sources.ReplayControl of the replayed log, if any
         self.replay_name: str | None = None
         self.marks: list[dict[str, Any]] = []   # injection marks for the plots (stream s)
+        self._spans: dict[int, list] = {}       # injection id -> [session, kind, start_s, end_s]
         self.last_rerun: dict[str, Any] | None = None
         self.engine_server = None       # the viser server (the variants' ghosts), set in the lifespan
         self.app_state = None           # the app's state (tasks: the source), set in the lifespan
@@ -170,7 +171,7 @@ class LabTools:
             if self.injector.busy:
                 lines, marks = self.injector.feed(lines)
                 for m in marks:
-                    self._on_mark(m)
+                    self._on_mark(m, session)
             if self.recorder is not None:
                 self._record_lines(session, lines)
             if self.mag_capture is not None and self.mag_capture.result is None:
@@ -195,9 +196,20 @@ class LabTools:
         rec.write_lines(lines)
         self._check_recorder()
 
-    def _on_mark(self, m: dict[str, Any]) -> None:
+    def _on_mark(self, m: dict[str, Any], session=None) -> None:
         self.marks.append({**m, "t": m["time_ms"] / 1000.0, "line": None})
         del self.marks[:-40]
+        # the span on the stream's reference clock (the plots' time axis): the mark is
+        # on the clock of the sensor disturbed, which may run with an offset
+        tag = "MAG" if m["kind"] == "magnet" else "ACC"
+        off = session.orderer.offsets.get(tag, 0.0) if session is not None else 0.0
+        t = m["time_ms"] / 1000.0 - off
+        if m["event"] == "start":
+            self._spans[m["id"]] = [session, m["kind"], t, math.inf]
+            while len(self._spans) > 20:
+                del self._spans[next(iter(self._spans))]
+        elif m["id"] in self._spans and self._spans[m["id"]][0] is session:
+            self._spans[m["id"]][3] = t
         if self.recorder is not None:
             self.recorder.note("inject", t=m["time_ms"] / 1000.0, event=m["event"], id=m["id"],
                                text=m["text"])
@@ -528,6 +540,12 @@ class LabTools:
             raise LabError("kind", "no stream to disturb: connect the phone or run the demo", 409)
         a = self.injector.start(d, wall=time.time())
         return {"id": a.id, **d.as_dict(), "text": d.describe()}
+
+    def injected_spans(self, session) -> list[tuple[str, float, float]]:
+        """``(kind, start_s, end_s)`` of the disturbances injected into ``session``, in
+        its stream time (reference clock, as the plots' history); ``end_s`` is inf while
+        one is on."""
+        return [(k, a, b) for s, k, a, b in self._spans.values() if s is session]
 
     def inject_status(self) -> dict[str, Any]:
         return {**self.injector.status(), "marks": [

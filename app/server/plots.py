@@ -97,6 +97,15 @@ def ends(x: np.ndarray, v: float | None) -> np.ndarray:
     return out
 
 
+def during(t: np.ndarray, y: np.ndarray, spans: Iterable[tuple[float, float]]) -> np.ndarray:
+    """``y`` where ``t`` lies in one of the ``spans`` (start, end), NaN (a gap) elsewhere:
+    a series drawn over another while something (an injected disturbance) was on."""
+    on = np.zeros(np.shape(t), dtype=bool)
+    for a, b in spans:
+        on |= (t >= a) & (t <= b)
+    return np.where(on, y, np.nan)
+
+
 def break_wraps(deg: np.ndarray, jump: float = 180.0) -> np.ndarray:
     """An angle series (deg, rows) with NaN put where it wraps around (a jump of more
     than ``jump`` between neighbours), so the chart shows a break, not a spike."""
@@ -138,12 +147,14 @@ def angle_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
 
 
 def series(specs: Iterable[tuple], x_label: str = "t [s]") -> tuple[dict[str, Any], ...]:
-    """uPlot series: the x series, then one per ``(label, colour, dashed, span_gaps)``."""
+    """uPlot series: the x series, then one per ``(label, colour, dashed, span_gaps,
+    width)`` (the last two optional)."""
     out: list[dict[str, Any]] = [{"label": x_label}]
     for spec in specs:
         label, color, dash = spec[:3]
         span = spec[3] if len(spec) > 3 else False
-        s: dict[str, Any] = {"label": label, "stroke": color, "width": 1.5}
+        width = spec[4] if len(spec) > 4 else 1.5
+        s: dict[str, Any] = {"label": label, "stroke": color, "width": width}
         if dash:
             s["dash"] = [6, 4]
         if span:
