@@ -127,3 +127,69 @@ def test_primary_rides_out_a_50uT_magnet_and_the_no_rejection_variant_does_not(s
             assert np.mean(np.isin(in_magnet, [int(r) for r in REJECTIONS])) > 0.9
     assert moved["robust"] < 3.0, moved
     assert moved["robust-no-rejection"] > 20.0, moved
+
+
+STILL = ("alekodu_activityrecognition", "sensorLog_20221024T182616_standstill.txt")
+# a 50 µT magnet along each of the phone's axes (stuck on it) and each compass direction
+# (lying on the desk; the still phone's orientation turns it into the sensor frame)
+DIRECTIONS = [("x", "sensor"), ("-x", "sensor"), ("y", "sensor"), ("-y", "sensor"),
+              ("z", "sensor"), ("-z", "sensor"), ("east", "world"), ("north", "world"),
+              ("west", "world"), ("south", "world")]
+
+
+@pytest.fixture(scope="module")
+def still(request):
+    from conftest import SHARED
+    path = SHARED / "data" / "sensorfusion-app" / STILL[0] / STILL[1]
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    lines = path.read_bytes().splitlines()
+    clean = _rows(lines)
+    ref = make_estimator("robust").run(clean.t, clean.gyr, clean.acc, clean.mag, clean.ori)
+    return lines, clean, ref
+
+
+def _magnet_effect(still, direction, frame, ramp_s):
+    """A 50 µT magnet from 6 s to 11 s of the real still phone: how far the primary's
+    heading moves from where it goes without the magnet, during the magnet and the
+    second after (deg), and the share of MAG samples it refuses once the magnet is in."""
+    lines, clean, ref = still
+    t0 = int(lines[0].split(b"\t")[0])
+    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
+    q_then = ref.q[np.searchsorted(clean.t, clean.t[0] + 6.0)]
+    inj = Injector(orientation=lambda: q_then)
+    head, _ = inj.feed(lines[:k])
+    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": direction,
+                             "frame": frame, "seconds": 5, "ramp_s": ramp_s}))
+    tail, marks = inj.feed(lines[k:])
+    on, off = marks[0]["time_ms"] / 1000.0, marks[1]["time_ms"] / 1000.0
+    dist = _rows(head + tail)
+    b = make_estimator("robust").run(dist.t, dist.gyr, dist.acc, dist.mag, dist.ori)
+    np.testing.assert_array_equal(dist.t, clean.t)        # the same rows, MAG disturbed
+    w = (dist.t >= on) & (dist.t <= off + 1.0)
+    _, heading, _ = error_angles(b.q[w], ref.q[w])
+    full = (dist.t >= on + ramp_s + 0.1) & (dist.t <= off - ramp_s) & ~np.isnan(dist.mag[:, 0])
+    refused = np.isin(b.flags[full, F_MAG].astype(int), [int(r) for r in REJECTIONS]).mean()
+    return math.degrees(np.abs(heading).max()), float(refused)
+
+
+@pytest.mark.parametrize("direction, frame", DIRECTIONS, ids=[f"{f}-{d}" for d, f in DIRECTIONS])
+def test_primary_flags_and_rides_out_a_50uT_magnet_from_any_direction(still, direction, frame):
+    """Issue 9's claim with the defaults: a 50 µT magnet put down at once is flagged and
+    the heading moves < 3° (most of what it moves is the gyroscope's drift while the
+    heading waits for an undisturbed field)."""
+    moved, refused = _magnet_effect(still, direction, frame, ramp_s=0.0)
+    assert refused > 0.9, refused
+    assert moved < 3.0, moved
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "app/estimators/robust.py: the field gate judges only strength and dip against the "
+    "reference; a magnet brought in over 0.5 s turns the horizontal field by tens of degrees "
+    "before either leaves its gate (~0.3 s), and the heading update (time constant ~4 s) "
+    "follows: 4-7 deg (up to 21 deg with a 1 s ramp). The heading NIS gate cannot refuse it "
+    "with the defaults: R = heading_noise^2/dt is 0.5 rad^2 per 50 Hz update, so NIS <= "
+    "pi^2/0.5 < 20 < mag_nis_gate (30). Strict: an XPASS fails the run, so this mark goes when robust.py is fixed."))
+def test_primary_rides_out_a_50uT_magnet_brought_in_over_half_a_second(still):
+    moved = {f"{f} {d}": _magnet_effect(still, d, f, ramp_s=0.5)[0] for d, f in DIRECTIONS}
+    assert max(moved.values()) < 3.0, moved
