@@ -9,7 +9,7 @@ import msgspec
 import numpy as np
 import zstandard
 
-from app.server.plots import X_STEP, Y_BITS, ends, quantize, wire
+from app.server.plots import X_HOP_S, X_STEP, Y_BITS, ends, quantize, wire, x_window
 
 
 def test_quantize_stays_within_half_a_step_of_the_span():
@@ -35,14 +35,31 @@ def test_quantize_keeps_small_spans_and_constants_and_log_values():
     assert np.max(np.abs(ql / nis - 1.0)) <= 2.0 ** -Y_BITS
 
 
-def test_wire_gaps_are_null_and_the_x_nudge_survives():
+def test_wire_gaps_are_null_and_x_stays_within_half_a_step():
     assert wire(np.array([1.0, np.nan, np.inf, -np.inf, 2.0])) == [1.0, None, None, None, 2.0]
     assert wire(np.full(3, np.nan)) == [None, None, None]
-    x = np.array([100.0, 100.5, 101.0])
-    nudged = x.copy()
-    nudged[-1] += 1e-4                     # Plot.update's invisible nudge of the last x
-    assert wire(x, step=X_STEP)[-1] != wire(nudged, step=X_STEP)[-1]
-    assert abs(wire(nudged, step=X_STEP)[-1] - nudged[-1]) <= X_STEP / 2
+    x = np.array([100.0, 100.5, 101.0001])
+    assert np.max(np.abs(np.array(wire(x, step=X_STEP)) - x)) <= X_STEP / 2
+
+
+def test_the_x_window_moves_in_whole_hops_and_starts_at_zero():
+    assert X_HOP_S == 5.0
+    assert x_window(np.array([0.0, 0.1]), 20.0) == (0.0, 5.0)
+    assert x_window(np.array([0.0, 5.0]), 20.0) == (0.0, 5.0)          # 5.0 is inside
+    assert x_window(np.array([0.0, 7.3]), 20.0) == (0.0, 10.0)
+    assert x_window(np.array([3.0, 23.0]), 20.0) == (5.0, 25.0)
+    # the window holds the newest data whatever the refresh: only every 5 s a new range
+    ranges = {x_window(np.array([max(0.0, t - 20.0), t]), 20.0) for t in np.arange(0.1, 60, 0.5)}
+    assert len(ranges) == 12
+    for t in np.arange(0.1, 60, 0.37):
+        lo, hi = x_window(np.array([max(0.0, t - 20.0), t]), 20.0)
+        assert lo <= max(0.0, t - 20.0) + 5.0 and t <= hi and hi - lo <= 20.0
+    # a chart whose data start later (NIS: the newest half) shows the same window
+    assert x_window(np.array([27.0, 33.0]), 20.0) == (15.0, 35.0)
+    # a stream that starts before 0 (an estimator's rows before the first motion sample)
+    assert x_window(np.array([-1.0, 3.0]), 20.0) == (-5.0, 5.0)
+    # nothing finite yet: the first hop
+    assert x_window(np.array([np.nan, np.nan]), 20.0) == (0.0, 5.0)
 
 
 def test_a_constant_line_is_its_two_ends():

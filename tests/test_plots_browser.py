@@ -78,6 +78,17 @@ def drawn(frame, gui) -> dict[str, dict[str, int]]:
     return out
 
 
+def windows_agree(frame, gui, keys) -> bool:
+    """Each chart of ``keys`` shows on the page the x range the server set for it
+    (app.server.plots.Plot.x_range): the window is the server's, not left to the client."""
+    by_title = {p.title: p for p in gui.plots}
+    shown = {by_title[row["title"]].key: row["scales"]["x"] for row in frame.evaluate(STATE_JS)
+             if row["title"] in by_title}
+    want = {p.key: p.x_range for p in gui.plots}
+    return all(k in shown and None not in shown[k]
+               and max(abs(a - b) for a, b in zip(shown[k], want[k])) < 1e-6 for k in keys)
+
+
 def wait_drawn(frame, gui, expect: dict[str, list[str]], absent: tuple = (), timeout: float = 30.0):
     """Wait until every expected series of every expected plot has drawn pixels and the
     ``absent`` plots draw nothing (empty axes; the note says why)."""
@@ -88,7 +99,8 @@ def wait_drawn(frame, gui, expect: dict[str, list[str]], absent: tuple = (), tim
         last = drawn(frame, gui)
         return all(key in last and all(last[key][s] >= MIN_PIXELS for s in series)
                    for key, series in expect.items()) and \
-            not any(k in last and any(v >= MIN_PIXELS for v in last[k].values()) for k in absent)
+            not any(k in last and any(v >= MIN_PIXELS for v in last[k].values()) for k in absent) \
+            and windows_agree(frame, gui, expect)
     try:
         wait_for(ok, timeout, interval=0.5, what="plots drawn")
     except TimeoutError:

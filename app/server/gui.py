@@ -329,27 +329,27 @@ class Gui:
 
     # ------------------------------------------------------------------ plots
     def _build_plots(self, gui) -> None:
-        h = PLOT_HEIGHT
+        kw = dict(height=PLOT_HEIGHT, span_s=self.settings.history_s)
         self.p_euler = Plot(gui, "euler", "Euler angles [deg] (solid: estimate, dashed: phone's own)",
                             [(n, c, False) for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)]
                             + [(f"phone {n}", c, True)
-                               for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)], height=h)
+                               for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)], **kw)
         self.p_err = Plot(gui, "error", "Error angle [deg]", [("to phone's own", "#ff7f0e", False),
                                                                ("to truth", "#17becf", False)],
-                          height=h)
+                          **kw)
         self.p_acc = Plot(gui, "acc", "|acc| [m/s²] and its gate band; red: shake injected",
                           [("|acc|", "#1f77b4", False), ("band lo", "#7f7f7f", True, True),
                            ("band hi", "#7f7f7f", True, True),
-                           ("shake injected", "#d62728", False, False, 4)], height=h)
+                           ("shake injected", "#d62728", False, False, 4)], **kw)
         self.p_mag = Plot(gui, "mag", "|mag| and L_k [µT] and its gate band; red: magnet injected",
                           [("|mag|", "#9467bd", False), ("L_k", "#e377c2", False),
                            ("band lo", "#7f7f7f", True, True), ("band hi", "#7f7f7f", True, True),
                            ("magnet injected", "#d62728", False, False, 4)],
-                          height=h)
+                          **kw)
         self.p_nis = Plot(gui, "nis", "NIS (log scale) and its gates",
                           [("acc NIS", "#1f77b4", False, True), ("mag NIS", "#9467bd", False, True),
                            ("acc gate", "#1f77b4", True, True), ("mag gate", "#9467bd", True, True)],
-                          height=h,
+                          **kw,
                           y_scale={"distr": 3, "log": 10})
         self.plot_note = gui.add_markdown("")
         self.plots = (self.p_euler, self.p_err, self.p_acc, self.p_mag, self.p_nis)

@@ -36,7 +36,7 @@ from ..quaternion import angle_between_many
 EULER_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
 
 
-X_STEP = 2.0 ** -14   # s: finer than the 0.1 ms nudge of Plot.update, so it survives
+X_STEP = 2.0 ** -14   # s: 61 µs, far finer than a pixel of a 20 s window
 Y_BITS = 12           # a y value to 1/4096 of its column's span: sub-pixel at any chart height
 
 
@@ -163,39 +163,75 @@ def series(specs: Iterable[tuple], x_label: str = "t [s]") -> tuple[dict[str, An
     return tuple(out)
 
 
+X_HOP_S = 5.0   # s: the x window moves in whole steps of this (a chart is rebuilt then)
+
+
+def x_window(x: np.ndarray, span_s: float, hop_s: float = X_HOP_S) -> tuple[float, float]:
+    """The x range a chart shows for data ``x`` (s since the stream started): ``span_s``
+    wide, its right end the newest x rounded up to a whole ``hop_s`` (so the range
+    changes only every ``hop_s``), its left end not left of 0 (nor of the whole hop
+    below the oldest x, when that is negative), so a young stream fills its chart and
+    every chart of one stream shows the same window: [0, 5], [0, 10], ..., [5, 25],
+    [10, 30] for a 20 s span."""
+    fin = np.asarray(x, dtype=float)
+    fin = fin[np.isfinite(fin)]
+    if not fin.size:
+        return 0.0, hop_s
+    hi = hop_s * max(1.0, math.ceil(float(fin.max()) / hop_s - 1e-9))
+    lo = max(hi - span_s, min(0.0, hop_s * math.floor(float(fin.min()) / hop_s)))
+    return lo, hi
+
+
 class Plot:
-    """One chart and what it needs to be worth showing."""
+    """One chart and what it needs to be worth showing.
+
+    Its x range is set here, explicitly (:func:`x_window`), not left to the browser:
+    viser's chart keeps its x scale across data updates and re-ranges it only from a
+    React effect that runs when the data's x extent changes; when the extent did not
+    change between two renders the client drew (updates coalesced under load) the
+    scale stayed on an early window, and a chart showed only its first seconds: nothing
+    of a filter that had not yet aligned there (the plot test's intermittent failure).
+    A fixed range (a tuple, which viser keeps through every redraw) makes the chart
+    rebuild itself when the window moves, every :data:`X_HOP_S`; the y scales re-range
+    from the data at every update (uPlot's redraw)."""
 
     def __init__(self, gui, key: str, title: str, specs: list[tuple], *, height: int = 150,
-                 y_scale: dict | None = None):
+                 y_scale: dict | None = None, span_s: float = 20.0):
         self.key = key
         self.title = title
         self.specs = specs
-        scales: dict[str, Any] = {"x": {"time": False}}
-        if y_scale:
-            scales["y"] = y_scale
+        self.span_s = float(span_s)
+        self._y_scale = dict(y_scale) if y_scale else None
+        self._x_range = (0.0, X_HOP_S)
         s = series(specs)
         self.log = bool(y_scale and y_scale.get("distr") == 3)   # a log y scale
         self.handle = gui.add_uplot(data=tuple(np.zeros(2) for _ in s), series=s, title=title,
-                                    scales=scales, height=height, aspect=2.0)
+                                    scales=self._scales(), height=height, aspect=2.0)
         self.visible = True
         self.has_data = False          # something finite was drawn at the last update
-        self._nudge = False
+
+    def _scales(self) -> dict[str, Any]:
+        scales: dict[str, Any] = {"x": {"time": False, "range": list(self._x_range)}}
+        if self._y_scale:
+            scales["y"] = self._y_scale
+        return scales
+
+    @property
+    def x_range(self) -> tuple[float, float]:
+        """The x range on show (s since the stream started)."""
+        return self._x_range
 
     @property
     def colors(self) -> list[str]:
         return [s[1] for s in self.specs]
 
     def update(self, x: np.ndarray, *ys: np.ndarray) -> None:
-        """New data. Every other update the last x moves by 0.1 ms (invisible): viser's
-        chart re-ranges its scales only when the x extent changes (its data updates keep
-        the scales), so a chart laid out while hidden (another tab) would stay blank
-        once the stream stops; with the nudge it re-ranges at every refresh."""
-        self._nudge = not self._nudge
-        if self._nudge and len(x):
-            x = np.array(x, dtype=float, copy=True)
-            x[-1] += 1e-4
+        """New data, and a new x range when the window has moved on (see the class doc)."""
         send_data(self.handle, (x, *ys), self.log)
+        rng = x_window(x, self.span_s)
+        if rng != self._x_range:
+            self._x_range = rng
+            self.handle.scales = self._scales()
         self.has_data = any(np.isfinite(np.asarray(y, float)).any() for y in ys)
 
     def show(self, on: bool) -> None:
