@@ -17,6 +17,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .jitcache import ensure_fresh
+
+ensure_fresh()   # before anything compiled runs: a cache older than its sources is dropped
+
 _SQRT_EPS = np.sqrt(np.finfo(np.float64).eps)
 
 

@@ -143,6 +143,10 @@ def compile_all(jobs: int | None = None, out: TextIO | None = None,
     and returns 0, or 1 with the failing child's error output."""
     out = out if out is not None else sys.stderr
     jobs = max(1, jobs or os.cpu_count() or 1)
+    from .jitcache import ensure_fresh
+    if ensure_fresh():   # here, once, before the children load the cache
+        print(f"{prog}: the filters' sources changed: their numba cache was dropped",
+              file=out, flush=True)
     todo = list(names())
     print(f"{prog}: compiling {len(todo)} estimators with numba ({jobs} at a time; "
           f"done once, cached for every later start)", file=out, flush=True)
