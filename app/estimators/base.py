@@ -83,6 +83,14 @@ REASON_TEXT = {
 ALIGN_WAIT_S = 0.5
 
 
+# What align_step asks of the estimator that calls it
+(ALIGN_WAIT,       # nothing yet: keep waiting
+ ALIGN_ACC_MAG,    # tilt from the waiting accelerometer sample, heading from this row's field
+ ALIGN_ACC,        # tilt from the waiting accelerometer sample, no heading
+ ALIGN_NO_ACC,     # no accelerometer (switched off): the estimator's own level start
+ ) = range(4)
+
+
 class TimeIssue(IntEnum):
     OK = 0
     REPEATED = 1    # same timestamp as the previous row: no time update
@@ -568,3 +576,45 @@ def _rows(x, n: int) -> np.ndarray:
         raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
     return a
 
+
+@njit(cache=True)
+def align_step(s, i_wait_t, i_wait_acc, t, gs, as_, ms, acc, use_acc, use_mag, f):
+    """The initial alignment's decision, made here once for every estimator that aligns
+    from its first samples (the manual's filter and ``robust``): which samples align it,
+    and when. The phone may be moving, so nothing waits for a still start: the first
+    accelerometer sample gives the tilt at once when the magnetometer is off; otherwise
+    it waits (the newest one kept) for a magnetometer sample to give the heading too,
+    for at most :data:`ALIGN_WAIT_S` from the stream's first sample on (a stream without
+    a magnetometer aligns without heading). Without an accelerometer (switched off, or
+    silent for :data:`ALIGN_WAIT_S`: a phone streaming only its gyroscope and
+    magnetometer) the estimator starts level at a gyroscope or magnetometer sample.
+
+    ``s[i_wait_t]`` (the stream's first sample, NaN before) and ``s[i_wait_acc:+3]`` (the
+    newest accelerometer sample, NaN before) are the caller's state slots; ``f`` the
+    row's flags: WAIT on every sample of the row, INIT on the one that aligned. Returns
+    an ``ALIGN_*`` code; for ``ALIGN_ACC``/``ALIGN_ACC_MAG`` the tilt comes from
+    ``s[i_wait_acc:+3]``."""
+    if s[i_wait_t] != s[i_wait_t] and (gs == R_USED or as_ == R_USED or ms == R_USED):
+        s[i_wait_t] = t                      # the wait runs from the first sample on
+    if gs == R_USED:
+        f[F_GYR] = R_WAIT
+    if as_ == R_USED:
+        f[F_ACC] = R_WAIT
+        s[i_wait_acc:i_wait_acc + 3] = acc
+        if not use_mag:
+            f[F_ACC] = R_INIT
+            return ALIGN_ACC
+    has_acc = s[i_wait_acc] == s[i_wait_acc]
+    if ms == R_USED:
+        f[F_MAG] = R_WAIT
+        if has_acc:
+            f[F_MAG] = R_INIT
+            return ALIGN_ACC_MAG
+    waited = s[i_wait_t] == s[i_wait_t] and t - s[i_wait_t] > ALIGN_WAIT_S
+    if has_acc and waited:
+        f[F_ACC] = R_INIT
+        return ALIGN_ACC
+    if not has_acc and (not use_acc or waited) and (ms == R_USED or gs == R_USED):
+        f[F_MAG if ms == R_USED else F_GYR] = R_INIT
+        return ALIGN_NO_ACC
+    return ALIGN_WAIT

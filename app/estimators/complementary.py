@@ -307,6 +307,8 @@ def _dnrf_align(s, R, p, abuf, mbuf, t, as_, ms, f):
         f[F_ACC] = R_INIT
     if ms == R_USED:
         f[F_MAG] = R_INIT
+    if as_ != R_USED and ms != R_USED:   # aligned on a gyroscope row (from the pre-filters)
+        f[F_GYR] = R_INIT
 
 
 @njit(cache=True)

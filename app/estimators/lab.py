@@ -31,9 +31,9 @@ from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, ParamError, param
-from .base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR,
-                   F_MAG, F_MAG_NIS, F_MAG_VAL, NFLAGS, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
-                   R_WAIT, BatchResult, Diagnostics, Estimator, StepFlags, begin_row, vec3)
+from .base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
+                   F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, NFLAGS, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
+                   R_WAIT, BatchResult, Diagnostics, Estimator, StepFlags, align_step, begin_row, vec3)
 from .kalman import correct
 
 
@@ -178,30 +178,11 @@ def _lab_row(s, x, P, p, Rw, Ra, Rm, t, gyr, acc, mag, f):
                                               p[LP_MAX_GAP], p[LP_GYR_HOLD], f)
     if not go:
         return
-    if s[L_INIT] < 0.5:   # the initial alignment: first accelerometer (+ magnetometer) sample
-        if gs == R_USED:
-            f[F_GYR] = R_WAIT
-        if as_ == R_USED:
-            f[F_ACC] = R_WAIT
-        if ms == R_USED:
-            f[F_MAG] = R_WAIT
-        if as_ == R_USED:
-            if not use_mag:
-                _lab_align(s, x, P, p, acc, acc, False)
-                f[F_ACC] = R_INIT
-                return
-            if s[L_WAIT_T] != s[L_WAIT_T]:  # the wait runs from the first sample on
-                s[L_WAIT_T] = t
-            s[L_WAIT:L_WAIT + 3] = acc
-        if ms == R_USED and s[L_WAIT_T] == s[L_WAIT_T]:
-            _lab_align(s, x, P, p, s[L_WAIT:L_WAIT + 3].copy(), mag, True)
-            f[F_MAG] = R_INIT
-            return
-        if s[L_WAIT_T] == s[L_WAIT_T] and t - s[L_WAIT_T] > ALIGN_WAIT_S:
-            _lab_align(s, x, P, p, s[L_WAIT:L_WAIT + 3].copy(), mag, False)
-            f[F_ACC] = R_INIT
-            return
-        if not use_acc and (ms == R_USED or gs == R_USED):
+    if s[L_INIT] < 0.5:   # the initial alignment (decided in base.align_step)
+        act = align_step(s, L_WAIT_T, L_WAIT, t, gs, as_, ms, acc, use_acc, use_mag, f)
+        if act == ALIGN_ACC or act == ALIGN_ACC_MAG:
+            _lab_align(s, x, P, p, s[L_WAIT:L_WAIT + 3].copy(), mag, act == ALIGN_ACC_MAG)
+        elif act == ALIGN_NO_ACC:
             s[L_INIT] = 1.0
             s[L_T_ALIGN] = t
         return

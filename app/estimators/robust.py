@@ -59,9 +59,10 @@ from numba import njit
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
-                   F_TIME, NFLAGS, R_DIP, R_INIT, R_LATE, R_NIS, R_NORM, R_REST,
-                   R_USED, R_WAIT, R_GAP, R_ABSENT, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET,
-                   T_BACKWARD, T_GAP, T_OK, ALIGN_WAIT_S, BatchResult,
+                   F_TIME, NFLAGS, R_DIP, R_LATE, R_NIS, R_NORM, R_REST,
+                   R_USED, R_GAP, R_ABSENT, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET,
+                   T_BACKWARD, T_GAP, T_OK, ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, BatchResult,
+                   align_step,
                    Estimator, row_prologue)
 from .kalman import correct
 
@@ -206,8 +207,8 @@ STATE = (
     ("aligned", 1, "1 once aligned"),
     ("gyr_held", 3, "held gyroscope sample"),
     ("gyr_held_t", 1, "its time"),
-    ("wait_t", 1, "time of an accelerometer sample waiting for alignment (NaN: none)"),
-    ("wait_acc", 3, "that sample"),
+    ("wait_t", 1, "time of the first sample, waiting for alignment (NaN: none yet)"),
+    ("wait_acc", 3, "the newest accelerometer sample waiting for alignment (NaN: none)"),
     ("ref_norm", 1, "field reference: strength (µT)"),
     ("ref_dip", 1, "field reference: dip (rad, elevation of the field: negative in the north)"),
     ("ref_ok", 1, "1 once there is a field reference"),
@@ -840,34 +841,17 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
 
 @njit(cache=True)
 def _try_align(s, P, p, t, acc, mag, gs, as_, ms, f):
-    if gs == R_USED:
-        f[F_GYR] = R_WAIT
-    if as_ == R_USED:
-        f[F_ACC] = R_WAIT
-        if p[PRM.use_mag] < 0.5:
-            _align(s, P, p, t, acc, mag, False)
-            f[F_ACC] = R_INIT
-            return
-        if not np.isfinite(s[S.wait_t]):  # the wait runs from the first sample on
-            s[S.wait_t] = t
-        s[S.wait_acc:S.wait_acc + 3] = acc
-    if ms == R_USED:
-        f[F_MAG] = R_WAIT
-        if np.isfinite(s[S.wait_t]):
-            _align(s, P, p, t, s[S.wait_acc:S.wait_acc + 3].copy(), mag, True)
-            f[F_MAG] = R_INIT
-            return
-    if np.isfinite(s[S.wait_t]) and t - s[S.wait_t] > ALIGN_WAIT_S:
-        _align(s, P, p, t, s[S.wait_acc:S.wait_acc + 3].copy(), mag, False)
-        f[F_ACC] = R_INIT
-        return
-    if p[PRM.use_acc] < 0.5 and (ms == R_USED or gs == R_USED):
+    """The initial alignment when :func:`~.base.align_step` says so."""
+    act = align_step(s, S.wait_t, S.wait_acc, t, gs, as_, ms, acc, p[PRM.use_acc] > 0.5,
+                     p[PRM.use_mag] > 0.5, f)
+    if act == ALIGN_ACC or act == ALIGN_ACC_MAG:
+        _align(s, P, p, t, s[S.wait_acc:S.wait_acc + 3].copy(), mag, act == ALIGN_ACC_MAG)
+    elif act == ALIGN_NO_ACC:
         # no accelerometer: start level, heading from the field if there is one
         up = np.array([0.0, 0.0, GRAVITY])
         _align(s, P, p, t, up, mag, ms == R_USED)
         P[0, 0] = p[PRM.noacc_tilt_std] ** 2
         P[1, 1] = P[0, 0]
-        f[F_MAG if ms == R_USED else F_GYR] = R_INIT
 
 
 @njit(cache=True)
@@ -890,6 +874,7 @@ def new_state() -> np.ndarray:
     s[S.q] = 1.0
     for name in _STATE_NAN:
         s[getattr(S, name)] = np.nan
+    s[S.wait_acc:S.wait_acc + 3] = np.nan     # no accelerometer sample yet
     return s
 
 
