@@ -45,7 +45,8 @@ FLAG_COL = (F_GYR, F_ACC, F_MAG)
 KIND_OF_TAG = {"GYR": 0, "ACC": 1, "MAG": 2, "ORI": 3}     # row kinds: a sensor, or ORI
 NREASON = len(Reason)
 _FLAG_COL_ARR = np.array(FLAG_COL)
-_REJECTION_CODES = np.array(sorted(int(r) for r in REJECTIONS), dtype=np.int64)
+_IS_REJECTION = np.zeros(NREASON, dtype=bool)    # by reason code (a lookup: np.isin is slow)
+_IS_REJECTION[[int(r) for r in REJECTIONS]] = True
 GOOD_EVERY_S = 1.0          # how often (wall clock) an instance's good state is kept
 NAME_RE = re.compile(r"[a-z][a-z0-9_-]{0,39}")
 
@@ -299,7 +300,7 @@ class Bench:
                                            minlength=3 * NREASON).reshape(3, NREASON)
                 for k, i in lasts:
                     inst.last[k] = (float(t[i]), f[i])
-                rej = rows[ok & np.isin(codes, _REJECTION_CODES)]
+                rej = rows[ok & _IS_REJECTION[np.where(ok, codes, 0)]]
                 for k in (1, 2):
                     rk = rej[kind[rej] == k]
                     if rk.size:

@@ -99,6 +99,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.gui = Gui(st.viewer, engine, st.scene, settings)
             guard_viewer(st.viewer, access)
             engine.pose_listeners.append(st.scene.draw_pose)
+            engine.atomic = st.viewer.atomic
             engine.listeners.append(st.scene.draw)
             st.phone = PhoneServer(engine, settings)
             await st.phone.start()

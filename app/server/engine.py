@@ -34,13 +34,14 @@ chunk (``wait_ms``) and how late the display timers ran (``loop_lag_ms``).
 from __future__ import annotations
 
 import asyncio
-import json
+import contextlib
 import logging
 import math
 import time
 from collections import deque
 from typing import Any, Callable
 
+import msgspec
 import numpy as np
 
 from ..config import load_config
@@ -53,6 +54,7 @@ SLICE_SAMPLES = 128   # samples per turn of the filter task before it yields the
 
 SUBSCRIBER_BACKLOG = 200      # WS messages (10 s at 20 Hz) waiting for one client: dropped
 RESTART_PAUSE_S = 0.1
+_JSON = msgspec.json.Encoder()
 
 __all__ = ["Change", "Engine", "PatchError", "Session", "Snapshot", "Subscriber", "Throttle"]
 
@@ -151,6 +153,9 @@ class Engine:
         self.param_listeners: list[Callable[[], None]] = []         # after every change
         self.preset_parts: list[Callable[[], dict]] = []            # more tables for a saved preset
         self.subscribers: set[Subscriber] = set()                   # WS /ws/state
+        # the viewer's grouping (viser's ``server.atomic``): the scene's listeners' updates
+        # go out together, waking viser's sender once per refresh instead of once each
+        self.atomic: Callable[[], Any] = contextlib.nullcontext
         self.latency = Latency()
         self.queued = 0                     # samples waiting in the inbox
         self.restarts = 0                   # the filter task ended and was restarted
@@ -344,11 +349,12 @@ class Engine:
         if not self.listeners:
             return
         snap = self.core.snapshot()
-        for cb in self.listeners:
-            try:
-                cb(snap)
-            except Exception:
-                log.exception("scene listener failed")
+        with self.atomic():
+            for cb in self.listeners:
+                try:
+                    cb(snap)
+                except Exception:
+                    log.exception("scene listener failed")
 
     def subscribe(self) -> Subscriber:
         sub = Subscriber(self.subscriber_backlog)
@@ -368,8 +374,11 @@ class Engine:
         self._ws_pending = []
         if not self.subscribers:
             return
-        msg = json.dumps({"primary": self.core.bench.primary, "source": self.core.source_kind(),
-                          "estimates": [{"t": t, "tag": tag, "q": q} for t, tag, q in pending]})
+        # msgspec: 10x faster than json.dumps here (the same JSON, without spaces; a
+        # non-finite number is null, valid JSON, where json.dumps wrote NaN)
+        msg = _JSON.encode({"primary": self.core.bench.primary, "source": self.core.source_kind(),
+                            "estimates": [{"t": t, "tag": tag, "q": q} for t, tag, q in pending]}
+                           ).decode()
         for sub in list(self.subscribers):
             if not sub.offer(msg):
                 self.subscribers.discard(sub)

@@ -515,7 +515,15 @@ class Gui:
                           waiting_for="waiting for the phone's ORI" if primary == "phone"
                           else "aligning…")
 
-    def refresh_text(self) -> None:
+    def refresh_text(self, readouts: bool = True) -> None:
+        """The indicators (pills and the 3D label); with ``readouts`` also the status
+        line and the read-outs (from the API's state: the costlier part)."""
+        ind = self.indications()
+        self.indicators_now = ind
+        self.indicators.content = _indicators_html(ind)
+        self.scene.set_indicators(ind)
+        if not readouts:
+            return
         eng = self.engine
         st = eng.state()
         src = html.escape(st["status"])
@@ -525,10 +533,6 @@ class Gui:
             f"<div style='font-size:0.92em;line-height:1.35'><b>Source:</b> {src}<br>"
             f"<b>Stream time:</b> {t} &nbsp; <b>Primary:</b> {html.escape(st['primary'])}"
             f"{_error_text(st)}</div>")
-        ind = self.indications()
-        self.indicators_now = ind
-        self.indicators.content = _indicators_html(ind)
-        self.scene.set_indicators(ind)
         self.readouts.content = _readouts_html(st)
 
     def refresh(self) -> None:
@@ -599,18 +603,19 @@ def _readouts_html(st: dict) -> str:
 
 
 async def run_gui(gui: Gui, hz: float, plot_hz: float | None = None) -> None:
-    """Refresh the read-outs ``hz`` and the plots ``plot_hz`` times a second (each plot
-    is resent whole to every viewer: the plots cost a viewer most), giving the event
-    loop a turn between the read-outs and each plot: the filter task (and its latency)
-    never waits for a whole refresh."""
+    """Refresh the indicators ``hz`` times a second, and the status line, read-outs and
+    plots ``plot_hz`` times (each plot is resent whole to every viewer: the plots cost a
+    viewer most), giving the event loop a turn between the read-outs and each plot: the
+    filter task (and its latency) never waits for a whole refresh."""
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
     plot_period = period if plot_hz is None else 1.0 / plot_hz
     due = plot_due = loop.time()
     while True:
         try:
-            gui.refresh_text()
-            if loop.time() >= plot_due - 0.5 * period:
+            slow = loop.time() >= plot_due - 0.5 * period
+            gui.refresh_text(readouts=slow)
+            if slow:
                 plot_due = max(plot_due + plot_period, loop.time())
                 await asyncio.sleep(0)
                 for _ in gui.plot_steps():

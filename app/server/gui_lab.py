@@ -632,7 +632,7 @@ class LabGui:
         self.monitor_sent += 1
 
 
-async def run_lab_gui(g: LabGui, hz: float = 4.0) -> None:
+async def run_lab_gui(g: LabGui, hz: float = 2.0) -> None:
     """Refresh the Lab tab ``hz`` times a second."""
     while True:
         try:

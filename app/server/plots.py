@@ -31,6 +31,11 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+try:
+    import msgspec
+except ImportError:  # pragma: no cover - viser depends on it
+    msgspec = None
+
 from ..quaternion import angle_between_many
 
 EULER_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
@@ -85,7 +90,17 @@ def send_data(handle, columns: Sequence[np.ndarray], log: bool = False) -> None:
     if queue is None:  # pragma: no cover - another viser: fall back to its own setter
         handle.data = tuple(np.where(np.isfinite(np.asarray(c, float)), c, 0.0) for c in columns)
         return
-    queue("data", cols)
+    queue("data", packed(cols))
+
+
+def packed(value):
+    """``value`` encoded as msgpack once, here: viser's sender otherwise walks a list
+    element by element, for every viewer, before encoding it (a third of the server's
+    Python time with five viewers); a ``msgspec.Raw`` goes into each message as it is.
+    The bytes are the same either way (viser encodes with msgspec)."""
+    if msgspec is None:  # pragma: no cover - viser always brings msgspec
+        return value
+    return msgspec.Raw(msgspec.msgpack.encode(value))
 
 
 def ends(x: np.ndarray, v: float | None) -> np.ndarray:

@@ -54,9 +54,10 @@ class Settings:
     replay_pause_s: float = 1.0      # pause between two loops of a replayed log
     # display
     plot_hz: float = 2.0             # plots: each refresh resends every chart whole to every viewer
-    text_hz: float = 5.0             # read-outs, indicators, status line (sent only when changed)
-    scene_hz: float = 30.0           # cones, arrows, other phones, indicators (the pose: every batch)
-    ws_hz: float = 20.0              # WS /ws/state messages (each holds every estimate since the last)
+    text_hz: float = 5.0             # the indicators (pills, 3D label); the status line and the
+                                     # read-outs go with the plots (sent only when changed)
+    scene_hz: float = 20.0           # cones, arrows, other phones (the primary's pose: every batch)
+    ws_hz: float = 10.0              # WS /ws/state messages (each holds every estimate since the last)
     history_s: float = 20.0
     verbose: bool = True             # print the start-up banner
 
