@@ -284,7 +284,11 @@ def test_magnetometer_calibration_from_the_stream(tmp_path):
         text = (tmp_path / "withmag.toml").read_text()
         assert "[magcal]" in text
         # from now on every MAG sample is corrected: a raw reading of the offset alone
-        # (zero field) reads ~0 µT
+        # (zero field) reads ~0 µT (once the first phone's stream, sent faster than it
+        # is processed, has ended: else the second phone is refused as a second one)
+        wait_for(lambda: (lambda st: st["source"] == "phone-disconnected"
+                          and st["counts"]["queued"] == 0)(_state(api)), 60.0,
+                 what="the end of the first phone's stream")
         with Phone(s.phone_port) as phone:
             second = []
             for k in range(0, 3000, 10):

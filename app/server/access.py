@@ -121,9 +121,11 @@ class Access:
             return client_id in self.presenters
 
 
-def require_presenter(request: Request) -> None:
+async def require_presenter(request: Request) -> None:
     """FastAPI dependency for every state-changing route: 403 unless the request comes
-    from an acceptable Origin and carries the presenter's token (or ``--open``)."""
+    from an acceptable Origin and carries the presenter's token (or ``--open``). Async:
+    a plain ``def`` dependency would run in FastAPI's thread pool, a thread hop per
+    request."""
     acc: Access = request.app.state.access
     if not acc.origin_ok(request.headers.get("origin"), request.headers.get("host")):
         raise HTTPException(403, "refused: this request comes from another site (Origin "

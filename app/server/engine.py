@@ -50,7 +50,7 @@ from ..live.views import Latency
 from ..protocol import Sample
 
 log = logging.getLogger("orientlab.engine")
-SLICE_SAMPLES = 128   # samples per turn of the filter task before it yields the loop
+SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the loop
 
 SUBSCRIBER_BACKLOG = 200      # WS messages (10 s at 20 Hz) waiting for one client: dropped
 RESTART_PAUSE_S = 0.1
@@ -277,7 +277,7 @@ class Engine:
         while True:
             items = [await inbox.get()]
             self._t_taken = time.perf_counter()
-            # a slice of at most SLICE_SAMPLES samples (~10 ms of filtering), then the
+            # a slice of about SLICE_SAMPLES samples (about a ms of filtering), then the
             # loop is yielded: the API and the receiver never wait for a long backlog
             n = len(items[0][2]) if items[0][0] == "samples" else 0
             while not inbox.empty() and n < SLICE_SAMPLES:

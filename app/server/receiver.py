@@ -50,12 +50,14 @@ from ..protocol import MOTION_TAGS, LineSplitter, MalformedLine, parse_line
 log = logging.getLogger("orientlab.receiver")
 
 # Fairness: the phone's data is parsed on the event loop that also answers the API. A
-# read returns at most READ_CHUNK bytes (~110 lines: ~1 ms of parsing, ~10 ms of filtering); after each chunk
+# read returns at most READ_CHUNK bytes (~55 lines: under a millisecond of parsing, a
+# few of filtering; a real phone's 10 ms is ~600 bytes); after each chunk
 # the receiver yields the loop, and while the engine has more than MAX_BACKLOG samples
 # waiting it stops reading (TCP flow control then holds the phone back: nothing is
 # lost). So a phone sending as fast as TCP carries it cannot starve the API or grow the
-# queue without bound.
-READ_CHUNK = 4096
+# queue without bound: each turn of the loop holds little of its work, and the API's
+# turns come between.
+READ_CHUNK = 2048
 MAX_BACKLOG = 256
 
 

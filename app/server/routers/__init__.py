@@ -5,7 +5,9 @@ from fastapi import HTTPException, Request
 from ..engine import Engine, PatchError
 
 
-def get_engine(request: Request) -> Engine:
+async def get_engine(request: Request) -> Engine:
+    # async: FastAPI runs a plain ``def`` dependency in its thread pool, a thread hop
+    # (and a wait for the GIL while the filter runs) on every request
     return request.app.state.engine
 
 

@@ -7,7 +7,9 @@ from fastapi import HTTPException, Request
 from ..lab import LabError, LabTools
 
 
-def get_lab(request: Request) -> LabTools:
+async def get_lab(request: Request) -> LabTools:
+    # async: FastAPI runs a plain ``def`` dependency in its thread pool, a thread hop
+    # (and a wait for the GIL while the filter runs) on every request
     return request.app.state.lab
 
 

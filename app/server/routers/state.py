@@ -26,7 +26,7 @@ async def stats(request: Request, reset: bool = False, engine: Engine = Depends(
     """Backlog and latency (line arrival to viser update queued), for the load benchmark.
     ``reset=true`` starts a new measurement (the presenter only)."""
     if reset:
-        require_presenter(request)
+        await require_presenter(request)
     return engine.stats(reset)
 
 
