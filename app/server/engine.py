@@ -52,7 +52,7 @@ from ..protocol import Sample
 log = logging.getLogger("orientlab.engine")
 SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the loop
 
-SUBSCRIBER_BACKLOG = 200      # WS messages (10 s at 20 Hz) waiting for one client: dropped
+SUBSCRIBER_BACKLOG = 200      # WS messages (20 s at 10 Hz) waiting for one client: dropped
 RESTART_PAUSE_S = 0.1
 _JSON = msgspec.json.Encoder()
 
