@@ -36,6 +36,14 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
   enters the low-pass): a shake shows.
 - **Rest detection** (gyroscope and accelerometer both quiet for ``rest_time``):
   the low-passed gyroscope is then a direct measurement of the bias.
+- **Bias in motion from the correction rates** (VQF's motion bias estimation, through
+  the same ``correct``). The tilt and heading updates correct the attitude only: their
+  errors (specific force left in the low-pass, a field bent indoors) last for seconds,
+  and a white-noise model would let the bias absorb them (it wandered by 1.5 °/s on a
+  phone held still in the hand). Instead, the rate of the tilt corrections (x, y) and
+  of the heading corrections (about the vertical) measures the bias error, with their
+  own noise densities (``bias_motion_noise``, ``bias_heading_noise``) and a clip
+  (``bias_motion_clip``): the bias follows the corrections over a minute, not seconds.
 - **Measurement noise as densities** (``tilt_noise``, ``heading_noise`` in rad·√s):
   ``R = σ²/Δt`` per update, so the correction time constants, ``tilt_noise /
   gyr_noise`` and ``heading_noise / gyr_noise``, do not depend on the sample rates.
@@ -83,6 +91,22 @@ class RobustParams(CommonParams):
                                        "axis misalignment, timing): fast turns make the filter less sure")
     bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
+    bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
+                                     user_scale=DEG,
+                                     doc="noise density of the bias seen in the rate of the tilt corrections "
+                                         "(during motion the specific force left after the low-pass makes "
+                                         "the corrections wander for seconds); 0: no bias learning in motion")
+    bias_motion_clip: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s",
+                                    user_scale=DEG,
+                                    doc="a correction rate is taken to show at most this much bias error "
+                                        "(a first correction after a moving start, a shake, is no bias); "
+                                        "the estimate itself is not clipped: a phone's 3-6 °/s is learned "
+                                        "at rest at once, in motion in steps of this; 0: no clip")
+    bias_heading_noise: float = param(2.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
+                                      user_scale=DEG,
+                                      doc="likewise for the bias about the vertical, seen in the rate of the "
+                                          "heading corrections (indoor fields bend the heading by degrees "
+                                          "for many seconds: larger than the tilt's); 0: off")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="initial gyroscope bias (calibration)")
     tilt_noise: float = param(0.02, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
@@ -139,8 +163,11 @@ class RobustParams(CommonParams):
     rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,
                                doc="rest: accelerometer deviation from its low-pass below this")
     rest_time: float = param(1.5, unit="s", lo=0.0, hi=60.0, doc="quiet this long = at rest; 0: no rest detection")
-    rest_noise: float = param(0.005, unit="rad/s·√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/s·√s",
-                              user_scale=DEG, doc="noise density of the bias measurement at rest")
+    rest_noise: float = param(0.0016, unit="rad/s·√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/s·√s",
+                              user_scale=DEG, doc="noise density of the bias measurement at rest (VQF's "
+                                                  "0.09 °/s·√s: ten times a phone gyroscope's white noise, "
+                                                  "for a table that trembles; a short rest must teach "
+                                                  "the bias, motion teaches it slowly)")
     rw_noise: float = param(0.5, unit="rad/√s", lo=1e-4, hi=10.0, log=True,
                             doc="attitude random walk without gyroscope")
     update_rate_hz: float = param(50.0, unit="Hz", lo=0.0, hi=10000.0,
@@ -238,6 +265,11 @@ STATE = (
     ("dist_reason", 1, "Reason of the current disturbance (NORM or DIP)"),
     ("bias_good", 3, "the bias estimate before the heading began to disagree with the field"),
     ("acc_var", 1, "low-passed power of the specific force, |a - low-pass|² (m²/s⁴)"),
+    ("mb_ok", 1, "1 once the motion-bias low-passes hold a value"),
+    ("mb_R", 9, "motion bias: low-passed rotation matrix (rows of R, sensor to world)"),
+    ("mb_Rb", 2, "motion bias: low-passed horizontal rows of R b (rad/s)"),
+    ("mb_sum", 3, "tilt (x, y) and heading (z) corrections since the last bias update (rad)"),
+    ("mb_time", 2, "s of tilt / heading corrections summed there"),
 )
 # slots that start as NaN ("not yet")
 _STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
@@ -259,7 +291,13 @@ PRM, NPARAM = _layout("ParamLayout", _param_fields())
 # in the stream must not look like a long, information-rich average.
 DT_MAX = 0.1
 
-_MASK_HEADING = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
+# The bias learned in motion follows the correction rates over a minute: it is updated
+# with the corrections summed over this long (s), not after every correction.
+BIAS_UPD_S = 0.1
+
+_MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+_MASK_ATTITUDE = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+_MASK_BIAS = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0])
 
 # Measurement models in the error state x = [δθ (world), δb]. With q_true = exp(δθ) ⊗ q,
 # a world-frame vector v seen through the estimate is v - δθ × v, so dv/dδθ = [v]×.
@@ -382,6 +420,9 @@ def _align(s, P, p, t, acc, mag, use_mag):
         s[S.bias + i] = p[PRM.gyr_bias + i]
     s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
     s[S.acc_var] = 0.0
+    s[S.mb_ok] = 0.0
+    s[S.mb_sum:S.mb_sum + 3] = 0.0
+    s[S.mb_time:S.mb_time + 2] = 0.0
     P[:, :] = 0.0
     tilt0 = p[PRM.init_tilt_std]
     head0 = p[PRM.init_heading_std] if use_mag else np.pi
@@ -604,13 +645,104 @@ def _acc_update(s, P, p, t, acc, f):
     Rm = np.zeros((2, 2))
     Rm[0, 0] = r
     Rm[1, 1] = r
-    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[PRM.acc_nis_gate])
+    # the tilt update corrects the attitude only: its error is the specific force left in the
+    # low-pass, correlated for seconds, which a white-noise model would let the bias absorb
+    # (the bias is learned from the corrections' rate below, slowly, as VQF does)
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[PRM.acc_nis_gate], _MASK_ATTITUDE)
     f[F_ACC_NIS] = nis
     if ok:
         _inject(s, P, dx)
+        if p[PRM.bias_motion_noise] > 0.0:
+            s[S.mb_sum] += dx[0]
+            s[S.mb_sum + 1] += dx[1]
+            s[S.mb_time] += dt
+            if s[S.mb_time] >= BIAS_UPD_S:
+                _motion_bias_update(s, P, p, s[S.mb_sum], s[S.mb_sum + 1], s[S.mb_time])
+                s[S.mb_sum] = 0.0
+                s[S.mb_sum + 1] = 0.0
+                s[S.mb_time] = 0.0
     else:
         f[F_ACC] = R_NIS
         f[F_ACC_VAL] = nis
+
+
+@njit(cache=True)
+def _motion_bias_update(s, P, p, dx0, dx1, dt):
+    """Gyroscope bias during motion from the rate of the tilt corrections (VQF's motion bias
+    estimation, through the one ``correct``). A bias error δb turns the estimate at -R δb in
+    the world frame; the tilt corrections, which keep the inclination, then run at that rate
+    in x and y. Through the low-pass (``acc_tau``) they show it averaged over the last
+    seconds, so the measurement is ``LP(R b) - dx/Δt`` of ``LP(R) b``: LP(R) b̂ plus the
+    rate the corrections needed. Its noise (``bias_motion_noise``) is what the specific
+    force left in the low-pass makes the corrections wander: the bias follows the
+    corrections over minutes, not seconds; a rate off the model by more than
+    ``bias_motion_clip`` counts as that much (a first correction, a shake is no bias).
+    Only x and y: the vertical is the heading's (the magnetometer's) to learn."""
+    q0, q1, q2, q3 = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
+    R = s[S.mb_R:S.mb_R + 9]
+    r = (2.0 * (q0 * q0 + q1 * q1) - 1.0, 2.0 * (q1 * q2 - q0 * q3), 2.0 * (q1 * q3 + q0 * q2),
+         2.0 * (q1 * q2 + q0 * q3), 2.0 * (q0 * q0 + q2 * q2) - 1.0, 2.0 * (q2 * q3 - q0 * q1),
+         2.0 * (q1 * q3 - q0 * q2), 2.0 * (q2 * q3 + q0 * q1), 2.0 * (q0 * q0 + q3 * q3) - 1.0)
+    b0, b1, b2 = s[S.bias], s[S.bias + 1], s[S.bias + 2]
+    rb0 = r[0] * b0 + r[1] * b1 + r[2] * b2
+    rb1 = r[3] * b0 + r[4] * b1 + r[5] * b2
+    if s[S.mb_ok] == 0.0:
+        for i in range(9):
+            R[i] = r[i]
+        s[S.mb_Rb] = rb0
+        s[S.mb_Rb + 1] = rb1
+        s[S.mb_ok] = 1.0
+    else:
+        k = _lp_coef(dt, p[PRM.acc_tau])
+        for i in range(9):
+            R[i] += k * (r[i] - R[i])
+        s[S.mb_Rb] += k * (rb0 - s[S.mb_Rb])
+        s[S.mb_Rb + 1] += k * (rb1 - s[S.mb_Rb + 1])
+    if s[S.rest] != 0.0:
+        return  # at rest the gyroscope itself measures the bias (_rest_update)
+    innov = np.empty(2)
+    innov[0] = s[S.mb_Rb] - dx0 / dt - (R[0] * b0 + R[1] * b1 + R[2] * b2)
+    innov[1] = s[S.mb_Rb + 1] - dx1 / dt - (R[3] * b0 + R[4] * b1 + R[5] * b2)
+    clip = p[PRM.bias_motion_clip]
+    if clip > 0.0:
+        for i in range(2):
+            innov[i] = min(clip, max(-clip, innov[i]))
+    H = np.zeros((2, 6))
+    for j in range(3):
+        H[0, 3 + j] = R[j]
+        H[1, 3 + j] = R[3 + j]
+    Rm = np.zeros((2, 2))
+    Rm[0, 0] = p[PRM.bias_motion_noise] ** 2 / dt
+    Rm[1, 1] = Rm[0, 0]
+    ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS)
+    if ok:
+        for i in range(3):
+            s[S.bias + i] += db[3 + i]
+
+
+@njit(cache=True)
+def _heading_bias_update(s, P, p, dz, dt):
+    """The bias about the vertical from the rate of the heading corrections, as
+    :func:`_motion_bias_update` does for x and y: a bias error δb turns the heading at
+    -(R δb)_z, the corrections follow at that rate. The heading update itself corrects the
+    heading only: through the cross-covariances a field bent for seconds (and, with a dipping
+    field, the tilt columns of its Jacobian) would pull every axis of the bias."""
+    q0, q1, q2, q3 = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
+    H = np.zeros((1, 6))
+    H[0, 3] = 2.0 * (q1 * q3 - q0 * q2)
+    H[0, 4] = 2.0 * (q2 * q3 + q0 * q1)
+    H[0, 5] = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    innov = np.empty(1)
+    innov[0] = -dz / dt
+    clip = p[PRM.bias_motion_clip]
+    if clip > 0.0:
+        innov[0] = min(clip, max(-clip, innov[0]))
+    Rm = np.empty((1, 1))
+    Rm[0, 0] = p[PRM.bias_heading_noise] ** 2 / dt
+    ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS)
+    if ok:
+        for i in range(3):
+            s[S.bias + i] += db[3 + i]
 
 
 @njit(cache=True)
@@ -764,6 +896,13 @@ def _mag_update(s, P, p, t, mag, rate, f):
     f[F_MAG_NIS] = nis
     if ok2:
         _inject(s, P, dx)
+        if not lost and p[PRM.bias_heading_noise] > 0.0 and s[S.rest] == 0.0:
+            s[S.mb_sum + 2] += dx[2]
+            s[S.mb_time + 1] += elapsed
+            if s[S.mb_time + 1] >= BIAS_UPD_S:
+                _heading_bias_update(s, P, p, s[S.mb_sum + 2], s[S.mb_time + 1])
+                s[S.mb_sum + 2] = 0.0
+                s[S.mb_time + 1] = 0.0
         if lost:
             f[F_MAG] = R_RECOVER
             f[F_MAG_VAL] = innov[0]
