@@ -86,9 +86,10 @@ class RobustParams(CommonParams):
     bias_max: float = param(0.3, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s", user_scale=DEG,
                             doc="a bias estimate above this is implausible (the filter is lost): it "
                                 "is reset and flagged; 0: off")
-    gyr_scale_noise: float = param(0.0, unit="√s", lo=0.0, hi=1.0,
-                                   doc="attitude noise density per rad/s of turn rate (scale factor, "
-                                       "axis misalignment, timing): fast turns make the filter less sure")
+    gyr_scale_noise: float = param(0.003, unit="√s", lo=0.0, hi=1.0,
+                                   doc="attitude noise density per rad/s of turn rate, about the rotation "
+                                       "axis (a phone gyroscope's scale factor is off by some 0.1-1 %): "
+                                       "fast turns make the filter less sure and correct faster")
     bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
     bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
@@ -533,11 +534,27 @@ def _predict(s, P, p, w, dt):
             P[i, 3 + j] -= dt * T[6 * i + j]
             P[3 + j, i] = P[i, 3 + j]
     # gyroscope noise, plus what grows with the turn rate (scale factor, misalignment, timing)
-    gv = (p[PRM.gyr_noise] ** 2 + p[PRM.gyr_scale_noise] ** 2 * (wx * wx + wy * wy + wz * wz)) * dt
+    gv = p[PRM.gyr_noise] ** 2 * dt
     bv = p[PRM.bias_noise] ** 2 * dt
     for i in range(3):
         P[i, i] += gv
         P[3 + i, 3 + i] += bv
+    if p[PRM.gyr_scale_noise] > 0.0:
+        # a scale-factor error turns the estimate about the rotation axis itself: noise along
+        # R w (world frame), so a turn about the vertical blurs the heading, not the tilt
+        ux = r00 * wx + r01 * wy + r02 * wz
+        uy = r10 * wx + r11 * wy + r12 * wz
+        uz = r20 * wx + r21 * wy + r22 * wz
+        g2 = p[PRM.gyr_scale_noise] ** 2 * dt
+        P[0, 0] += g2 * ux * ux
+        P[0, 1] += g2 * ux * uy
+        P[0, 2] += g2 * ux * uz
+        P[1, 1] += g2 * uy * uy
+        P[1, 2] += g2 * uy * uz
+        P[2, 2] += g2 * uz * uz
+        P[1, 0] = P[0, 1]
+        P[2, 0] = P[0, 2]
+        P[2, 1] = P[1, 2]
 
 
 @njit(cache=True)
