@@ -462,7 +462,7 @@ def test_compiled_run_equals_the_reference_step(params):
     o = SampleOrderer(0.05)
     r = samples_to_rows(o.push_lines(sim.lines()) + o.flush())
     ref_est = make_estimator("complementary", params)
-    ref = Estimator.run(ref_est, r.t, r.gyr, r.acc, r.mag)
+    ref = Estimator.run_steps(ref_est, r.t, r.gyr, r.acc, r.mag)
     est = make_estimator("complementary", params)
     parts = [est.run(r.t[i:i + 37], r.gyr[i:i + 37], r.acc[i:i + 37], r.mag[i:i + 37])
              for i in range(0, len(r.t), 37)]

@@ -77,7 +77,7 @@ def test_a_stuck_websocket_client_is_dropped_and_the_filter_goes_on(srv, api):
 class Raising(PhoneOrientation):
     """The phone estimator with a planted bug: it raises on ORI samples with x > 0.1."""
 
-    run = Estimator.run      # the generic loop over _step (the compiled run does not call it)
+    _run_rows = Estimator._run_rows   # the generic loop over _step (the compiled run does not call it)
 
     def _step(self, t, gyr, acc, mag, ori, flags):
         if ori is not None and ori[1] > 0.1:

@@ -93,7 +93,7 @@ def test_variants_run_beside_the_builtins(sim_chunks):
 class Raising(PhoneOrientation):
     """The phone estimator, raising on an ORI sample whose x is 0.5 (a planted bug)."""
 
-    run = Estimator.run      # the generic loop over _step (the compiled run does not call it)
+    _run_rows = Estimator._run_rows   # the generic loop over _step (the compiled run does not call it)
 
     def _step(self, t, gyr, acc, mag, ori, flags):
         if ori is not None and ori[1] == 0.5:
@@ -120,7 +120,7 @@ def test_a_step_that_raises_skips_that_sample_only():
 
 
 class NaNMaker(PhoneOrientation):
-    run = Estimator.run
+    _run_rows = Estimator._run_rows
 
     def _step(self, t, gyr, acc, mag, ori, flags):
         super()._step(t, gyr, acc, mag, ori, flags)

@@ -107,7 +107,7 @@ def test_compiled_run_equals_the_reference_step():
     gyr = np.where(rng.random((n, 1)) < 0.5, rng.normal(size=(n, 3)), np.nan)
     acc = np.where(rng.random((n, 1)) < 0.5, rng.normal(size=(n, 3)), np.nan)
     for params in ({}, {"use_gyr": False, "use_mag": False}):
-        ref = Estimator.run(make_estimator("phone", params), t, gyr, acc, None, ori)
+        ref = Estimator.run_steps(make_estimator("phone", params), t, gyr, acc, None, ori)
         est = make_estimator("phone", params)
         parts = [est.run(t[i:i + 50], gyr[i:i + 50], acc[i:i + 50], None, ori[i:i + 50])
                  for i in range(0, n, 50)]

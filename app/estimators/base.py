@@ -346,17 +346,6 @@ def count_flags(flags: np.ndarray) -> dict[str, dict[str, int]]:
     return out
 
 
-@dataclass
-class Row:
-    """What ``Estimator._begin_row`` found out about a row."""
-    dt: float               # s since the previous row (0 on the first, repeated or gap row)
-    issue: TimeIssue
-    gyr: Reason             # state of each sensor's sample before any gate
-    acc: Reason
-    mag: Reason
-    w: np.ndarray | None    # angular rate to integrate over dt (rad/s), None: random walk
-
-
 @dataclass(frozen=True)
 class Diagnostics:
     """What an estimator shows besides its estimate (the plots' gate bands, the 3D view's
@@ -467,12 +456,19 @@ class Estimator:
     # ----------------------------------------------------------- state
     def reset(self) -> None:
         """Forget the orientation; the next rows align it again."""
-        self.t = float("nan")
-        self._w = None
-        self._w_t = float("nan")
-        self._seen = 0  # sensors seen at the time of the last row
-        self.last_flags = StepFlags.from_row(np.nan, new_flags())
+        self._last_t = float("nan")
+        self._last_f = _FLAGS0
         self._reset_state()
+
+    @property
+    def last_flags(self) -> StepFlags:
+        """The flag record of the last row processed (built when read)."""
+        return StepFlags.from_row(self._last_t, self._last_f)
+
+    @property
+    def t(self) -> float:
+        """Time (s) of the last row processed (NaN before the first)."""
+        return float(self._s[B_T])
 
     def _reset_state(self) -> None:
         raise NotImplementedError
@@ -490,53 +486,58 @@ class Estimator:
         f = _FLAGS0.copy()
         self._step(float(t), _as_vec(gyr), _as_vec(acc), _as_vec(mag),
                    None if ori is None else np.asarray(ori, dtype=float), f)
-        self.last_flags = StepFlags.from_row(t, f)
+        self._last_t, self._last_f = float(t), f
         return self.last_flags
 
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         raise NotImplementedError
 
-    def _begin_row(self, t, gyr, acc, mag, flags) -> "Row | None":
-        """:func:`begin_row` on this estimator's row bookkeeping (``self.t``, the held
-        gyroscope rate ``self._w``/``self._w_t``); None for a backward timestamp."""
-        p = self._params
-        b = self._row_state()
-        go, dt, gs, as_, ms, has_w, w = begin_row(b, t, gyr, acc, mag, p.use_gyr, p.use_acc,
-                                                  p.use_mag, p.max_gap, p.gyr_hold, flags)
-        self._set_row_state(b)
-        if not go:
-            return None
-        return Row(dt=dt, issue=_TIME_ISSUES[int(flags[F_TIME])], gyr=_REASONS[gs],
-                   acc=_REASONS[as_], mag=_REASONS[ms], w=w if has_w else None)
-
-    def _row_state(self) -> np.ndarray:
-        """The row bookkeeping as the compiled code keeps it (slots ``B_*``)."""
-        b = np.empty(B_N)
-        b[B_T], b[B_SEEN], b[B_W_T] = self.t, self._seen, self._w_t
-        b[B_W:B_W + 3] = np.nan if self._w is None else self._w
-        return b
-
-    def _set_row_state(self, b: np.ndarray) -> None:
-        self.t, self._seen, self._w_t = float(b[B_T]), int(b[B_SEEN]), float(b[B_W_T])
-        self._w = None if np.isnan(b[B_W_T]) else b[B_W:B_W + 3].copy()
-
     def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
         """Process rows in order; the estimate and flags after each. Arrays are (N,)
         and (N, 3) (ori (N, 4)); None or NaN rows mean absent."""
-        t = np.asarray(t, dtype=float)
+        t = np.ascontiguousarray(t, dtype=float)
         n = t.shape[0]
         G, A, M = (_rows(x, n) for x in (gyr, acc, mag))
-        O = None if ori is None else np.asarray(ori, dtype=float)
+        O = _rows(ori, n, 4)
+        qs = np.empty((n, 4))
+        flags = np.empty((n, NFLAGS))
+        self.run_into(t, G, A, M, O, qs, flags)
+        return BatchResult(t=t, q=qs, flags=flags)
+
+    def run_steps(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+        """:meth:`run` row by row through ``_step`` (the readable reference the compiled
+        batch runs are held to, to 1e-9, by the tests)."""
+        t = np.ascontiguousarray(t, dtype=float)
+        n = t.shape[0]
+        G, A, M = (_rows(x, n) for x in (gyr, acc, mag))
+        O = None if ori is None else _rows(ori, n, 4)
         qs = np.empty((n, 4))
         flags = np.empty((n, NFLAGS))
         for k in range(n):
-            f = new_flags()
+            f = flags[k]
+            f[:] = _FLAGS0
             self._step(t[k], G[k], A[k], M[k], None if O is None else O[k], f)
             qs[k] = self.q
-            flags[k] = f
         if n:
-            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
+            self._last_t, self._last_f = t[-1], flags[-1].copy()
         return BatchResult(t=t, q=qs, flags=flags)
+
+    def run_into(self, t, G, A, M, O, qs, flags) -> None:
+        """:meth:`run` without checks or allocation (the live bench's path): ``t`` (n,),
+        ``G``/``A``/``M`` (n, 3), ``O`` (n, 4), contiguous float64 (NaN: absent); the
+        estimate and the flag record after each row are written into ``qs`` (n, 4) and
+        ``flags`` (n, NFLAGS)."""
+        self._run_rows(t, G, A, M, O, qs, flags)
+        if t.shape[0]:
+            self._last_t, self._last_f = t[-1], flags[-1].copy()
+
+    def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
+        """The rows through the estimator (subclasses: one compiled batch run)."""
+        for k in range(t.shape[0]):
+            f = flags[k]
+            f[:] = _FLAGS0
+            self._step(t[k], G[k], A[k], M[k], O[k], f)
+            qs[k] = self.q
 
     # ----------------------------------------------------------- read-outs
     @property
@@ -561,6 +562,11 @@ class Estimator:
         """Gate bands, references and learned state worth showing (see Diagnostics)."""
         return Diagnostics()
 
+    def field_strength(self) -> float | None:
+        """The low-passed field strength L_k (µT) now (Diagnostics.L_k), None for an
+        estimator without one; cheap (the live core reads it before every chunk)."""
+        return None
+
     def field_strength_rows(self, flags: np.ndarray, before: float) -> np.ndarray | None:
         """The low-passed field strength L_k (µT) after each of these rows (``flags``: the
         rows' flag records, in order), given its value ``before`` them; None for an
@@ -568,12 +574,12 @@ class Estimator:
         return None
 
 
-def _rows(x, n: int) -> np.ndarray:
+def _rows(x, n: int, width: int = 3) -> np.ndarray:
     if x is None:
-        return np.full((n, 3), np.nan)
-    a = np.asarray(x, dtype=float)
-    if a.shape != (n, 3):
-        raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
+        return np.full((n, width), np.nan)
+    a = np.ascontiguousarray(x, dtype=float)
+    if a.shape != (n, width):
+        raise ValueError(f"expected shape ({n}, {width}), got {a.shape}")
     return a
 
 
@@ -618,3 +624,59 @@ def align_step(s, i_wait_t, i_wait_acc, t, gs, as_, ms, acc, use_acc, use_mag, f
         f[F_MAG if ms == R_USED else F_GYR] = R_INIT
         return ALIGN_NO_ACC
     return ALIGN_WAIT
+
+
+# ------------------------------------------------------------------ the live bench's rows
+# A chunk of stream samples becomes estimator rows (one sensor or ORI per row) and every
+# instance's flag records are tallied, each in one compiled call (the live path's per-chunk
+# bookkeeping; :mod:`app.live.bench`).
+
+@njit(cache=True)
+def split_rows(kind, values, G, A, M, O):
+    """Rows of a chunk: row ``k`` of kind 0/1/2/3 (gyr/acc/mag/ori) gets ``values[k]`` in
+    ``G``/``A``/``M`` (3 values) or ``O`` (4), NaN in the others."""
+    for k in range(kind.shape[0]):
+        for j in range(3):
+            G[k, j] = np.nan
+            A[k, j] = np.nan
+            M[k, j] = np.nan
+        for j in range(4):
+            O[k, j] = np.nan
+        c = kind[k]
+        if c == 0:
+            G[k, :] = values[k, :3]
+        elif c == 1:
+            A[k, :] = values[k, :3]
+        elif c == 2:
+            M[k, :] = values[k, :3]
+        elif c == 3:
+            O[k, :] = values[k, :]
+
+
+@njit(cache=True)
+def tally_rows(kind, t, f, q, counts, last, last_rej, is_rej):
+    """One instance's bookkeeping over a chunk's rows: ``counts[sensor, reason] += 1``
+    for each sensor row (kind 0/1/2) by the reason in its sensor's flag column; ``last``
+    (3, 1 + NFLAGS): per sensor the time and flag record of its last row; ``last_rej``
+    the same for the last row whose reason ``is_rej`` (acc and mag only). Returns the
+    first row whose estimate ``q`` is not finite, or -1."""
+    nreason = counts.shape[1]
+    for k in range(kind.shape[0]):
+        c = kind[k]
+        if c > 2:
+            continue
+        code = f[k, F_GYR if c == 0 else (F_ACC if c == 1 else F_MAG)]
+        last[c, 0] = t[k]
+        last[c, 1:] = f[k]
+        if not (code >= 0.0 and code < nreason):
+            continue
+        r = int(code)
+        counts[c, r] += 1
+        if c > 0 and is_rej[r]:
+            last_rej[c, 0] = t[k]
+            last_rej[c, 1:] = f[k]
+    for k in range(q.shape[0]):
+        for j in range(4):
+            if not np.isfinite(q[k, j]):
+                return k
+    return -1

@@ -81,8 +81,8 @@ from numba import njit
 from .. import quaternion as qm
 from ..params import CommonParams, ParamError, param
 from .base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
-                   F_MAG_VAL, NFLAGS, R_INIT, R_USED, R_WAIT, BatchResult, Diagnostics, Estimator,
-                   StepFlags, begin_row)
+                   F_MAG_VAL, R_INIT, R_USED, R_WAIT, Diagnostics, Estimator,
+                   begin_row)
 
 TWO_PI = 2.0 * np.pi
 GIMBAL_EPS = 1e-9    # cos(pitch) below this is gimbal lock (eq. 22)
@@ -418,74 +418,55 @@ class ComplementaryDNRF(Estimator):
     Params = ComplementaryParams
 
     def _on_params(self) -> None:
-        w = int(self._params.ma_window)
-        for ma in (getattr(self, "_acc_ma", None), getattr(self, "_mag_ma", None)):
-            if ma is not None:
-                ma.resize(w)
+        p = self._params
+        self._pv = np.array([p.use_gyr, p.use_acc, p.use_mag, p.max_gap, p.gyr_hold, p.am_hold,
+                             float(p.tau), p.gyro_update == "exact"], dtype=float)
+        st = getattr(self, "_s", None)
+        if st is None:
+            return
+        w = int(p.ma_window)
+        for ma, n_slot, i_slot in ((self._acc_ma, C_ACC_N, C_ACC_I),
+                                   (self._mag_ma, C_MAG_N, C_MAG_I)):
+            ma.n, ma.i = int(st[n_slot]), int(st[i_slot])
+            ma.resize(w)
+            st[n_slot], st[i_slot] = ma.n, ma.i
 
     def _reset_state(self) -> None:
+        # the whole mutable state in arrays the compiled rows update in place: the scalars
+        # (slots C_*), R and the two pre-filters' buffers (their fill and next slot in C_*)
         w = int(self._params.ma_window)
         self.R = np.eye(3)
-        self._init = False
         self._acc_ma = MovingAverage(w)
         self._mag_ma = MovingAverage(w)
-        self._acc_t = float("nan")      # time of the last accepted sample
-        self._mag_t = float("nan")
-        self._first_t = float("nan")    # first row (waiting for an accelerometer)
-        self._first_acc_t = float("nan")  # first accelerometer sample (waiting for a magnetometer)
-        self._alpha = float("nan")
-        self._theta_am = np.full(3, np.nan)
+        s = np.full(C_NSTATE, np.nan)
+        s[C_SEEN], s[C_INIT] = 0.0, 0.0
+        s[C_ACC_N] = s[C_ACC_I] = s[C_MAG_N] = s[C_MAG_I] = 0.0
+        self._s = s
 
     # ------------------------------------------------------------------ one row
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         """One row through the compiled ``_dnrf_row`` (the one implementation)."""
-        self._run_rows(np.array([t], dtype=float), gyr.reshape(1, 3), acc.reshape(1, 3),
-                       mag.reshape(1, 3), np.empty((1, 4)), flags.reshape(1, -1))
+        dnrf_run(self._s, self.R, self._pv, self._acc_ma.buf, self._mag_ma.buf,
+                 np.array([t], dtype=float), gyr.reshape(1, 3), acc.reshape(1, 3),
+                 mag.reshape(1, 3), np.empty((1, 4)), flags.reshape(1, -1))
 
     # ------------------------------------------------------------------ batch (compiled)
-    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+    def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
         """Rows in order through the compiled ``dnrf_run`` (the same steps as ``_step``)."""
-        t = np.ascontiguousarray(t, dtype=float)
-        n = t.shape[0]
-        G, A, M = (np.full((n, 3), np.nan) if v is None else np.ascontiguousarray(v, dtype=float)
-                   for v in (gyr, acc, mag))
-        for a in (G, A, M):
-            if a.shape != (n, 3):
-                raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
-        qs = np.empty((n, 4))
-        flags = np.empty((n, NFLAGS))
-        self._run_rows(t, G, A, M, qs, flags)
-        if n:
-            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
-        return BatchResult(t=t, q=qs, flags=flags)
+        dnrf_run(self._s, self.R, self._pv, self._acc_ma.buf, self._mag_ma.buf, t, G, A, M, qs,
+                 flags)
 
-    def _run_rows(self, t, G, A, M, qs, flags) -> None:
-        """``dnrf_run`` on this estimator's state (packed, run, unpacked)."""
-        p = self._params
-        pv = np.array([p.use_gyr, p.use_acc, p.use_mag, p.max_gap, p.gyr_hold, p.am_hold,
-                       float(p.tau), p.gyro_update == "exact"], dtype=float)
-        s = np.full(C_NSTATE, np.nan)
-        s[C_T], s[C_W_T], s[C_SEEN], s[C_INIT] = self.t, self._w_t, self._seen, self._init
-        if self._w is not None:
-            s[C_W:C_W + 3] = self._w
-        s[C_ACC_T], s[C_MAG_T] = self._acc_t, self._mag_t
-        s[C_FIRST_T], s[C_FIRST_ACC_T], s[C_ALPHA] = self._first_t, self._first_acc_t, self._alpha
-        s[C_ACC_N], s[C_ACC_I] = self._acc_ma.n, self._acc_ma.i
-        s[C_MAG_N], s[C_MAG_I] = self._mag_ma.n, self._mag_ma.i
-        s[C_THETA:C_THETA + 3] = self._theta_am
-        R = self.R.copy()
-        abuf, mbuf = self._acc_ma.buf.copy(), self._mag_ma.buf.copy()
-        dnrf_run(s, R, pv, abuf, mbuf, t, G, A, M, qs, flags)
-        self.R = R
-        self.t, self._w_t, self._seen = float(s[C_T]), float(s[C_W_T]), int(s[C_SEEN])
-        self._w = None if np.isnan(s[C_W_T]) else s[C_W:C_W + 3].copy()
-        self._init = bool(s[C_INIT] > 0.5)
-        self._acc_t, self._mag_t = float(s[C_ACC_T]), float(s[C_MAG_T])
-        self._first_t, self._first_acc_t = float(s[C_FIRST_T]), float(s[C_FIRST_ACC_T])
-        self._alpha = float(s[C_ALPHA])
-        self._theta_am = s[C_THETA:C_THETA + 3].copy()
-        self._acc_ma.buf, self._acc_ma.n, self._acc_ma.i = abuf, int(s[C_ACC_N]), int(s[C_ACC_I])
-        self._mag_ma.buf, self._mag_ma.n, self._mag_ma.i = mbuf, int(s[C_MAG_N]), int(s[C_MAG_I])
+    @property
+    def _init(self) -> bool:
+        return bool(self._s[C_INIT] > 0.5)
+
+    @property
+    def _alpha(self) -> float:
+        return float(self._s[C_ALPHA])
+
+    @property
+    def _theta_am(self) -> np.ndarray:
+        return self._s[C_THETA:C_THETA + 3].copy()
 
     # ------------------------------------------------------------------ read-outs
     @property

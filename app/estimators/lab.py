@@ -32,8 +32,8 @@ from numba import njit
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, ParamError, param
 from .base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
-                   F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, NFLAGS, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
-                   R_WAIT, BatchResult, Diagnostics, Estimator, StepFlags, align_step, begin_row, vec3)
+                   F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
+                   R_WAIT, Diagnostics, Estimator, align_step, begin_row, vec3)
 from .kalman import correct
 
 
@@ -269,8 +269,9 @@ class LabEKF(Estimator):
         self._g0 = np.array(p.g0, dtype=float)
         self._g0_norm = float(np.linalg.norm(self._g0))
         self._bias = np.array(p.gyr_bias, dtype=float)
-        if getattr(self, "_init", False) and p.m0 is not None:
-            self._m0 = np.array(p.m0, dtype=float)
+        if getattr(self, "_s", None) is not None and self._init and p.m0 is not None:
+            self._s[L_M0_OK] = 1.0
+            self._s[L_M0:L_M0 + 3] = p.m0
         v = np.zeros(LP_N)
         v[LP_USE_GYR], v[LP_USE_ACC], v[LP_USE_MAG] = p.use_gyr, p.use_acc, p.use_mag
         v[LP_MAX_GAP], v[LP_GYR_HOLD] = p.max_gap, p.gyr_hold
@@ -283,24 +284,25 @@ class LabEKF(Estimator):
         self._pv = v
 
     def _reset_state(self) -> None:
-        self.x = np.array([1.0, 0.0, 0.0, 0.0])
-        self.P = self._params.p0 * np.eye(4)
-        self._init = False
-        self._acc_wait = None   # (t, acc) waiting for a magnetometer sample to align
-        self._m0 = None if self._params.m0 is None else np.array(self._params.m0, dtype=float)
-        self.L = float("nan")
-        self._m_mean = np.zeros(3)  # world-frame field averaged while m0 is learned
-        self._m_n = 0
-        self._m_t = float("nan")
-        self._t_align = float("nan")
+        # the whole mutable state in three arrays the compiled row updates in place (slots
+        # L_*; read through the properties below)
+        self._s = np.full(L_NSTATE, np.nan)
+        self._s[L_SEEN] = 0.0
+        self._s[L_INIT] = 0.0
+        m0 = self._params.m0
+        self._s[L_M0_OK] = m0 is not None
+        if m0 is not None:
+            self._s[L_M0:L_M0 + 3] = m0
+        self._s[L_M_N] = 0.0
+        self._s[L_M_MEAN:L_M_MEAN + 3] = 0.0  # world-frame field averaged while m0 is learned
+        self._x = np.array([1.0, 0.0, 0.0, 0.0])
+        self._P = self._params.p0 * np.eye(4)
 
     # ------------------------------------------------------------------ one row
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         """One row through the compiled ``_lab_row`` (the one implementation)."""
-        s = self._pack()
-        x, P = self.x.copy(), self.P.copy()
-        _lab_row(s, x, P, self._pv, self._Rw, self._Ra, self._Rm, t, gyr, acc, mag, flags)
-        self._unpack(s, x, P)
+        _lab_row(self._s, self._x, self._P, self._pv, self._Rw, self._Ra, self._Rm, t, gyr, acc,
+                 mag, flags)
 
     def _mag_band(self) -> tuple[float, float] | None:
         """The band L_k must stay in (µT), or None when the gate is off."""
@@ -313,49 +315,46 @@ class LabEKF(Estimator):
         return None
 
     # ------------------------------------------------------------------ batch (compiled)
-    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
+    def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
         """Rows in order through the compiled ``lab_run`` (the same steps as ``_step``)."""
-        t = np.ascontiguousarray(t, dtype=float)
-        n = t.shape[0]
-        G, A, M = (np.full((n, 3), np.nan) if v is None else np.ascontiguousarray(v, dtype=float)
-                   for v in (gyr, acc, mag))
-        for a in (G, A, M):
-            if a.shape != (n, 3):
-                raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
-        s = self._pack()
-        x, P = self.x.copy(), self.P.copy()
-        qs = np.empty((n, 4))
-        flags = np.empty((n, NFLAGS))
-        lab_run(s, x, P, self._pv, self._Rw, self._Ra, self._Rm, t, G, A, M, qs, flags)
-        self._unpack(s, x, P)
-        if n:
-            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
-        return BatchResult(t=t, q=qs, flags=flags)
+        lab_run(self._s, self._x, self._P, self._pv, self._Rw, self._Ra, self._Rm, t, G, A, M,
+                qs, flags)
 
-    def _pack(self) -> np.ndarray:
-        s = np.full(L_NSTATE, np.nan)
-        s[L_T], s[L_W_T], s[L_SEEN], s[L_INIT] = self.t, self._w_t, self._seen, self._init
-        if self._w is not None:
-            s[L_W:L_W + 3] = self._w
-        if self._acc_wait is not None:
-            s[L_WAIT_T], s[L_WAIT:L_WAIT + 3] = self._acc_wait[0], self._acc_wait[1]
-        s[L_M0_OK] = self._m0 is not None
-        if self._m0 is not None:
-            s[L_M0:L_M0 + 3] = self._m0
-        s[L_L], s[L_M_N], s[L_M_T], s[L_T_ALIGN] = self.L, self._m_n, self._m_t, self._t_align
-        s[L_M_MEAN:L_M_MEAN + 3] = self._m_mean
-        return s
+    # ------------------------------------------------------------------ state (views)
+    @property
+    def x(self) -> np.ndarray:
+        """The state: the quaternion estimate (the array the filter updates)."""
+        return self._x
 
-    def _unpack(self, s: np.ndarray, x: np.ndarray, P: np.ndarray) -> None:
-        self.x, self.P = x, P
-        self.t, self._w_t, self._seen = float(s[L_T]), float(s[L_W_T]), int(s[L_SEEN])
-        self._w = None if np.isnan(s[L_W_T]) else s[L_W:L_W + 3].copy()
-        self._init = bool(s[L_INIT] > 0.5)
-        self._acc_wait = None if np.isnan(s[L_WAIT_T]) else (float(s[L_WAIT_T]), s[L_WAIT:L_WAIT + 3].copy())
-        self._m0 = s[L_M0:L_M0 + 3].copy() if s[L_M0_OK] > 0.5 else None
-        self.L, self._m_n, self._m_t = float(s[L_L]), int(s[L_M_N]), float(s[L_M_T])
-        self._t_align = float(s[L_T_ALIGN])
-        self._m_mean = s[L_M_MEAN:L_M_MEAN + 3].copy()
+    @x.setter
+    def x(self, v) -> None:
+        self._x[:] = v
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._P
+
+    @P.setter
+    def P(self, v) -> None:
+        self._P[:, :] = v
+
+    @property
+    def _init(self) -> bool:
+        return bool(self._s[L_INIT] > 0.5)
+
+    @_init.setter
+    def _init(self, v: bool) -> None:
+        self._s[L_INIT] = float(bool(v))
+
+    @property
+    def _m0(self) -> np.ndarray | None:
+        """m0 in world coordinates (µT): given, or learned; None before."""
+        return self._s[L_M0:L_M0 + 3].copy() if self._s[L_M0_OK] > 0.5 else None
+
+    @property
+    def L(self) -> float:
+        """The low-passed field strength L_k (µT)."""
+        return float(self._s[L_L])
 
     # ------------------------------------------------------------------ read-outs
     @property
@@ -364,7 +363,7 @@ class LabEKF(Estimator):
 
     @property
     def q(self) -> np.ndarray:
-        return self.x.copy()
+        return self._x.copy()
 
     def attitude_cov(self) -> np.ndarray:
         return qm.attitude_cov_from_quat_cov(self.x, self.P)
@@ -372,6 +371,9 @@ class LabEKF(Estimator):
     @property
     def gyr_bias(self) -> np.ndarray:
         return self._bias.copy()
+
+    def field_strength(self) -> float:
+        return float(self._s[L_L])
 
     def field_strength_rows(self, flags: np.ndarray, before: float) -> np.ndarray:
         """L_k after each row: the value the field gate tested (``mag_value`` of a row whose

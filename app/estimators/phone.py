@@ -16,8 +16,8 @@ from numba import njit
 
 from .. import quaternion as qm
 from ..params import CommonParams
-from .base import (B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_GYR, F_MAG, NFLAGS, R_DISABLED, R_USED,
-                   BatchResult, Diagnostics, Estimator, StepFlags, begin_row)
+from .base import (B_N, B_SEEN, F_ACC, F_GYR, F_MAG, R_DISABLED, R_USED,
+                   Diagnostics, Estimator, begin_row)
 
 P_INIT, P_ORI_T = B_N, B_N + 1      # state slots after the row bookkeeping
 
@@ -81,48 +81,38 @@ class PhoneOrientation(Estimator):
     title = "Phone's own estimate (ORI)"
     Params = CommonParams
 
+    def _on_params(self) -> None:
+        p = self._params
+        self._use = np.array([p.use_gyr, p.use_acc, p.use_mag], dtype=bool)
+
     def _reset_state(self) -> None:
+        # the row bookkeeping (slots B_*), init and the time of the ORI shown; q apart
+        self._s = np.full(B_N + 2, np.nan)
+        self._s[B_SEEN] = 0.0
+        self._s[P_INIT] = 0.0
         self._q = np.array([1.0, 0.0, 0.0, 0.0])
-        self._init = False
-        self._ori_t = float("nan")
 
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         """One row through the compiled ``phone_run`` (the one implementation)."""
         o = ori_quaternion(ori)        # also takes the 3-value form and refuses |v| > 1
-        self._run_rows(np.array([t], dtype=float), gyr.reshape(1, 3), acc.reshape(1, 3),
-                       mag.reshape(1, 3), (np.full(4, np.nan) if o is None else o).reshape(1, 4),
-                       np.empty((1, 4)), flags.reshape(1, -1))
-
-    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
-        """Rows in order through the compiled ``phone_run`` (the steps of ``_step``)."""
-        t = np.ascontiguousarray(t, dtype=float)
-        n = t.shape[0]
-        G, A, M = (np.full((n, 3), np.nan) if v is None else np.ascontiguousarray(v, dtype=float)
-                   for v in (gyr, acc, mag))
-        O = np.full((n, 4), np.nan) if ori is None else np.ascontiguousarray(ori, dtype=float)
-        if O.shape != (n, 4):
-            raise ValueError(f"expected ori of shape ({n}, 4), got {O.shape}")
-        qs = np.empty((n, 4))
-        flags = np.empty((n, NFLAGS))
-        self._run_rows(t, G, A, M, O, qs, flags)
-        if n:
-            self.last_flags = StepFlags.from_row(t[-1], flags[-1])
-        return BatchResult(t=t, q=qs, flags=flags)
+        p = self._params
+        phone_run(self._s, self._q, self._use, p.max_gap, p.gyr_hold, np.array([t], dtype=float),
+                  gyr.reshape(1, 3), acc.reshape(1, 3), mag.reshape(1, 3),
+                  (np.full(4, np.nan) if o is None else o).reshape(1, 4), np.empty((1, 4)),
+                  flags.reshape(1, -1))
 
     def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
-        """``phone_run`` on this estimator's state (packed, run, unpacked)."""
+        """Rows in order through the compiled ``phone_run`` (the steps of ``_step``)."""
         p = self._params
-        s = np.full(B_N + 2, np.nan)
-        s[B_T], s[B_SEEN], s[B_W_T] = self.t, self._seen, self._w_t
-        if self._w is not None:
-            s[B_W:B_W + 3] = self._w
-        s[P_INIT], s[P_ORI_T] = self._init, self._ori_t
-        q = self._q.copy()
-        phone_run(s, q, np.array([p.use_gyr, p.use_acc, p.use_mag]), p.max_gap, p.gyr_hold,
-                  t, G, A, M, O, qs, flags)
-        self.t, self._w_t, self._seen = float(s[B_T]), float(s[B_W_T]), int(s[B_SEEN])
-        self._w = None if np.isnan(s[B_W_T]) else s[B_W:B_W + 3].copy()
-        self._init, self._ori_t, self._q = bool(s[P_INIT] > 0.5), float(s[P_ORI_T]), q
+        phone_run(self._s, self._q, self._use, p.max_gap, p.gyr_hold, t, G, A, M, O, qs, flags)
+
+    @property
+    def _init(self) -> bool:
+        return bool(self._s[P_INIT] > 0.5)
+
+    @property
+    def _ori_t(self) -> float:
+        return float(self._s[P_ORI_T])
 
     @property
     def initialized(self) -> bool:

@@ -1070,21 +1070,13 @@ class RobustEKF(Estimator):
 
     def _step(self, t, gyr, acc, mag, ori, flags) -> None:
         robust_step(self._s, self._P, self._p, t, gyr, acc, mag, flags)
-        self.t = self._s[S.t]
 
-    def run(self, t, gyr=None, acc=None, mag=None, ori=None) -> BatchResult:
-        t = np.ascontiguousarray(t, dtype=float)
-        n = t.shape[0]
-        arrs = [np.full((n, 3), np.nan) if x is None else np.ascontiguousarray(x, dtype=float)
-                for x in (gyr, acc, mag)]
-        for a in arrs:
-            if a.shape != (n, 3):
-                raise ValueError(f"expected shape ({n}, 3), got {a.shape}")
-        qs = np.empty((n, 4))
-        flags = np.empty((n, NFLAGS))
-        robust_run(self._s, self._P, self._p, t, arrs[0], arrs[1], arrs[2], qs, flags)
-        self.t = self._s[S.t]
-        return BatchResult(t=t, q=qs, flags=flags)
+    def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
+        robust_run(self._s, self._P, self._p, t, G, A, M, qs, flags)
+
+    @property
+    def t(self) -> float:
+        return float(self._s[S.t])
 
     @property
     def initialized(self) -> bool:

@@ -4,12 +4,14 @@ An **instance** is a named estimator of a base kind (``robust``, ``lab``,
 ``complementary``, ``phone``): the four builtins carry their kind's name; variants
 (``lab-approx``, ``robust-no-rejection``, ...) are added with :meth:`Bench.add` and run
 beside them. :meth:`Bench.step` takes the samples released by a stream, in time order,
-and runs them through **each instance's batch run** (``Estimator.run``: the compiled
-``robust_run`` for ``robust``, the same code the CLI uses), one call per chunk, so the
-live path costs what the batch path costs. It returns :class:`Records`: per instance the
+and runs them through **each instance's batch run** (``Estimator.run_into``: the
+compiled ``robust_run`` for ``robust``, the same code the CLI uses, on the estimator's
+state arrays in place), one call per chunk, so the live path costs what the batch path
+costs. It returns :class:`Records`: per instance the
 estimate and the flag record after every row.
 
-Per row and instance the bench keeps, vectorised over the chunk: how many samples of
+Per row and instance the bench keeps, in one compiled call per chunk
+(:func:`~app.estimators.base.tally_rows`): how many samples of
 each sensor ended with each :class:`~app.estimators.Reason`, and the flag record of the
 last row of each sensor (``decision``). It also guards the estimators:
 
@@ -34,7 +36,8 @@ from typing import Any, Iterable
 import numpy as np
 
 from ..estimators import NAMES, REJECTIONS, Estimator, Reason, StepFlags, estimator_class
-from ..estimators.base import F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags
+from ..estimators.base import (F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags, split_rows,
+                               tally_rows)
 from ..params import replace_params, to_dict
 from ..protocol import Sample
 
@@ -44,7 +47,6 @@ SENSORS = ("gyr", "acc", "mag")
 FLAG_COL = (F_GYR, F_ACC, F_MAG)
 KIND_OF_TAG = {"GYR": 0, "ACC": 1, "MAG": 2, "ORI": 3}     # row kinds: a sensor, or ORI
 NREASON = len(Reason)
-_FLAG_COL_ARR = np.array(FLAG_COL)
 _IS_REJECTION = np.zeros(NREASON, dtype=bool)    # by reason code (a lookup: np.isin is slow)
 _IS_REJECTION[[int(r) for r in REJECTIONS]] = True
 GOOD_EVERY_S = 1.0          # how often (wall clock) an instance's good state is kept
@@ -60,6 +62,14 @@ class BenchError(ValueError):
         self.reason = reason
 
 
+def _no_rows() -> np.ndarray:
+    return np.full((3, 1 + NFLAGS), np.nan)
+
+
+def _flags_of(row: np.ndarray) -> StepFlags | None:
+    return None if np.isnan(row[0]) else StepFlags.from_row(row[0], row[1:])
+
+
 @dataclass
 class Instance:
     """One named estimator on the bench and what the bench keeps about it."""
@@ -68,11 +78,11 @@ class Instance:
     estimator: Estimator
     builtin: bool
     counts: np.ndarray = field(default_factory=lambda: np.zeros((3, NREASON), np.int64))
-    # per sensor: (t, flag record) of the last row holding a sample of it
-    last: list = field(default_factory=lambda: [None, None, None])
-    # per sensor: (t, flag record) of the last row whose sample a gate refused (the GUI's
+    # per sensor: time and flag record of the last row holding a sample of it (NaN: none)
+    last: np.ndarray = field(default_factory=lambda: _no_rows())
+    # per sensor: the same of the last row whose sample a gate refused (the GUI's
     # indicators show its gate and value even when the very last sample was accepted)
-    last_rejected: list = field(default_factory=lambda: [None, None, None])
+    last_rejected: np.ndarray = field(default_factory=lambda: _no_rows())
     step_errors: int = 0
     restored: int = 0
     last_error: str = ""
@@ -81,24 +91,21 @@ class Instance:
 
     def clear(self) -> None:
         self.counts[:] = 0
-        self.last = [None, None, None]
-        self.last_rejected = [None, None, None]
+        self.last[:] = np.nan
+        self.last_rejected[:] = np.nan
 
     def flags(self, sensor: str) -> StepFlags | None:
         """The flag record of the last row that held a ``sensor`` sample."""
-        v = self.last[SENSORS.index(sensor)]
-        return None if v is None else StepFlags.from_row(v[0], v[1])
+        return _flags_of(self.last[SENSORS.index(sensor)])
 
     def rejected_flags(self, sensor: str) -> StepFlags | None:
         """The flag record of the last row whose ``sensor`` sample a gate refused."""
-        v = self.last_rejected[SENSORS.index(sensor)]
-        return None if v is None else StepFlags.from_row(v[0], v[1])
+        return _flags_of(self.last_rejected[SENSORS.index(sensor)])
 
     @property
     def rest(self) -> bool:
         """Standstill, as the last gyroscope row said."""
-        v = self.last[0]
-        return bool(v is not None and v[1][F_REST] > 0.5)
+        return bool(self.last[0, 1 + F_REST] > 0.5)
 
     def rejections(self, sensor: str) -> int:
         """How many ``sensor`` samples a gate refused so far (see ``is_rejected``)."""
@@ -269,43 +276,23 @@ class Bench:
     # ----------------------------------------------------------------- stepping
     def step(self, samples: list[Sample]) -> Records:
         """Run every instance over the samples (time order), one batch run per instance;
-        the per-row bookkeeping (counts per reason, last decision per sensor) vectorised."""
+        the per-row bookkeeping (counts per reason, last decision per sensor) compiled."""
         t, kind, values, n_all, t_last = rows_of(samples)
         n = t.shape[0]
-        G = np.full((n, 3), np.nan)
-        A = np.full((n, 3), np.nan)
-        M = np.full((n, 3), np.nan)
-        O = np.full((n, 4), np.nan)
-        for k, arr in ((0, G), (1, A), (2, M)):
-            sel = kind == k
-            arr[sel] = values[sel, :3]
-        sel = kind == 3
-        O[sel] = values[sel]
+        G = np.empty((n, 3))
+        A = np.empty((n, 3))
+        M = np.empty((n, 3))
+        O = np.empty((n, 4))
+        split_rows(kind, values, G, A, M, O)
         phone = self.instances.get("phone")
         phone_init = phone is not None and phone.estimator.initialized
         qs: dict[str, np.ndarray] = {}
         fls: dict[str, np.ndarray] = {}
-        # the sensor rows, and which flag column holds their sensor's reason
-        rows = np.flatnonzero(kind < 3)
-        cols = _FLAG_COL_ARR[kind[rows]]
-        offset = kind[rows].astype(np.int64) * NREASON
-        lasts = [(k, int(rows[kind[rows] == k][-1])) for k in range(3) if (kind[rows] == k).any()]
+        now = time.perf_counter()
         for name, inst in self.instances.items():
-            q, f = self._run(inst, t, G, A, M, O, kind, values)
-            qs[name], fls[name] = q, f
-            if rows.size:
-                codes = f[rows, cols].astype(np.int64)
-                ok = (codes >= 0) & (codes < NREASON)
-                inst.counts += np.bincount(offset[ok] + codes[ok],
-                                           minlength=3 * NREASON).reshape(3, NREASON)
-                for k, i in lasts:
-                    inst.last[k] = (float(t[i]), f[i])
-                rej = rows[ok & _IS_REJECTION[np.where(ok, codes, 0)]]
-                for k in (1, 2):
-                    rk = rej[kind[rej] == k]
-                    if rk.size:
-                        inst.last_rejected[k] = (float(t[rk[-1]]), f[rk[-1]].copy())
+            qs[name], fls[name] = self._run(inst, now, t, G, A, M, O, kind, values)
         if phone is not None and n:
+            sel = kind == 3
             valid = sel & np.all(np.isfinite(O), axis=1) & np.any(O != 0.0, axis=1)
             init = np.logical_or.accumulate(valid) | phone_init
             phone_q = np.where(init[:, None], qs["phone"], np.nan)
@@ -314,23 +301,25 @@ class Bench:
         return Records(t=t, kind=kind, values=values, q=qs, flags=fls, primary=self.primary,
                        phone_q=phone_q, n_samples=n_all, t_last=t_last)
 
-    def _run(self, inst: Instance, t, G, A, M, O, kind, values) -> tuple[np.ndarray, np.ndarray]:
+    def _run(self, inst: Instance, now: float, t, G, A, M, O, kind,
+             values) -> tuple[np.ndarray, np.ndarray]:
+        """One instance over the chunk, its bookkeeping, and the guards (module doc)."""
         est = inst.estimator
-        now = time.perf_counter()
         if inst._good is None or now - inst._good_at >= GOOD_EVERY_S:
             inst._good, inst._good_at = est.snapshot(), now
+        n = t.shape[0]
+        q = np.empty((n, 4))
+        f = np.empty((n, NFLAGS))
         try:
-            res = est.run(t, G, A, M, O)
-            q, f = res.q, res.flags
+            est.run_into(t, G, A, M, O, q, f)
         except Exception:
             q, f = self._rerun(inst, t, G, A, M, O, kind, values)
-        if t.shape[0] and not np.isfinite(q).all():
-            bad = int(np.flatnonzero(~np.isfinite(q).all(axis=1))[0])
+        bad = tally_rows(kind, t, f, q, inst.counts, inst.last, inst.last_rejected, _IS_REJECTION)
+        if bad >= 0:
             est.restore(inst._good)
             inst.restored += 1
             log.warning("%s: estimate not finite at t = %.3f s (row %d of the chunk): last good "
                         "state restored", inst.name, t[bad], bad)
-            q = q.copy()
             q[bad:] = est.q
         return q, f
 

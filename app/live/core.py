@@ -158,7 +158,7 @@ class LiveCore:
             ring.append(blk)
 
     def _primary_lk(self) -> float:
-        lk = self.bench.estimator(self.bench.primary).diagnostics().L_k
+        lk = self.bench.estimator(self.bench.primary).field_strength()
         return math.nan if lk is None else float(lk)
 
     # ----------------------------------------------------------------- changes
