@@ -24,6 +24,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..estimators.base import F_ACC_NIS, F_MAG_NIS
 from ..params import describe, to_dict
 from ..protocol import Sample
 from . import views
@@ -127,35 +128,25 @@ class LiveCore:
         if not init0:   # no estimate before the alignment (the identity): a gap in the plots
             moved = np.logical_or.accumulate(np.any(q != _IDENTITY, axis=1))
             q = np.where(moved[:, None], q, np.nan)
-        blk = h.pose.block(n)
-        h.pose.put(blk, "t", rec.t)
-        h.pose.put(blk, "q", q)
-        h.pose.put(blk, "phone_q", rec.phone_q)
-        h.pose.append(blk)
-        sel = rec.kind == 0
-        if sel.any():
-            blk = h.gyr.block(int(sel.sum()))
-            h.gyr.put(blk, "t", rec.t[sel])
-            h.gyr.put(blk, "w", rec.values[sel, :3])
-            h.gyr.append(blk)
+        h.pose.extend(rec.t, q, rec.phone_q)
+        kind = rec.kind
+        sel = np.flatnonzero(kind == 0)
+        if sel.size:
+            h.gyr.extend(rec.t[sel], rec.values[sel, :3])
         flags = rec.flags[rec.primary]
         est = self.bench.estimator(rec.primary)
-        for k, ring, nis_col in ((1, h.acc, 3), (2, h.mag, 6)):
-            sel = rec.kind == k
-            m = int(sel.sum())
-            if not m:
+        for k, ring, nis_col in ((1, h.acc, F_ACC_NIS), (2, h.mag, F_MAG_NIS)):
+            sel = np.flatnonzero(kind == k)
+            if not sel.size:
                 continue
             v = rec.values[sel, :3]
             self.last_vec[k] = v[-1].copy()
-            blk = ring.block(m)
-            ring.put(blk, "t", rec.t[sel])
-            ring.put(blk, "norm", np.sqrt(np.einsum("ij,ij->i", v, v)))
-            ring.put(blk, "nis", flags[sel, nis_col])
-            if k == 2:
+            norm = np.sqrt(np.einsum("ij,ij->i", v, v))
+            if k == 1:
+                ring.extend(rec.t[sel], norm, flags[sel, nis_col])
+            else:
                 lk = est.field_strength_rows(flags[sel], lk0)
-                if lk is not None:
-                    ring.put(blk, "L_k", lk)
-            ring.append(blk)
+                ring.extend(rec.t[sel], norm, np.nan if lk is None else lk, flags[sel, nis_col])
 
     def _primary_lk(self) -> float:
         lk = self.bench.estimator(self.bench.primary).field_strength()

@@ -67,6 +67,18 @@ class Ring:
         else:
             block[:, sl] = values
 
+    def extend(self, *columns) -> None:
+        """Append rows given column by column, every column of the ring in order (each
+        (k,) or (k, width)): :meth:`block`, :meth:`put` and :meth:`append` in one."""
+        k = len(columns[0])
+        block = np.empty((k, self.data.shape[1]))
+        for sl, values in zip(self.cols.values(), columns):
+            if sl.stop - sl.start == 1:
+                block[:, sl.start] = values
+            else:
+                block[:, sl] = values
+        self.append(block)
+
     def append(self, block: np.ndarray) -> None:
         """Append rows (oldest first); only the last ``capacity`` are kept."""
         cap = self.capacity

@@ -287,7 +287,8 @@ class Engine:
                     n += len(it[2])
             self.latency.backlog_max = max(self.latency.backlog_max, len(items))
             self._take(items)
-            await asyncio.sleep(0)
+            if not inbox.empty():   # more waiting: let the loop run between slices (an
+                await asyncio.sleep(0)   # empty inbox yields in get(), one loop turn fewer)
 
     def _take(self, items: list) -> None:
         """One turn of the filter task: changes first, then sessions and samples."""
