@@ -135,3 +135,18 @@ def test_a_non_finite_state_is_restored():
     rec = bench.step(ori_chunk(2000, [0.2, 0.5, 0.3]))
     assert inst.restored == 1
     assert np.isfinite(rec.q["nan"]).all() and np.isfinite(inst.estimator.q).all()
+
+
+def test_the_phones_own_estimate_is_nan_until_its_first_valid_ori_then_shown_every_row():
+    from app.protocol import Sample
+    bench = Bench()
+    gyr = lambda t: Sample(t, "GYR", (0.01, 0.0, 0.0))      # noqa: E731
+    x = 0.3
+    ori = Sample(1020, "ORI", (float(np.sqrt(1 - x * x)), x, 0.0, 0.0))
+    r1 = bench.step([gyr(1000), gyr(1010)])                # no ORI yet
+    assert np.isnan(r1.phone_q).all()
+    r2 = bench.step([ori, gyr(1030), Sample(1040, "ORI", (0.0, 0.0, 0.0, 0.0))])
+    expected = np.array([np.sqrt(1 - x * x), x, 0.0, 0.0])
+    np.testing.assert_allclose(r2.phone_q, np.tile(expected, (3, 1)))   # a zero ORI is refused
+    r3 = bench.step([gyr(1050)])                           # initialised before the chunk
+    np.testing.assert_allclose(r3.phone_q, [expected])

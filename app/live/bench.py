@@ -291,10 +291,12 @@ class Bench:
         now = time.perf_counter()
         for name, inst in self.instances.items():
             qs[name], fls[name] = self._run(inst, now, t, G, A, M, O, kind, values)
-        if phone is not None and n:
+        if phone is not None and n and phone_init:     # the usual case: shown throughout
+            phone_q = qs["phone"]
+        elif phone is not None and n and (kind == 3).any():
             sel = kind == 3
             valid = sel & np.all(np.isfinite(O), axis=1) & np.any(O != 0.0, axis=1)
-            init = np.logical_or.accumulate(valid) | phone_init
+            init = np.logical_or.accumulate(valid)
             phone_q = np.where(init[:, None], qs["phone"], np.nan)
         else:
             phone_q = np.full((n, 4), np.nan)
