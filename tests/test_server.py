@@ -209,6 +209,15 @@ def test_patch_primary_specific_and_gui_follows(srv, api):
     # the GUI shows what the API set (one source of truth)
     ctl = {(c.estimator, c.name): c for c in gui.controls}
     wait_for(lambda: gui.primary.value == "lab", what="GUI primary")
+
+    def first_in_tuning():   # the folder the Tuning tab shows first, and lab's bias tool's place
+        folders = {**gui.folders, "bias tool": gui.bias_folder}
+        return min(folders, key=lambda k: folders[k].order)
+
+    # the primary's controls come first; lab's bias tool sits just before lab's own folder
+    wait_for(lambda: first_in_tuning() == "bias tool", what="lab's folders first")
+    assert gui.bias_folder.order < gui.folders["lab"].order < min(
+        f.order for n, f in gui.folders.items() if n != "lab")
     assert ctl[("lab", "time_update")].handle.value == "approx"
     assert ctl[("lab", "acc_std")].from_gui(ctl[("lab", "acc_std")].handle.value) == pytest.approx(0.3)
     api.patch("/api/params", json={"use_mag": False})
@@ -220,6 +229,8 @@ def test_patch_primary_specific_and_gui_follows(srv, api):
     assert api.get("/api/params").json()["estimators"]["lab"]["acc_std"] == pytest.approx(0.3)
     api.patch("/api/params", json={"primary": "robust", "use_gyr": True,
                                    "estimators": {"lab": {"time_update": "exact", "acc_std": 0.5}}})
+    wait_for(lambda: first_in_tuning() == "robust", what="robust's folder first again")
+    assert gui.folders["robust"].order < gui.bias_folder.order < gui.folders["lab"].order
 
 
 def test_every_gui_control_is_patchable(srv, api):

@@ -180,7 +180,11 @@ class Gui:
         have = [n for n in BIAS_ESTIMATORS if n in self.engine.core.bench.instances]
         if not have:
             return
-        with gui.add_folder("Gyroscope bias for lab", order=5):
+        # just before lab's own folder: the primary's controls stay first (see sync())
+        self._bias_for = have[0]
+        self.bias_folder = gui.add_folder("Gyroscope bias for lab",
+                                          order=self._folder_order(have[0]) - 0.5)
+        with self.bias_folder:
             self.bias_seconds = gui.add_number(
                 "Rest window [s]", 3.0, min=0.5, max=20.0, step=0.5,
                 hint="How many of the last seconds of gyroscope samples to average. The phone "
@@ -320,6 +324,11 @@ class Gui:
                     folder.order = order
                     if name == bench.primary:
                         folder.expand_by_default = True
+            bias = getattr(self, "bias_folder", None)
+            if bias is not None:
+                order = self._folder_order(self._bias_for) - 0.5
+                if bias.order != order:
+                    bias.order = order
             for c in self.controls:
                 value = getattr(bench.params_of(c.estimator), c.name)
                 if not c.gui_same(value):
