@@ -36,12 +36,12 @@ place; :meth:`Injector.feed` also returns them for the plots.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
-from .protocol import MalformedLine, parse_line
+from .protocol import MalformedLine, format_line, parse_line
 from .quaternion import Q
 
 KINDS = ("magnet", "shake")
@@ -186,14 +186,6 @@ class Active:
                 "ended": self.ended, "frame_used": self.frame_used or None, "lines": self.lines}
 
 
-def format_value(v: float) -> str:
-    if math.isnan(v):
-        return "NaN"
-    if math.isinf(v):
-        return "Infinity" if v > 0 else "-Infinity"
-    return f"{v:.7g}"
-
-
 class Injector:
     """Applies requested disturbances to lines of the app's format.
 
@@ -290,8 +282,7 @@ class Injector:
             vals = list(s.values)
             for i in range(3):
                 vals[i] = float(vals[i]) + float(added[i])
-            out.append((f"{s.time_ms}\t{s.tag}\t" + "\t".join(format_value(float(x)) for x in vals))
-                       .encode())
+            out.append(format_line(s.time_ms, s.tag, vals).encode())
         return out, marks
 
     def _mark(self, a: Active, event: str, time_ms: int) -> dict[str, Any]:

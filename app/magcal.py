@@ -219,8 +219,7 @@ def correct_lines(cal: MagCalibration | None, lines: list[bytes]) -> list[bytes]
     Identity or None: the lines themselves."""
     if cal is None or cal.model == "identity":
         return lines
-    from .inject import format_value
-    from .protocol import MalformedLine, parse_line
+    from .protocol import MalformedLine, format_line, parse_line
     out = []
     for ln in lines:
         if isinstance(ln, str):         # the demo hands over text lines
@@ -234,5 +233,5 @@ def correct_lines(cal: MagCalibration | None, lines: list[bytes]) -> list[bytes]
             out.append(ln)
             continue
         v = correct_values(cal, s.values)
-        out.append((f"{s.time_ms}\tMAG\t" + "\t".join(format_value(x) for x in v)).encode())
+        out.append(format_line(s.time_ms, "MAG", v).encode())
     return out

@@ -189,3 +189,19 @@ def parse_line(line: str | bytes) -> Sample:
         w2 = 1.0 - x * x - y * y - z * z
         vals = (math.sqrt(w2) if w2 > 0.0 else 0.0, x, y, z)
     return Sample(time_ms, tag, vals)
+
+
+def format_value(v: float) -> str:
+    """A value as the app writes it: 7 significant digits; NaN and ±Infinity spelled out."""
+    if math.isnan(v):
+        return "NaN"
+    if math.isinf(v):
+        return "Infinity" if v > 0 else "-Infinity"
+    return f"{v:.7g}"
+
+
+def format_line(time_ms: int, tag: str, values) -> str:
+    """One line of the Sensor Fusion app's format (without the newline); the inverse
+    of :func:`parse_line` (a value already text is written as it is)."""
+    vals = "\t".join(v if isinstance(v, str) else format_value(float(v)) for v in values)
+    return f"{int(time_ms)}\t{tag}\t{vals}"

@@ -34,6 +34,7 @@ from typing import Iterator
 
 import numpy as np
 
+from .protocol import format_line
 from .quaternion import quat_from_rotvec_many, quat_mul_many, rotate_inv_many
 
 
@@ -241,20 +242,6 @@ def stream(seed: int = 0, config: SimConfig | None = None, chunk_s: float = 0.5
     while True:
         yield from sim.samples(t, t + chunk_s, rng)
         t += chunk_s
-
-
-def format_value(v: float) -> str:
-    if math.isnan(v):
-        return "NaN"
-    if math.isinf(v):
-        return "Infinity" if v > 0 else "-Infinity"
-    return f"{v:.7g}"
-
-
-def format_line(time_ms: int, tag: str, values) -> str:
-    """One line of the Sensor Fusion app's format (without the newline)."""
-    vals = "\t".join(v if isinstance(v, str) else format_value(float(v)) for v in values)
-    return f"{int(time_ms)}\t{tag}\t{vals}"
 
 
 __all__ = ["SCENES", "SimConfig", "Simulation", "SimResult", "simulate", "stream", "format_line"]
