@@ -21,7 +21,7 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Callable, TextIO
+from typing import TextIO
 
 import numpy as np
 

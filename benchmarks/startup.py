@@ -22,7 +22,6 @@ time grows with the load, the CPU time much less.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import json
 import math

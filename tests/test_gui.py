@@ -8,7 +8,6 @@ import time
 
 import httpx
 import numpy as np
-import pytest
 
 from harness import running_server, wait_for
 from app.simulate import SCENE_DURATION_S, SimConfig

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.estimators import Reason, make_estimator
+from app.estimators import make_estimator
 from app.estimators.base import Estimator
 from app.estimators.phone import PhoneOrientation
 from app.live.bench import Bench, BenchError

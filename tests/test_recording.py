@@ -3,7 +3,6 @@ estimates and parameters sit beside it, segments end cleanly, failures are messa
 
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from app.calibration import calibrate
-from app.quaternion import q2euler_many
 from app.readers import read_recording
 from app.recording import read_estimates, read_events
 from harness import Phone, running_server, wait_for
@@ -82,7 +81,16 @@ def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
         rec = read_recording(still_log)
         for name in ("acc", "gyr", "mag"):
             assert cal["sensors"][name]["n"] > 50
-        t_first = cal["sensors"]["acc"]["histograms"]  # noqa: F841 (present)
+        for name in ("acc", "gyr", "mag"):       # a histogram per axis, its fitted Gaussian
+            s = cal["sensors"][name]
+            assert [h["axis"] for h in s["histograms"]] == ["x", "y", "z"]
+            for i, h in enumerate(s["histograms"]):
+                assert sum(h["counts"]) == s["n"]
+                width = h["edges"][1] - h["edges"][0]
+                # the Gaussian in counts per bin: its sum over the bins about n
+                assert sum(h["fit"]) == pytest.approx(s["n"], rel=0.1)
+                assert h["centres"][int(np.argmax(h["fit"]))] == pytest.approx(
+                    s["mean"][i], abs=width)
         assert 3.9 <= cal["duration_s"] <= 4.0
         st = None
         # the capture began with a sample after the first 200 lines: find its 4 s window

@@ -92,7 +92,6 @@ def install_error_handlers(app: FastAPI) -> None:
 
 def guarded_protocol(max_connections: int, header_timeout_s: float):
     """uvicorn's h11 protocol class with a connection cap and a header timeout."""
-    import h11
     from uvicorn.protocols.http.h11_impl import H11Protocol
 
     class GuardedH11Protocol(H11Protocol):
