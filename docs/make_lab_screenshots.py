@@ -29,24 +29,11 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
-from harness import running_server, wait_for  # noqa: E402
-sys.path.insert(0, str(ROOT / "docs"))
-from make_screenshot import hide_notices  # noqa: E402
+from harness import (CHROMIUM, CHROMIUM_ARGS, click, hide_notices, running_server,  # noqa: E402
+                     wait_for)
 
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 STILL = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
          / "sensorLog_20221024T182616_standstill.txt")
-
-
-def click(page, locator, timeout: float = 60_000) -> None:
-    """A mouse click at the element's centre: Playwright's own click waits for the
-    element to be "stable", which a viewer re-rendering at a few FPS on a loaded machine
-    may never give it."""
-    locator.wait_for(state="visible", timeout=timeout)
-    locator.scroll_into_view_if_needed(timeout=timeout)
-    bb = locator.bounding_box()
-    page.mouse.click(bb["x"] + bb["width"] / 2, bb["y"] + bb["height"] / 2)
 
 
 def demo_log(path: Path, seconds: float) -> None:
@@ -70,8 +57,8 @@ def main() -> int:
         with running_server(source="demo", recordings=rec, preset_dir=Path(d)) as srv, \
                 httpx.Client(base_url=srv.url, timeout=120.0) as api, sync_playwright() as pw:
             ctx = pw.chromium.launch_persistent_context(
-                str(Path(d) / "profile"), executable_path="/usr/bin/chromium", headless=True,
-                args=ARGS, viewport={"width": 1600, "height": 1000})
+                str(Path(d) / "profile"), executable_path=CHROMIUM, headless=True,
+                args=CHROMIUM_ARGS, viewport={"width": 1600, "height": 1000})
             page = ctx.new_page()
             page.goto(srv.url + "/")
             frame = page.frame_locator("iframe#viewer")

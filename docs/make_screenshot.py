@@ -27,10 +27,9 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
 from app.protocol import MalformedLine, parse_line  # noqa: E402
-from harness import Phone, log_lines, running_server  # noqa: E402
+from harness import (CHROMIUM, CHROMIUM_ARGS, Phone, hide_notices, log_lines,  # noqa: E402
+                     running_server)
 
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 DEFAULT_LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
                / "sensorLog_20221024T182635_walking_hand.txt")
 
@@ -62,21 +61,12 @@ def play_paced(port: int, lines: list[str], stop: threading.Event) -> None:
         stop.wait()          # keep the connection open until the shots are taken
 
 
-def hide_notices(frame) -> None:
-    """Hide viser's notices (the software-WebGL one covers the 3D view in headless
-    Chromium) for the picture."""
-    frame.locator("body").evaluate(
-        "b => { const s = document.createElement('style');"
-        " s.textContent = '.mantine-Notifications-root { display: none !important; }';"
-        " b.appendChild(s); }")
-
-
 def shoot(url: str, out_main: Path, seconds: float, start=None) -> None:
     """Open the page, call ``start()`` (if given) once it shows, wait ``seconds``, shoot."""
     from playwright.sync_api import sync_playwright
     with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
         ctx = pw.chromium.launch_persistent_context(
-            profile, executable_path="/usr/bin/chromium", headless=True, args=ARGS,
+            profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
             viewport={"width": 1600, "height": 900})
         page = ctx.new_page()
         page.goto(url)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import shutil
 import socket
 import threading
 import time
@@ -21,6 +22,33 @@ from app.server.run import make_server
 from app.server.settings import Settings
 
 START_TIMEOUT_S = 300.0   # the first start may compile the estimators (numba)
+
+# ---- the browser (Debian's chromium driven by Playwright; no browser download)
+CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
+                             shutil.which("chromium-browser") or "") if p and Path(p).exists()), None)
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync"]
+ARTIFACTS = Path(__file__).resolve().parent / "artifacts"   # screenshots of failed browser tests
+
+
+def click(page, locator, timeout: float = 60_000) -> None:
+    """A mouse click at the element's centre: Playwright's own click waits for the
+    element to be "stable", which a viewer re-rendering at a few FPS on a loaded machine
+    may never give it."""
+    locator.wait_for(state="visible", timeout=timeout)
+    locator.scroll_into_view_if_needed(timeout=timeout)
+    bb = locator.bounding_box()
+    page.mouse.click(bb["x"] + bb["width"] / 2, bb["y"] + bb["height"] / 2)
+
+
+def hide_notices(frame) -> None:
+    """Hide viser's notices (the software-WebGL one covers the 3D view in headless
+    Chromium), e.g. for a picture."""
+    frame.locator("body").evaluate(
+        "b => { const s = document.createElement('style');"
+        " s.textContent = '.mantine-Notifications-root { display: none !important; }';"
+        " b.appendChild(s); }")
 
 
 def free_port() -> int:

@@ -3,19 +3,12 @@ inside the embedded viewer, and switches the magnetometer off by clicking it."""
 
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
 
 import httpx
 import pytest
 
-from harness import running_server, wait_for
+from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, running_server, wait_for
 
-CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
-                             shutil.which("chromium-browser") or "") if p and Path(p).exists()), None)
-ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 pytestmark = [
     pytest.mark.browser,
@@ -32,7 +25,7 @@ def test_page_shows_viewer_and_magnetometer_switch_works(tmp_path):
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
             sync_api.sync_playwright() as pw:
         ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=ARGS,
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
             viewport={"width": 1600, "height": 900})
         try:
             page = ctx.new_page()

@@ -8,18 +8,7 @@ import httpx
 import numpy as np
 import pytest
 
-from harness import running_server, wait_for
-from test_browser import ARGS, ARTIFACTS, CHROMIUM
-
-def click(page, locator, timeout: float = 60_000) -> None:
-    """A mouse click at the element's centre: Playwright's own click waits for the
-    element to be "stable", which a viewer re-rendering at a few FPS on a loaded machine
-    may never give it."""
-    locator.wait_for(state="visible", timeout=timeout)
-    locator.scroll_into_view_if_needed(timeout=timeout)
-    bb = locator.bounding_box()
-    page.mouse.click(bb["x"] + bb["width"] / 2, bb["y"] + bb["height"] / 2)
-
+from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, click, running_server, wait_for
 
 pytestmark = [
     pytest.mark.browser,
@@ -34,7 +23,7 @@ def test_lab_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
             sync_api.sync_playwright() as pw:
         ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=ARGS,
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
             viewport={"width": 1600, "height": 1000})
         try:
             page = ctx.new_page()
@@ -66,7 +55,7 @@ def test_loading_a_preset_from_the_page_applies_its_magnetometer_calibration(tmp
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
             sync_api.sync_playwright() as pw:
         ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=ARGS,
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
             viewport={"width": 1600, "height": 1000})
         try:
             assert api.get("/api/magcal").json()["applied"] is None

@@ -4,18 +4,12 @@ sees the same controls disabled, and its forced clicks change nothing."""
 
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
 
 import httpx
 import pytest
 
-from harness import running_server, wait_for
+from harness import CHROMIUM, CHROMIUM_ARGS, running_server, wait_for
 
-CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
-                             shutil.which("chromium-browser") or "") if p and Path(p).exists()), None)
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 TOKEN = "browser-test-token"
 
 pytestmark = [
@@ -31,7 +25,7 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
     with running_server(source="demo", open_access=False, token=TOKEN, preset_dir=tmp_path) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
             sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
         try:
             student = browser.new_context(viewport={"width": 1400, "height": 850}).new_page()
             student.goto(srv.url + "/")

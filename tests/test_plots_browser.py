@@ -8,23 +8,18 @@ Python (a NaN first value blanks the whole chart; see app/server/plots.py).
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import httpx
 import pytest
 
-from harness import Phone, log_lines, running_server, wait_for
+from harness import (ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Phone, log_lines, running_server,
+                     wait_for)
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL = SHARED / "data" / "sensorfusion-app"
 FULL_LOG = REAL / "alekodu_activityrecognition" / "sensorLog_20221024T182635_walking_hand.txt"
 ACC_ONLY_LOG = REAL / "BaiLiping_WASP_IMU" / "data1.txt"
-CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
-                             shutil.which("chromium-browser") or "") if p and Path(p).exists()), None)
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-ARTIFACTS = Path(__file__).resolve().parent / "artifacts"
 
 pytestmark = [
     pytest.mark.browser,
@@ -129,7 +124,7 @@ def browser():
 
 def open_page(pw, srv, tmp_path):
     ctx = pw.chromium.launch_persistent_context(
-        str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=ARGS,
+        str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
         viewport={"width": 1600, "height": 900})
     page = ctx.new_page()
     page.goto(srv.url + "/")
