@@ -358,8 +358,4 @@ class Bench:
         return sum(i.restored for i in self.instances.values())
 
 
-def params_dicts(bench: Bench) -> dict[str, dict[str, Any]]:
-    return {n: to_dict(i.estimator.params) for n, i in bench.instances.items()}
-
-
 __all__ = ["Bench", "BenchError", "Instance", "Records", "rows_of"]
