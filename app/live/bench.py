@@ -38,7 +38,7 @@ import numpy as np
 from ..estimators import NAMES, REJECTIONS, Estimator, Reason, StepFlags, estimator_class
 from ..estimators.base import (F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags, split_rows,
                                tally_rows)
-from ..params import replace_params, to_dict
+from ..params import replace_params
 from ..protocol import Sample
 
 log = logging.getLogger("orientlab.bench")
