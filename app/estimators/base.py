@@ -51,6 +51,8 @@ class Reason(IntEnum):
     RECOVER = 15    # the estimate was judged lost and re-aligned (mag: heading far from a
                     # trusted field for long; value: the heading error corrected, rad)
     BIAS_RESET = 16 # gyr: the bias estimate was implausible (above bias_max) and was reset
+    TURN = 17       # mag: the field (world frame) changed faster than the phone's turn explains:
+                    # a magnet moving in (value: the unexplained change rate, rad/s)
 
     @property
     def label(self) -> str:
@@ -75,6 +77,7 @@ REASON_TEXT = {
     Reason.NEW_FIELD: "new magnetic field accepted as the reference",
     Reason.RECOVER: "estimate was lost: re-aligned",
     Reason.BIAS_RESET: "implausible gyroscope bias: reset",
+    Reason.TURN: "field changed faster than the phone turned",
 }
 
 
@@ -104,7 +107,7 @@ _TIME_ISSUES = tuple(TimeIssue)
 
 # Plain int copies of the codes for numba-compiled code (it cannot cast IntEnum to float)
 (R_USED, R_ABSENT, R_DISABLED, R_INVALID, R_NORM, R_NIS, R_DIP, R_FIELD, R_INIT, R_WAIT, R_GAP,
- R_REST, R_LATE, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET) = (int(r) for r in Reason)
+ R_REST, R_LATE, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET, R_TURN) = (int(r) for r in Reason)
 T_OK, T_REPEATED, T_BACKWARD, T_GAP, T_FIRST = (int(x) for x in TimeIssue)
 
 # The flag record written after every row (floats so one array holds them all).
@@ -308,7 +311,7 @@ class StepFlags:
 
 # Reasons that mean "a valid sample was refused or not trusted by a gate": the ONE place
 # deciding what the dashboard shows as "disturbed" (indicators, red samples, rejection counts).
-REJECTIONS = frozenset({Reason.NORM, Reason.NIS, Reason.DIP, Reason.FIELD, Reason.ACCEL})
+REJECTIONS = frozenset({Reason.NORM, Reason.NIS, Reason.DIP, Reason.FIELD, Reason.ACCEL, Reason.TURN})
 # Reasons that report an event worth telling the user (the filter corrected itself).
 ALERTS = frozenset({Reason.NEW_FIELD, Reason.RECOVER, Reason.BIAS_RESET})
 

@@ -27,6 +27,13 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
   ``mag_new_field_time``) becomes the reference; after ``mag_max_reject`` seconds of
   refusal the heading update resumes ``mag_reject_factor`` times slower. Within the
   gates, a deviation from the reference adds heading noise (``mag_dev_weight``).
+- **Field turn test** (:func:`_turn_check`). A real field is fixed in the world: seen
+  through the estimate (whose turns are the gyroscope's) it stays put while the phone
+  turns. A magnet brought in over half a second turns the horizontal field by tens of
+  degrees before its strength or dip leave their gates, and the heading would follow; so
+  a world-frame field changing faster than ``mag_turn_gate`` beyond ``mag_turn_rel`` ×
+  the turn rate is a disturbance too (flag TURN, value: the unexplained rate), ended like
+  the others after ``mag_min_undisturbed`` of a field within every gate.
 - **Never lost.** An undisturbed field farther than ``mag_lost_angle`` from the heading
   for ``mag_lost_time`` means the estimate is wrong: the heading σ grows to the error,
   the field's heading is taken, the bias learned meanwhile is dropped (flag RECOVER);
@@ -68,7 +75,7 @@ from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
                    F_TIME, NFLAGS, R_DIP, R_LATE, R_NIS, R_NORM, R_REST,
-                   R_USED, R_GAP, R_ABSENT, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET,
+                   R_USED, R_GAP, R_ABSENT, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET, R_TURN,
                    T_BACKWARD, T_GAP, T_OK, ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, BatchResult,
                    align_step,
                    Estimator, row_prologue)
@@ -158,7 +165,25 @@ class RobustParams(CommonParams):
     mag_min_undisturbed: float = param(0.5, unit="s", lo=0.0, hi=60.0,
                                        doc="a field within the gates this long ends a disturbance")
     mag_norm_dip_tau: float = param(0.05, unit="s", lo=0.0, hi=10.0,
-                                    doc="time constant of the low-pass of strength and dip before the gates")
+                                    doc="time constant of the low-pass of strength and dip (and of the "
+                                        "world-frame field of the turn test) before the gates")
+    mag_turn_gate: float = param(15.0 / DEG, unit="rad/s", lo=0.0, hi=100.0, user_unit="deg/s",
+                                 user_scale=DEG,
+                                 doc="a real field is fixed in the world: seen through the estimate, whose "
+                                     "turns are the gyroscope's, it stays put while the phone turns. A field "
+                                     "that changes faster than this (relative change, as an angle per second) "
+                                     "beyond what the turn explains is a disturbance (flag TURN): a magnet "
+                                     "brought in, before its strength or dip leave their gates. 2.5× a "
+                                     "phone's largest gyroscope bias (0.1 rad/s, which turns the field this "
+                                     "way until it is learned); 0: off")
+    mag_turn_rel: float = param(0.5, lo=0.0, hi=10.0,
+                                doc="change rate of the world-frame field (rad/s) allowed per rad/s of turn "
+                                    "rate: a saturated gyroscope (running) reads at least 2/3 of the turn; "
+                                    "scale error, magnetometer lag and residual hard iron are smaller")
+    mag_turn_tau: float = param(0.2, unit="s", lo=0.01, hi=10.0,
+                                doc="the turn test's time scale: the world-frame field low-passed over "
+                                    "mag_norm_dip_tau is low-passed again over this, a change at rate r "
+                                    "leaves it behind by r × this; the turn rate is low-passed over it too")
     rest_gyr_th: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s", user_scale=DEG,
                                doc="rest: gyroscope deviation from its low-pass below this")
     rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,
@@ -263,7 +288,8 @@ STATE = (
     ("mag_nd_ok", 1, "1 once mag_nd holds a sample"),
     ("undisturbed_time", 1, "s the field has been within the gates"),
     ("disturbed", 1, "1 while the field is judged disturbed"),
-    ("dist_reason", 1, "Reason of the current disturbance (NORM or DIP)"),
+    ("dist_reason", 1, "Reason of the current disturbance (NORM, DIP or TURN)"),
+    ("dist_val", 1, "TURN: the latest unexplained change rate of the field (rad/s)"),
     ("bias_good", 3, "the bias estimate before the heading began to disagree with the field"),
     ("acc_var", 1, "low-passed power of the specific force, |a - low-pass|² (m²/s⁴)"),
     ("mb_ok", 1, "1 once the motion-bias low-passes hold a value"),
@@ -271,6 +297,10 @@ STATE = (
     ("mb_Rb", 2, "motion bias: low-passed horizontal rows of R b (rad/s)"),
     ("mb_sum", 3, "tilt (x, y) and heading (z) corrections since the last bias update (rad)"),
     ("mb_time", 2, "s of tilt / heading corrections summed there"),
+    ("mt_lp", 6, "field turn test: the world-frame field (µT, estimate's frame) low-passed over "
+                 "mag_norm_dip_tau, then that over mag_turn_tau"),
+    ("mt_rate", 1, "field turn test: low-passed turn rate (rad/s)"),
+    ("mt_ok", 1, "1 once the field turn test's low-passes hold a value"),
 )
 # slots that start as NaN ("not yet")
 _STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
@@ -412,6 +442,14 @@ def _inject(s, P, dx):
     s[S.acc_lp] = ax + d0 * tx + (d2 * tz - d3 * ty)
     s[S.acc_lp + 1] = ay + d0 * ty + (d3 * tx - d1 * tz)
     s[S.acc_lp + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
+    for j in range(S.mt_lp, S.mt_lp + 6, 3):    # the field turn test's two low-passes too
+        ax, ay, az = s[j], s[j + 1], s[j + 2]
+        tx = 2.0 * (d2 * az - d3 * ay)
+        ty = 2.0 * (d3 * ax - d1 * az)
+        tz = 2.0 * (d1 * ay - d2 * ax)
+        s[j] = ax + d0 * tx + (d2 * tz - d3 * ty)
+        s[j + 1] = ay + d0 * ty + (d3 * tx - d1 * tz)
+        s[j + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
 
 
 @njit(cache=True)
@@ -449,6 +487,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.mag_nd_ok] = 0.0
     s[S.undisturbed_time] = 0.0
     s[S.disturbed] = 0.0
+    s[S.mt_ok] = 0.0
 
 
 @njit(cache=True)
@@ -763,13 +802,15 @@ def _heading_bias_update(s, P, p, dz, dt):
 
 
 @njit(cache=True)
-def _field_check(s, p, n, dip, dt, rate, f):
+def _field_check(s, p, n, dip, dt, rate, turn, f):
     """Judge the field (strength ``n``, dip) against the learned reference, as VQF does:
     a disturbance is a strength or dip off the reference; it ends after the field has been
     within the gates for ``mag_min_undisturbed``; a new homogeneous field (stable strength
     and dip while the phone turns for ``mag_new_field_time``) becomes the reference; the
     first reference is the first field stable for ``mag_first_field_time`` (a phone that
     starts moving, or next to a desk, must not fix it from its first samples).
+    A field that changes faster than the phone turns (``turn`` > 0, the unexplained change
+    rate, see :func:`_turn_check`) is a disturbance too (TURN), judged after strength and dip.
     Returns True when the sample may correct the heading (no reference yet, or undisturbed)."""
     # low-pass of strength and dip: one sample's noise is no disturbance
     if s[S.mag_nd_ok] == 0.0:
@@ -814,6 +855,8 @@ def _field_check(s, p, n, dip, dt, rate, f):
         reason = R_NORM
     elif p[PRM.mag_dip_gate] > 0.0 and d_dev > p[PRM.mag_dip_gate]:
         reason = R_DIP
+    elif turn > 0.0:
+        reason = R_TURN
     if reason == R_USED:
         s[S.undisturbed_time] += dt
         if s[S.undisturbed_time] >= p[PRM.mag_min_undisturbed]:
@@ -825,6 +868,7 @@ def _field_check(s, p, n, dip, dt, rate, f):
         s[S.undisturbed_time] = 0.0
         s[S.disturbed] = 1.0
         s[S.dist_reason] = reason
+        s[S.dist_val] = turn
     if s[S.disturbed] != 0.0 and s[S.cand_time] >= p[PRM.mag_new_field_time]:
         # a new homogeneous field: the phone moved to another place (or a magnet stays on it)
         s[S.ref_norm] = s[S.cand_norm]
@@ -837,9 +881,53 @@ def _field_check(s, p, n, dip, dt, rate, f):
         return True
     if s[S.disturbed] != 0.0:
         f[F_MAG] = s[S.dist_reason]
-        f[F_MAG_VAL] = nf if s[S.dist_reason] == R_NORM else d_dev
+        r = s[S.dist_reason]
+        f[F_MAG_VAL] = nf if r == R_NORM else (s[S.dist_val] if r == R_TURN else d_dev)
         return False
     return True
+
+
+@njit(cache=True)
+def _turn_check(s, p, mw, dt, rate, has_rate):
+    """The field turn test: a real field is fixed in the world; seen through the estimate
+    (whose turn is the gyroscope's) it stays put while the phone turns. Its change rate is
+    measured as the distance between the world-frame field low-passed over
+    ``mag_norm_dip_tau`` (one sample's noise is no change) and that low-passed again over
+    ``mag_turn_tau``, over ``mag_turn_tau`` and the field's strength (an angle, or a
+    relative change of strength, per second: a steady change of rate r leaves the second
+    low-pass behind by r·τ). Beyond ``mag_turn_rel`` × the low-passed turn rate (scale
+    errors, saturation, lag and hard iron make a real field seem to move while the phone
+    turns) it is what the turn does not explain: returned (rad/s) when above
+    ``mag_turn_gate``, else 0. Off without a gyroscope."""
+    if p[PRM.mag_turn_gate] <= 0.0 or not has_rate:
+        s[S.mt_ok] = 0.0
+        return 0.0
+    if s[S.mt_ok] == 0.0:
+        for i in range(3):
+            s[S.mt_lp + i] = mw[i]
+            s[S.mt_lp + 3 + i] = mw[i]
+        s[S.mt_rate] = rate
+        s[S.mt_ok] = 1.0
+        return 0.0
+    tau = p[PRM.mag_turn_tau]
+    kf = _lp_coef(dt, p[PRM.mag_norm_dip_tau])
+    k = _lp_coef(dt, tau)
+    f, g = S.mt_lp, S.mt_lp + 3
+    s[f] += kf * (mw[0] - s[f])
+    s[f + 1] += kf * (mw[1] - s[f + 1])
+    s[f + 2] += kf * (mw[2] - s[f + 2])
+    d0, d1, d2 = s[f] - s[g], s[f + 1] - s[g + 1], s[f + 2] - s[g + 2]
+    s[g] += k * d0
+    s[g + 1] += k * d1
+    s[g + 2] += k * d2
+    s[S.mt_rate] += k * (rate - s[S.mt_rate])
+    # |d| / (|lp| τ) - rel·rate > gate, squared (the square root only for a flag)
+    d2 = d0 * d0 + d1 * d1 + d2 * d2
+    l2 = s[g] * s[g] + s[g + 1] * s[g + 1] + s[g + 2] * s[g + 2]
+    allowed = tau * (p[PRM.mag_turn_gate] + p[PRM.mag_turn_rel] * s[S.mt_rate])
+    if d2 <= allowed * allowed * l2 or l2 <= 0.0:
+        return 0.0
+    return np.sqrt(d2 / l2) / tau - p[PRM.mag_turn_rel] * s[S.mt_rate]
 
 
 @njit(cache=True)
@@ -852,7 +940,7 @@ def _far(s, elapsed):
 
 
 @njit(cache=True)
-def _mag_update(s, P, p, t, mag, rate, f):
+def _mag_update(s, P, p, t, mag, rate, has_rate, f):
     mw = _rotate3(s, mag)
     n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
     dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
@@ -861,7 +949,8 @@ def _mag_update(s, P, p, t, mag, rate, f):
     s[S.mag_t] = t
     f[F_MAG_VAL] = n
     f[F_MAG] = R_USED
-    ok = _field_check(s, p, n, dip, dt, rate, f)
+    turn = _turn_check(s, p, mw, dt, rate, has_rate)
+    ok = _field_check(s, p, n, dip, dt, rate, turn, f)
     scale = 1.0
     if ok:
         s[S.reject_time] = max(s[S.reject_time] - p[PRM.mag_reject_factor] * dt, 0.0)
@@ -981,7 +1070,7 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
         if not np.isnan(w[0]):
             bx, by, bz = w[0] - s[S.bias], w[1] - s[S.bias + 1], w[2] - s[S.bias + 2]
             rate = np.sqrt(bx * bx + by * by + bz * bz)
-        _mag_update(s, P, p, t, mag, rate, f)
+        _mag_update(s, P, p, t, mag, rate, not np.isnan(w[0]), f)
     if p[PRM.bias_max] > 0.0:
         bn = qm.norm3(s[S.bias:S.bias + 3])
         if bn > p[PRM.bias_max]:
