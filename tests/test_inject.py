@@ -217,3 +217,31 @@ def test_a_ramped_magnet_is_first_refused_as_a_field_turning_without_the_phone(s
     assert code == int(Reason.TURN) and value > make_estimator("robust").params.mag_turn_gate, first
     t_off, code_off, _ = first["off"]
     assert code_off in (int(Reason.NORM), int(Reason.DIP)) and t_off > t_turn + 0.05, first
+
+
+def test_a_real_field_is_not_called_turned_while_the_phone_walks_or_runs(real_log):
+    """The turn test's other side: on the real app logs (standstill to running, turn rates
+    up to ~18 rad/s, beyond a phone gyroscope's range) the field is never flagged TURN."""
+    from app.readers import read_recording
+    r = read_recording(real_log)
+    res = make_estimator("robust").run(r.t, r.gyr, r.acc, r.mag)
+    if (~np.isnan(r.mag[:, 0])).sum() < 100 or (~np.isnan(r.gyr[:, 0])).sum() < 100:
+        pytest.skip(f"{real_log.name}: no magnetometer and gyroscope to judge")
+    assert not np.any(res.flags[:, F_MAG] == int(Reason.TURN))
+
+
+def test_the_turn_test_is_off_without_a_gyroscope(still):
+    """Without a gyroscope the estimate's world frame does not turn with the phone: every
+    turn would look like a field turning, so the test stays off (and with the gate at 0)."""
+    lines, _, _ = still
+    t0 = int(lines[0].split(b"\t")[0])
+    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
+    inj = Injector()
+    head, _ = inj.feed(lines[:k])
+    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": "-x",
+                             "frame": "sensor", "seconds": 5, "ramp_s": 0.5}))
+    tail, _ = inj.feed(lines[k:])
+    d = _rows(head + tail)
+    for params in ({}, {"use_gyr": False}, {"mag_turn_gate": 0.0}):
+        codes = make_estimator("robust", params).run(d.t, d.gyr, d.acc, d.mag, d.ori).flags[:, F_MAG]
+        assert np.any(codes == int(Reason.TURN)) == (params == {}), params
