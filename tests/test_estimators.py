@@ -212,6 +212,40 @@ def test_robust_keeps_its_tilt_through_a_shake():
     assert np.max(total) < 5.0
 
 
+def _turning_with_a_scale_error(scale_err=0.01, rate=1.0, seconds=120.0, fs=100.0):
+    """A phone turning at ``rate`` about a horizontal axis (its x axis, the world's x) whose
+    gyroscope reads ``scale_err`` too much: the tilt drifts by scale_err × rate, steadily."""
+    t = np.arange(int(seconds * fs)) / fs
+    q = qm.quat_from_rotvec_many(np.outer(rate * t, [1.0, 0.0, 0.0]))
+    gyr = np.tile([(1.0 + scale_err) * rate, 0.0, 0.0], (len(t), 1))
+    acc = qm.rotate_inv_many(q, G)
+    mag = qm.rotate_inv_many(q, M_WORLD)
+    return t, gyr, acc, mag, q
+
+
+def test_robust_tilt_loop_answers_a_drifting_gyroscope_with_its_damping():
+    """The low-pass (τ = acc_tau) and the tilt corrections (τc) form a second-order loop: a
+    steady drift d leaves d·(τ + τc) of tilt error when the low-pass turns with every
+    correction (tilt_damping 0, overdamped), d·2ζ√(τ τc) at damping ζ (module doc of
+    robust). τc is read off the overdamped run; the bias is not learned here, so nothing
+    else takes the drift up."""
+    t, gyr, acc, mag, q = _turning_with_a_scale_error()
+    off = {"bias_motion_noise": 0.0, "bias_heading_noise": 0.0, "rest_time": 0.0}
+    late = t > 60.0
+    incl = {}
+    for zeta in (0.0, math.sqrt(0.5), 1.0):
+        res = make_estimator("robust", dict(off, tilt_damping=zeta)).run(t, gyr, acc, mag)
+        incl[zeta] = float(np.mean(qm.error_angles(res.q[late], q[late])[2]) * DEG)
+    d = 0.01 * 1.0 * DEG  # °/s
+    tau = make_estimator("robust").params.acc_tau
+    tau_c = incl[0.0] / d - tau
+    assert 0.2 < tau_c < 5.0, incl
+    for zeta in (math.sqrt(0.5), 1.0):
+        expected = d * 2.0 * zeta * math.sqrt(tau * tau_c)
+        assert incl[zeta] == pytest.approx(expected, rel=0.15), (zeta, incl, expected)
+    assert incl[math.sqrt(0.5)] < 0.7 * incl[0.0]
+
+
 # the lab filter has no bias state: in the lab it is given the calibrated bias
 LAB_CALIBRATED = {"gyr_bias": list(SimConfig().gyr_bias)}
 

@@ -73,6 +73,8 @@ EFFECT = {
                   "corrections, smaller errors during accelerations",
     "acc_tau": "raising it averages the accelerometer over longer: motion disturbs tilt less, "
                "tilt corrections lag more",
+    "tilt_damping": "raising it makes the tilt loop slower to answer a drifting gyroscope, with less "
+                    "overshoot (none from 1); 0: off (overdamped)",
     "acc_nis_gate": "raising it refuses fewer tilt updates; 0: off",
     "heading_noise": "raising it trusts the magnetometer heading less: slower heading corrections",
     "mag_nis_gate": "raising it refuses fewer heading updates; 0: off",
