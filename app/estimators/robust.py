@@ -453,20 +453,22 @@ def _inject(s, P, dx, lp_frac=1.0):
     s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3] = r0 * c, r1 * c, r2 * c, r3 * c
     for i in range(3):
         s[S.bias + i] += dx[3 + i]
+    e0, e1, e2, e3 = d0, d1, d2, d3
     if lp_frac != 1.0:
-        # the low-pass turns with the heading part and lp_frac of the tilt part
-        vx, vy = vx * lp_frac, vy * lp_frac
-        a = np.sqrt(vx * vx + vy * vy + vz * vz)
-        d0 = np.cos(0.5 * a)
+        # the tilt's low-pass turns with the heading part and lp_frac of the tilt part
+        # (the tilt loop's damping); everything else turns with the whole correction
+        ux, uy = vx * lp_frac, vy * lp_frac
+        a = np.sqrt(ux * ux + uy * uy + vz * vz)
+        e0 = np.cos(0.5 * a)
         k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
-        d1, d2, d3 = vx * k, vy * k, vz * k
+        e1, e2, e3 = ux * k, uy * k, vz * k
     ax, ay, az = s[S.acc_lp], s[S.acc_lp + 1], s[S.acc_lp + 2]
-    tx = 2.0 * (d2 * az - d3 * ay)
-    ty = 2.0 * (d3 * ax - d1 * az)
-    tz = 2.0 * (d1 * ay - d2 * ax)
-    s[S.acc_lp] = ax + d0 * tx + (d2 * tz - d3 * ty)
-    s[S.acc_lp + 1] = ay + d0 * ty + (d3 * tx - d1 * tz)
-    s[S.acc_lp + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
+    tx = 2.0 * (e2 * az - e3 * ay)
+    ty = 2.0 * (e3 * ax - e1 * az)
+    tz = 2.0 * (e1 * ay - e2 * ax)
+    s[S.acc_lp] = ax + e0 * tx + (e2 * tz - e3 * ty)
+    s[S.acc_lp + 1] = ay + e0 * ty + (e3 * tx - e1 * tz)
+    s[S.acc_lp + 2] = az + e0 * tz + (e1 * ty - e2 * tx)
     for j in range(S.mt_lp, S.mt_lp + 6, 3):    # the field turn test's two low-passes too
         ax, ay, az = s[j], s[j + 1], s[j + 2]
         tx = 2.0 * (d2 * az - d3 * ay)
