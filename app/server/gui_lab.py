@@ -28,6 +28,7 @@ import numpy as np
 from ..quaternion import q2euler_many
 from .lab import LabError, LabTools
 from .plots import send_data
+from .scene import set_wxyz
 
 log = logging.getLogger("orientlab.gui_lab")
 
@@ -142,7 +143,7 @@ class VariantGhosts:
                 self.frames[name] = f
             est = b.estimator(name)
             if est.initialized:
-                f.wxyz = tuple(float(v) for v in est.q)
+                set_wxyz(f, est.q)
 
 
 class LabGui:

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from viser import _messages
 
 from ..estimators import Diagnostics, Reason
 from ..live import Snapshot
@@ -84,6 +85,53 @@ def _phone_body(scene, name: str, color, opacity=None) -> None:
                       position=(0.0, 0.0, -D / 2 - 0.003))
         scene.add_box(f"{name}/rear_camera", color=(40, 40, 45), dimensions=(0.16, 0.16, 0.014),
                       position=(W / 2 - 0.14, H / 2 - 0.14, -D / 2 - 0.007))  # top left seen from the back
+
+
+def set_wxyz(handle, q) -> bool:
+    """``handle.wxyz = q`` for a scene node, the cheap way (the estimate's pose goes out
+    after every batch: 100 times a second for a phone). Relies on viser 1.1's internals
+    (the handle's ``_impl``, its scene API's ``_queue_scene_message`` and the broadcast
+    buffer); False when the pose was unchanged (nothing queued). What it saves:
+
+    - viser's setter casts through ``np.asarray`` and ``np.allclose`` per call; here the
+      four plain floats are compared with the same tolerance (``allclose``'s rtol 1e-5,
+      atol 1e-8), the handle's own copy is written (its getter and later setter calls
+      see it) and the same ``SetOrientationMessage`` is queued by the same
+      owner-stamping path;
+    - a wake-up of viser's thread per update: viser's buffer sets its ``message_event``
+      and also schedules that set on viser's event loop (``call_soon_threadsafe``: a
+      write to its self-pipe, the thread wakes and takes the GIL from the event loop
+      here). While the event is already set no sender waits on it (each sends what it
+      finds when its window timer ends, 60 times a second): that second wake-up is
+      then left out (the push is done as in viser's own ``atomic()`` block, which
+      defers it, without the wake-up at its end). When the event is clear (a sender
+      is idle) the update wakes it as before: nothing is sent later than it was."""
+    impl = handle._impl
+    if impl.removed:
+        raise RuntimeError(f"Cannot assign to 'wxyz' on a removed {type(handle).__name__}.")
+    v = tuple(map(float, q))
+    if len(v) != 4:
+        raise ValueError(f"Expected a quaternion of 4 values, got {len(v)}")
+    cur = impl.wxyz
+    c0, c1, c2, c3 = cur.tolist()
+    if (abs(v[0] - c0) <= 1e-8 + 1e-5 * abs(c0) and abs(v[1] - c1) <= 1e-8 + 1e-5 * abs(c1)
+            and abs(v[2] - c2) <= 1e-8 + 1e-5 * abs(c2) and abs(v[3] - c3) <= 1e-8 + 1e-5 * abs(c3)):
+        return False
+    cur[:] = v
+    msg = _messages.SetOrientationMessage(impl.name, v)
+    api = impl.api
+    buf = api._websock_interface.get_message_buffer()
+    if not buf.message_event.is_set():
+        api._queue_scene_message(msg)          # a sender may be idle: wake it
+        return True
+    with buf.buffer_lock:
+        buf.atomic_counter += 1
+    try:
+        api._queue_scene_message(msg)
+    finally:
+        with buf.buffer_lock:
+            buf.atomic_counter -= 1
+    return True
 
 
 def _arrow_points(vec: np.ndarray | None) -> np.ndarray:
@@ -182,17 +230,17 @@ class Scene:
     # ------------------------------------------------------------------ drawing
     def draw_pose(self, q: np.ndarray) -> None:
         """Only the estimate's pose (cheap: called after every processed batch)."""
-        self.phone.wxyz = q
+        set_wxyz(self.phone, q)
 
     def draw(self, s: Snapshot) -> None:
         """Update every moving part from the snapshot (one atomic viser update)."""
         R = Q(s.q)
         with self.server.atomic():
-            self.phone.wxyz = s.q
+            set_wxyz(self.phone, s.q)
             for what, q in (("own", s.phone_q), ("truth", s.truth_q)):
                 self._has[what] = q is not None
                 if q is not None:
-                    getattr(self, what).wxyz = q
+                    set_wxyz(getattr(self, what), q)
                 self._set_visible(what, self._want[what] and q is not None)
             self._draw_cones(R, s.cov)
             self._draw_arrows(R, s)
