@@ -192,15 +192,33 @@ class Latency:
         """Median, p99 and max (ms) of the per-sample latency, the wait and the loop lag
         (vectorised: this runs on the event loop)."""
         chunks = np.array(self.chunks, dtype=float).reshape(-1, 3)
-        rows = np.repeat(chunks[:, :2], chunks[:, 2].astype(np.int64), axis=0)
-        return {"latency_ms": percentiles(rows[:, 0]), "wait_ms": percentiles(rows[:, 1]),
+        counts = chunks[:, 2].astype(np.int64)
+        return {"latency_ms": percentiles(chunks[:, 0], counts),
+                "wait_ms": percentiles(chunks[:, 1], counts),
                 "loop_lag_ms": percentiles(np.array(self.loop_lag, dtype=float))}
 
 
-def percentiles(x: np.ndarray) -> dict[str, Any]:
-    """Median, 99th percentile and max of durations in seconds, in ms."""
-    if not x.size:
+def percentiles(x: np.ndarray, counts: np.ndarray | None = None) -> dict[str, Any]:
+    """Median, 99th percentile and max of durations in seconds, in ms; ``counts``: how
+    many times each value counts (one per sample of a chunk), the figures being those
+    of the values repeated so (``np.percentile``'s linear interpolation), without
+    building that array (GET /api/stats runs on the event loop)."""
+    x = np.asarray(x, dtype=float)
+    if counts is None:
+        counts = np.ones(x.size, dtype=np.int64)
+    keep = counts > 0
+    x, counts = x[keep], counts[keep]
+    n = int(counts.sum())
+    if not n:
         return {"n": 0, "median": None, "p99": None, "max": None}
-    ms = x * 1e3
-    return {"n": int(ms.size), "median": num(np.median(ms)), "p99": num(np.percentile(ms, 99)),
-            "max": num(ms.max())}
+    order = np.argsort(x, kind="stable")
+    ms = x[order] * 1e3
+    ends = np.cumsum(counts[order])          # the k-th value (0-based) is ms[first end > k]
+
+    def pct(p: float) -> float:
+        h = (n - 1) * p / 100.0
+        lo = math.floor(h)
+        a, b = ms[np.searchsorted(ends, [lo, min(lo + 1, n - 1)], side="right")]
+        return a + (b - a) * (h - lo)
+
+    return {"n": n, "median": num(pct(50.0)), "p99": num(pct(99.0)), "max": num(ms[-1])}
