@@ -74,10 +74,13 @@ class Monitor:
         self._last_t = last
         n0 = len(self.t)
         self.t.extend(rec.t[sel].tolist())
-        for name, q in rec.q.items():
-            y = np.degrees(q2euler_many(q[sel])[:, 0]).tolist()
+        # every instance's rows in one compiled call (the same conversion row by row)
+        names = list(rec.q)
+        k = len(sel)
+        yaw = [] if not names else np.degrees(q2euler_many(np.concatenate([rec.q[n][sel] for n in names]))[:, 0]).tolist()
+        for i, name in enumerate(names):
             col = self.yaw.setdefault(name, [math.nan] * n0)
-            col.extend(y)
+            col.extend(yaw[i * k:(i + 1) * k])
         for name, col in self.yaw.items():
             if len(col) < len(self.t):
                 col.extend([math.nan] * (len(self.t) - len(col)))

@@ -134,6 +134,38 @@ def set_wxyz(handle, q) -> bool:
     return True
 
 
+def set_prop(handle, name: str, value) -> bool:
+    """``setattr(handle, name, value)`` for a scene node's property (an arrow's
+    ``points``, a cone's ``scale``), the cheap way: viser's generic setter builds its
+    type hints (``npt.NDArray[...]``) anew on every call to cast the value; here the
+    value takes the stored array's dtype (what that cast gives for these properties),
+    an unchanged value sends nothing, and the same ``SceneNodeUpdateMessage`` is
+    queued (with a copy: the stored array is updated in place later). Not for
+    colours (viser converts those) or properties with setters of their own (``wxyz``:
+    :func:`set_wxyz`). False when unchanged."""
+    impl = handle._impl
+    if impl.removed:
+        raise RuntimeError(f"Cannot assign to {name!r} on a removed {type(handle).__name__}.")
+    cur = getattr(impl.props, name)
+    if isinstance(cur, np.ndarray):
+        value = np.asarray(value, dtype=cur.dtype)
+        if value.shape == cur.shape:
+            if np.array_equal(cur, value):
+                return False
+            cur[...] = value
+        else:
+            setattr(impl.props, name, value.copy())
+        queued = value.copy()
+    else:
+        if cur == value:
+            return False
+        setattr(impl.props, name, value)
+        queued = value
+    impl.api._queue_scene_message(_messages.SceneNodeUpdateMessage(impl.name, {name: queued}))
+    handle._on_prop_assigned(name)
+    return True
+
+
 def _arrow_points(vec: np.ndarray | None) -> np.ndarray:
     p = np.zeros((1, 2, 3), dtype=np.float32)
     if vec is not None and np.all(np.isfinite(vec)):
@@ -265,7 +297,7 @@ class Scene:
                      math.tan(min(SIGMA_K * sig[b], lim)) * AXIS_LEN, AXIS_LEN)
             # σ settles within seconds: send a cone only when it visibly changes
             if not _close(scale, self._cone_scale[i], 1e-3):
-                cone.scale = scale
+                set_prop(cone, "scale", scale)
                 self._cone_scale[i] = scale
 
     def _draw_arrows(self, R: np.ndarray, s: Snapshot) -> None:
@@ -273,13 +305,13 @@ class Scene:
         gn = float(np.linalg.norm(g0))
         self._set_expected("grav", self.grav_expected, g0 / gn * ARROW_LEN)
         if s.acc is not None:
-            self.grav.points = _arrow_points(np.clip(R @ s.acc / gn, -2, 2) * ARROW_LEN)
+            set_prop(self.grav, "points", _arrow_points(np.clip(R @ s.acc / gn, -2, 2) * ARROW_LEN))
             self._color("acc", self.grav, s.acc_flags, C_ACC)
         m0 = expected_field(s.diag)
         mn = float(np.linalg.norm(m0)) if m0 is not None else 50.0
         self._set_expected("mag", self.mag_expected, None if m0 is None else np.asarray(m0) / mn * ARROW_LEN)
         if s.mag is not None:
-            self.mag.points = _arrow_points(np.clip(R @ s.mag / mn, -2, 2) * ARROW_LEN)
+            set_prop(self.mag, "points", _arrow_points(np.clip(R @ s.mag / mn, -2, 2) * ARROW_LEN))
             self._color("mag", self.mag, s.mag_flags, C_MAG)
 
     def _set_expected(self, key: str, handle, vec) -> None:
@@ -287,7 +319,7 @@ class Scene:
         pts = _arrow_points(vec)
         last = self._expected.get(key)
         if last is None or not _close(pts.ravel().tolist(), last.ravel().tolist(), 1e-3):
-            handle.points = pts
+            set_prop(handle, "points", pts)
             self._expected[key] = pts
 
     def _color(self, sensor: str, handle, flags, good) -> None:
