@@ -55,6 +55,7 @@ SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the
 SUBSCRIBER_BACKLOG = 200      # WS messages (20 s at 10 Hz) waiting for one client: dropped
 RESTART_PAUSE_S = 0.1
 _JSON = msgspec.json.Encoder()
+_TAGS = ("GYR", "ACC", "MAG", "ORI")     # a row's kind (app.live.bench.KIND_OF_TAG) -> its tag
 
 __all__ = ["Change", "Engine", "PatchError", "Session", "Snapshot", "Subscriber", "Throttle"]
 
@@ -163,7 +164,7 @@ class Engine:
         self.dropped_subscribers = 0
         self.subscriber_backlog = SUBSCRIBER_BACKLOG
         self._t_taken = 0.0
-        self._ws_pending: list[tuple[float, str, list[float]]] = []
+        self._ws_pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []   # (t, kind, q) per chunk
         self._scene_timer = Throttle(1.0 / settings.scene_hz, self._draw_scene,
                                      lag=self.latency.loop_lag)
         self._ws_timer = Throttle(1.0 / settings.ws_hz, self._flush_ws, lag=self.latency.loop_lag)
@@ -323,8 +324,8 @@ class Engine:
         rec = self.core.process(s, samples)
         if rec is None:
             return False
-        if self.subscribers and len(rec):
-            self._ws_pending.extend(zip(rec.t.tolist(), rec.tags, rec.primary_q.tolist()))
+        if self.subscribers and len(rec):   # as arrays: made into JSON rows at the flush
+            self._ws_pending.append((rec.t, rec.kind, rec.primary_q))
         return True
 
     def _publish(self, arrivals: list[tuple[float, int]]) -> None:
@@ -377,9 +378,12 @@ class Engine:
             return
         # msgspec: 10x faster than json.dumps here (the same JSON, without spaces; a
         # non-finite number is null, valid JSON, where json.dumps wrote NaN)
+        t = np.concatenate([p[0] for p in pending]).tolist()
+        kind = np.concatenate([p[1] for p in pending]).tolist()
+        q = np.concatenate([p[2] for p in pending]).tolist()
         msg = _JSON.encode({"primary": self.core.bench.primary, "source": self.core.source_kind(),
-                            "estimates": [{"t": t, "tag": tag, "q": q} for t, tag, q in pending]}
-                           ).decode()
+                            "estimates": [{"t": a, "tag": _TAGS[k], "q": b}
+                                          for a, k, b in zip(t, kind, q)]}).decode()
         for sub in list(self.subscribers):
             if not sub.offer(msg):
                 self.subscribers.discard(sub)
