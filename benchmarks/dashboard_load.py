@@ -26,7 +26,10 @@ What it prints
   released it. Also printed: the part before the engine task took the chunk, and the
   event loop's lag (how late the display timers ran): a chunk arriving while the loop
   is busy waits in the socket that long, unseen by the latency figure;
-- **CPU** of the server process (user + system) in % of one core (target < 25 %);
+- **CPU** of the server process (user + system) in % of one core (target < 15 % with the
+  four estimators and the two variants of ``--variants 2``, the default), and per thread
+  (from ``/proc``: the event loop's, and the others', of which viser's sender is the
+  busiest);
 - **Ctrl-C**: at the end the server gets SIGINT, as from a terminal, and the time until
   its process has ended is printed (target: within a second).
 
@@ -97,6 +100,20 @@ if {profile!r}:
     sys.exit(0)
 sys.exit(serve(args))
 """
+
+
+def thread_cpu_seconds(pid: int) -> dict[int, float]:
+    """CPU seconds (user + system) of each thread of a process, by thread id."""
+    tck = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out[int(tid)] = (int(fields[11]) + int(fields[12])) / tck
+    return out
 
 
 def start_server(port: int, viewer_port: int, phone_port: int, variants: int,
@@ -184,6 +201,7 @@ def main() -> int:
         time.sleep(warm)
         http.get("/api/stats", params={"reset": True})
         cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+        threads0 = thread_cpu_seconds(proc.pid)
         samples0 = http.get("/api/stats").json()["samples"]
         backlog = []
         while time.monotonic() - wall0 < args.seconds:
@@ -191,6 +209,7 @@ def main() -> int:
             s = http.get("/api/stats").json()
             backlog.append((s["queued_samples"], s["backlog_now"]))
         cpu1, wall1 = cpu_seconds(proc.pid), time.monotonic()
+        threads1 = thread_cpu_seconds(proc.pid)
         stats = http.get("/api/stats").json()
         stop_phone.set()
         stop_clients.set()
@@ -229,6 +248,11 @@ def main() -> int:
     cpu = 100 * (cpu1 - cpu0) / wall
     print(f"  server CPU       {cpu.sum():.1f} % of one core (user {cpu[0]:.1f} %, system {cpu[1]:.1f} %; "
           "target < 15 % with 4 estimators + 2 variants)")
+    per_thread = {tid: 100 * (c - threads0.get(tid, 0.0)) / wall for tid, c in threads1.items()}
+    others = sorted((v for tid, v in per_thread.items() if tid != proc.pid), reverse=True)
+    print(f"  by thread        event loop (main thread) {per_thread.get(proc.pid, 0.0):.1f} %, "
+          f"the {len(others)} others {sum(others):.1f} % (the busiest {others[0] if others else 0.0:.1f} %: "
+          "viser's sender)")
     print(f"  received         viser clients {sum(c[0] for c in counters[:N_VIEWERS]) / wall / 1e3:.0f} kB/s, "
           f"/ws/state clients {sum(c[0] for c in counters[N_VIEWERS:]) / wall / 1e3:.0f} kB/s (all)")
     print(f"  Ctrl-C           the server process ended {stop_s:.2f} s after SIGINT "

@@ -1,7 +1,7 @@
 """The live core alone: what the dashboard's filtering costs, without a server.
 
 A simulated phone at 500 Hz per sensor (ACC, GYR, MAG: 1500 samples/s) is fed through
-:class:`app.live.LiveCore` in 10 ms chunks (15 lines), as the receiver hands them over:
+:class:`app.live.LiveCore` in 10 ms chunks (15 lines, bytes), as the receiver hands them over:
 parse and reorder (the stream's session), every estimator instance's compiled batch run
 (the four builtins and the two ready-made variants, ``robust-no-rejection`` and
 ``lab-approx``), the per-row bookkeeping and the plots' rings. Prints, best of
@@ -29,7 +29,7 @@ RATE_HZ = 500
 CHUNK = 15          # lines per 10 ms at 3 x 500 Hz
 
 
-def one_run(lines: list[str], variants: int) -> dict[str, float]:
+def one_run(lines: list[bytes], variants: int) -> dict[str, float]:
     core = LiveCore(None)
     for name, (base, params) in list(ready_made(core.bench.primary).items())[:variants]:
         core.bench.add(name, base, params)
@@ -62,7 +62,8 @@ def main() -> int:
     cfg = SimConfig(acc_period_ms=1000 // RATE_HZ, gyr_period_ms=1000 // RATE_HZ,
                     mag_period_ms=1000 // RATE_HZ, ori_period_ms=10_000)
     sim = simulate(duration_s=args.seconds, config=cfg, seed=0)
-    lines = [format_line(*smp) for smp in sim.samples if smp[1] != "ORI"]
+    # bytes without line ends, as the receiver's LineSplitter hands them over
+    lines = [format_line(*smp).encode() for smp in sim.samples if smp[1] != "ORI"]
     best = None
     for _ in range(args.repeats):
         r = one_run(lines, args.variants)
