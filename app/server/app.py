@@ -31,7 +31,7 @@ from .routers import calibrate, estimators, health, params, phone, recordings, r
 from .routers import inject as inject_router
 from .gui_lab import LabGui, run_lab_gui
 from .lab import LabTools
-from .scene import Scene
+from .scene import Scene, loop_safe_wakeups
 from .settings import Settings
 from .sources import ReplayControl, run_demo, run_replay
 
@@ -95,6 +95,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         st.viewer = viser.ViserServer(host=settings.viewer_bind, port=settings.viewer_port,
                                       label="orientlab", verbose=False)
         try:
+            loop_safe_wakeups(st.viewer)     # before any viewer connects
             st.scene = Scene(st.viewer)
             st.gui = Gui(st.viewer, engine, st.scene, settings)
             guard_viewer(st.viewer, access)

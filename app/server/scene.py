@@ -23,6 +23,7 @@ Pure drawing: no filter state is touched. Quaternion math comes from
 
 from __future__ import annotations
 
+import asyncio
 import math
 from dataclasses import dataclass
 
@@ -85,6 +86,57 @@ def _phone_body(scene, name: str, color, opacity=None) -> None:
                       position=(0.0, 0.0, -D / 2 - 0.003))
         scene.add_box(f"{name}/rear_camera", color=(40, 40, 45), dimensions=(0.16, 0.16, 0.014),
                       position=(W / 2 - 0.14, H / 2 - 0.14, -D / 2 - 0.007))  # top left seen from the back
+
+
+class LoopSafeEvent(asyncio.Event):
+    """The ``message_event`` of viser's broadcast buffer, safe to set from this server's
+    event loop: viser sets it directly from the thread that queues a message (ours),
+    while its senders wait on it in viser's own loop. ``asyncio.Event`` is not thread
+    safe: our thread's ``set()`` iterating its waiters while viser's thread adds one
+    raised "deque mutated during iteration" (logged as a failed pose, scene or GUI
+    update, a few times in ten minutes under load), and the waiter being added was
+    never woken while the event stayed set: with a single viewer, its sender waited
+    for ever (a frozen 3D view). Here a ``set()`` from another thread is handed to
+    viser's loop (``call_soon_threadsafe``); a set event is left as it is (as
+    ``asyncio.Event.set`` does). viser reads the event only in its loop (waits, clears)
+    and in :func:`set_wxyz` (``is_set()``, a hint)."""
+
+    def __init__(self, home: asyncio.AbstractEventLoop):
+        super().__init__()
+        self._home = home
+
+    def set(self) -> None:
+        if self._value:
+            return
+        try:
+            here = asyncio.get_running_loop()
+        except RuntimeError:
+            here = None
+        if here is self._home:
+            super().set()
+            return
+        try:
+            self._home.call_soon_threadsafe(self._set_at_home)
+        except RuntimeError:      # viser's loop closed (shutting down): nobody waits
+            pass
+
+    def _set_at_home(self) -> None:
+        asyncio.Event.set(self)
+
+
+def loop_safe_wakeups(viewer) -> None:
+    """Give a started ``viser.ViserServer``'s broadcast buffer a :class:`LoopSafeEvent`
+    (viser 1.1's internals; before any viewer connects, so nobody waits on the old one)."""
+    ws = viewer._websock_server
+    buf = ws._broadcast_buffer
+    if isinstance(buf.message_event, LoopSafeEvent):
+        return
+    if buf.message_event._waiters:
+        raise RuntimeError("viser's senders already wait on the buffer's event")
+    ev = LoopSafeEvent(ws._background_event_loop)
+    if buf.message_event.is_set():
+        asyncio.Event.set(ev)
+    buf.message_event = ev
 
 
 def set_wxyz(handle, q) -> bool:
