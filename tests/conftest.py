@@ -29,11 +29,22 @@ REAL_LOGS = (
     "BaiLiping_WASP_IMU/data1.txt",
     "BaiLiping_WASP_IMU/run1.txt",
 )
+# those with gyroscope and magnetometer too (the BaiLiping logs hold only ACC)
+REAL_LOGS_9DOF = tuple(p for p in REAL_LOGS if p.startswith("alekodu_"))
 
 
 @pytest.fixture(params=REAL_LOGS, ids=lambda p: Path(p).stem)
 def real_log(request, shared_dir) -> Path:
     """Each real app log in turn (skipped when absent)."""
+    path = shared_dir / "data" / "sensorfusion-app" / request.param
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    return path
+
+
+@pytest.fixture(params=REAL_LOGS_9DOF, ids=lambda p: Path(p).stem)
+def real_log_9dof(request, shared_dir) -> Path:
+    """Each real app log with accelerometer, gyroscope and magnetometer."""
     path = shared_dir / "data" / "sensorfusion-app" / request.param
     if not path.is_file():
         pytest.skip(f"{path} not present")
