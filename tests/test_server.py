@@ -233,6 +233,20 @@ def test_patch_primary_specific_and_gui_follows(srv, api):
     assert gui.folders["robust"].order < gui.bias_folder.order < gui.folders["lab"].order
 
 
+def test_every_parameter_of_every_estimator_has_a_control(srv):
+    """The page sets every parameter (issue 6): each field of each estimator's parameter
+    set has its control in that estimator's folder; the sensor switches are common."""
+    from app.params import describe
+    from app.server.gui import SENSOR_SWITCHES
+    gui, bench = srv.app.state.gui, srv.engine.core.bench
+    have = {(c.estimator, c.name) for c in gui.controls}
+    for name in bench.names:
+        fields = {row["name"] for row in describe(type(bench.params_of(name)))}
+        missing = fields - dict(SENSOR_SWITCHES).keys() - {n for e, n in have if e == name}
+        assert not missing, (name, sorted(missing))
+    assert set(gui.switches) == set(dict(SENSOR_SWITCHES))     # the common switches
+
+
 def test_every_gui_control_is_patchable(srv, api):
     gui = srv.app.state.gui
     assert gui.controls
