@@ -246,8 +246,6 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
     elif length == 3 and row["unit"] == "rad/s" and scale == 1.0:
         kind = "optvec" if meta.get("optional") else "vector"
         scale, unit = 180.0 / math.pi, "deg/s"      # a gyroscope bias reads in deg/s
-    elif row["choices"]:
-        kind = "choice"
     elif length == 3:
         kind = "optvec" if meta.get("optional") else "vector"
     elif length == 2:
