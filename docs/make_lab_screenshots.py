@@ -9,8 +9,9 @@ Chromium (Playwright with ``executable_path``; no browser download) and saves
   its button) on the replayed still phone, with a 50 µT virtual magnet (its button);
 - ``docs/lab_whatif.png``: the minute of the simulated phone re-run with the primary's
   gates off (``POST /api/recordings/{name}/rerun``), before vs after;
-- ``docs/lab_calibration.png``: 8 s of the real still phone (replayed) calibrated
-  (``POST /api/calibrate``): histograms per axis with the fitted Gaussian.
+- ``docs/lab_calibration.png``: 5 s of the real still phone (replayed) calibrated
+  (``POST /api/calibrate``; the log's phone is touched at 6 s): histograms per axis
+  with the fitted Gaussian.
 
 Run: ``.venv/bin/python docs/make_lab_screenshots.py``.
 """
@@ -68,7 +69,7 @@ def main() -> int:
             # 1. calibration of the real still phone, replayed
             api.post("/api/replay", json={"name": "still_phone"})
             wait_for(lambda: api.get("/api/state").json()["source"] == "replay", 30.0)
-            r = api.post("/api/calibrate", json={"seconds": 8})
+            r = api.post("/api/calibrate", json={"seconds": 5})
             r.raise_for_status()
             click(page, frame.get_by_text("Calibrate (keep the phone still)"))
             page.wait_for_timeout(2000)
