@@ -149,10 +149,10 @@ def still(request):
     return lines, clean, ref
 
 
-def _magnet_effect(still, direction, frame, ramp_s):
-    """A 50 µT magnet from 6 s to 11 s of the real still phone: how far the primary's
-    heading moves from where it goes without the magnet, during the magnet and the
-    second after (deg), and the share of MAG samples it refuses once the magnet is in."""
+def _with_magnet(still, direction, frame, ramp_s):
+    """The real still phone's rows with a 50 µT magnet from 6 s to 11 s (the Injector
+    given the phone's true orientation then, for a magnet fixed in the world), and the
+    magnet's start and end (stream s)."""
     lines, clean, ref = still
     t0 = int(lines[0].split(b"\t")[0])
     k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
@@ -162,8 +162,15 @@ def _magnet_effect(still, direction, frame, ramp_s):
     inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": direction,
                              "frame": frame, "seconds": 5, "ramp_s": ramp_s}))
     tail, marks = inj.feed(lines[k:])
-    on, off = marks[0]["time_ms"] / 1000.0, marks[1]["time_ms"] / 1000.0
-    dist = _rows(head + tail)
+    return _rows(head + tail), marks[0]["time_ms"] / 1000.0, marks[1]["time_ms"] / 1000.0
+
+
+def _magnet_effect(still, direction, frame, ramp_s):
+    """A 50 µT magnet from 6 s to 11 s of the real still phone: how far the primary's
+    heading moves from where it goes without the magnet, during the magnet and the
+    second after (deg), and the share of MAG samples it refuses once the magnet is in."""
+    _, clean, ref = still
+    dist, on, off = _with_magnet(still, direction, frame, ramp_s)
     b = make_estimator("robust").run(dist.t, dist.gyr, dist.acc, dist.mag, dist.ori)
     np.testing.assert_array_equal(dist.t, clean.t)        # the same rows, MAG disturbed
     w = (dist.t >= on) & (dist.t <= off + 1.0)
@@ -196,16 +203,7 @@ def test_a_ramped_magnet_is_first_refused_as_a_field_turning_without_the_phone(s
     unexplained change rate (rad/s) above the gate, before strength or dip leave theirs;
     without the turn test (mag_turn_gate 0) the same ramp is refused later, by NORM or DIP,
     and the heading moves more."""
-    lines, clean, ref = still
-    t0 = int(lines[0].split(b"\t")[0])
-    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
-    inj = Injector()
-    head, _ = inj.feed(lines[:k])
-    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": "-x",
-                             "frame": "sensor", "seconds": 5, "ramp_s": 0.5}))
-    tail, marks = inj.feed(lines[k:])
-    on = marks[0]["time_ms"] / 1000.0
-    dist = _rows(head + tail)
+    dist, on, _ = _with_magnet(still, "-x", "sensor", ramp_s=0.5)
     first = {}
     for name, params in (("turn", {}), ("off", {"mag_turn_gate": 0.0})):
         est = make_estimator("robust", params)
@@ -234,15 +232,7 @@ def test_a_real_field_is_not_called_turned_while_the_phone_walks_or_runs(real_lo
 def test_the_turn_test_is_off_without_a_gyroscope(still):
     """Without a gyroscope the estimate's world frame does not turn with the phone: every
     turn would look like a field turning, so the test stays off (and with the gate at 0)."""
-    lines, _, _ = still
-    t0 = int(lines[0].split(b"\t")[0])
-    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
-    inj = Injector()
-    head, _ = inj.feed(lines[:k])
-    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": "-x",
-                             "frame": "sensor", "seconds": 5, "ramp_s": 0.5}))
-    tail, _ = inj.feed(lines[k:])
-    d = _rows(head + tail)
+    d, _, _ = _with_magnet(still, "-x", "sensor", ramp_s=0.5)
     for params in ({}, {"use_gyr": False}, {"mag_turn_gate": 0.0}):
         codes = make_estimator("robust", params).run(d.t, d.gyr, d.acc, d.mag, d.ori).flags[:, F_MAG]
         assert np.any(codes == int(Reason.TURN)) == (params == {}), params
