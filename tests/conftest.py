@@ -36,7 +36,11 @@ REAL_LOGS_9DOF = tuple(p for p in REAL_LOGS if p.startswith("alekodu_"))
 @pytest.fixture(params=REAL_LOGS, ids=lambda p: Path(p).stem)
 def real_log(request, shared_dir) -> Path:
     """Each real app log in turn (skipped when absent)."""
-    path = shared_dir / "data" / "sensorfusion-app" / request.param
+    return _app_log(shared_dir, request.param)
+
+
+def _app_log(shared_dir: Path, name: str) -> Path:
+    path = shared_dir / "data" / "sensorfusion-app" / name
     if not path.is_file():
         pytest.skip(f"{path} not present")
     return path
@@ -45,7 +49,4 @@ def real_log(request, shared_dir) -> Path:
 @pytest.fixture(params=REAL_LOGS_9DOF, ids=lambda p: Path(p).stem)
 def real_log_9dof(request, shared_dir) -> Path:
     """Each real app log with accelerometer, gyroscope and magnetometer."""
-    path = shared_dir / "data" / "sensorfusion-app" / request.param
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
-    return path
+    return _app_log(shared_dir, request.param)
