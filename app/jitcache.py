@@ -51,8 +51,8 @@ def ensure_fresh() -> bool:
 
 def refresh(root: Path) -> bool:
     """Drop the compiled sources' cache entries under ``root`` when any of those
-    sources changed since they were cached. True when it dropped them. A read-only
-    install is left as it is."""
+    sources changed since they were cached. True when there were entries to drop (a
+    fresh install has none: nothing to say). A read-only install is left as it is."""
     stamp = root / "estimators" / "__pycache__" / STAMP
     digest = sources_digest(root)
     try:
@@ -60,8 +60,9 @@ def refresh(root: Path) -> bool:
             return False
     except OSError:
         pass
+    stale = cache_files(root)
     try:
-        for f in cache_files(root):
+        for f in stale:
             f.unlink(missing_ok=True)
         stamp.parent.mkdir(exist_ok=True)
         tmp = stamp.with_suffix(".tmp")
@@ -69,4 +70,4 @@ def refresh(root: Path) -> bool:
         tmp.replace(stamp)
     except OSError:
         return False
-    return True
+    return bool(stale)

@@ -27,6 +27,9 @@ def _cache(root):
 def test_a_changed_source_drops_every_compiled_cache_entry_and_nothing_else(tmp_path):
     root = _tree(tmp_path)
     assert [p.name for p in compiled_sources(root)] == ["quaternion.py", "base.py", "robust.py"]
+    assert not refresh(root)                   # a fresh install: no cache, nothing dropped
+    assert (root / "estimators" / "__pycache__" / STAMP).is_file()
+    (root / "estimators" / "__pycache__" / STAMP).unlink()
     _cache(root)
     assert refresh(root)                       # no stamp yet: whatever is cached is unknown
     assert cache_files(root) == []
