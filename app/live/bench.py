@@ -45,7 +45,8 @@ log = logging.getLogger("orientlab.bench")
 
 SENSORS = ("gyr", "acc", "mag")
 FLAG_COL = (F_GYR, F_ACC, F_MAG)
-KIND_OF_TAG = {"GYR": 0, "ACC": 1, "MAG": 2, "ORI": 3}     # row kinds: a sensor, or ORI
+TAG_OF_KIND = ("GYR", "ACC", "MAG", "ORI")                   # row kinds: a sensor, or ORI
+KIND_OF_TAG = {tag: k for k, tag in enumerate(TAG_OF_KIND)}
 NREASON = len(Reason)
 _IS_REJECTION = np.zeros(NREASON, dtype=bool)    # by reason code (a lookup: np.isin is slow)
 _IS_REJECTION[[int(r) for r in REJECTIONS]] = True
@@ -136,7 +137,7 @@ class Records:
 
     @property
     def tags(self) -> list[str]:
-        return [("GYR", "ACC", "MAG", "ORI")[k] for k in self.kind.tolist()]
+        return [TAG_OF_KIND[k] for k in self.kind.tolist()]
 
     @property
     def primary_q(self) -> np.ndarray:

@@ -47,6 +47,7 @@ import numpy as np
 from ..config import load_config
 from ..live import Change, LiveCore, PatchError, Session, Snapshot
 from ..live.views import Latency
+from ..live.bench import TAG_OF_KIND
 from ..protocol import Sample
 
 log = logging.getLogger("orientlab.engine")
@@ -55,7 +56,6 @@ SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the
 SUBSCRIBER_BACKLOG = 200      # WS messages (20 s at 10 Hz) waiting for one client: dropped
 RESTART_PAUSE_S = 0.1
 _JSON = msgspec.json.Encoder()
-_TAGS = ("GYR", "ACC", "MAG", "ORI")     # a row's kind (app.live.bench.KIND_OF_TAG) -> its tag
 
 __all__ = ["Change", "Engine", "PatchError", "Session", "Snapshot", "Subscriber", "Throttle"]
 
@@ -382,7 +382,7 @@ class Engine:
         kind = np.concatenate([p[1] for p in pending]).tolist()
         q = np.concatenate([p[2] for p in pending]).tolist()
         msg = _JSON.encode({"primary": self.core.bench.primary, "source": self.core.source_kind(),
-                            "estimates": [{"t": a, "tag": _TAGS[k], "q": b}
+                            "estimates": [{"t": a, "tag": TAG_OF_KIND[k], "q": b}
                                           for a, k, b in zip(t, kind, q)]}).decode()
         for sub in list(self.subscribers):
             if not sub.offer(msg):

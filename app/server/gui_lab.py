@@ -76,11 +76,11 @@ class Monitor:
         self.t.extend(rec.t[sel].tolist())
         # every instance's rows in one compiled call (the same conversion row by row)
         names = list(rec.q)
-        k = len(sel)
-        yaw = [] if not names else np.degrees(q2euler_many(np.concatenate([rec.q[n][sel] for n in names]))[:, 0]).tolist()
-        for i, name in enumerate(names):
-            col = self.yaw.setdefault(name, [math.nan] * n0)
-            col.extend(yaw[i * k:(i + 1) * k])
+        if names:
+            qs = np.stack([rec.q[n][sel] for n in names])          # (instances, rows, 4)
+            yaw = np.degrees(q2euler_many(qs.reshape(-1, 4))[:, 0]).reshape(len(names), -1)
+            for name, y in zip(names, yaw.tolist()):
+                self.yaw.setdefault(name, [math.nan] * n0).extend(y)
         for name, col in self.yaw.items():
             if len(col) < len(self.t):
                 col.extend([math.nan] * (len(self.t) - len(col)))
