@@ -1,0 +1,36 @@
+"""app/server/gui_lab.py's heading monitor, fed by a real live core (no server)."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+
+from app.live import LiveCore
+from app.quaternion import q2euler_many
+from app.server.gui_lab import MONITOR_HZ, Monitor
+from app.simulate import format_line, simulate
+
+
+def test_the_monitor_keeps_each_estimators_heading_at_its_rate():
+    core = LiveCore()
+    mon = Monitor(types.SimpleNamespace(core=core))    # it reads only the core's record hook
+    seen = []
+    core.record_listeners.append(lambda s, rec: seen.append(rec))
+    sim = simulate(duration_s=6.0, seed=3)
+    s = core.open_session("demo", "test")
+    core.start(s)
+    lines = [format_line(*x).encode() for x in sim.samples]
+    for i in range(0, len(lines), 200):
+        core.process(s, core.feed(s, lines[i:i + 200]))
+    core.process(s, core.close_session(s))
+    assert set(mon.yaw) == set(core.bench.names) and len(mon.t) > 100
+    t = np.asarray(mon.t)
+    assert np.all(np.diff(t) >= 1.0 / MONITOR_HZ - 1e-9)
+    all_t = np.concatenate([r.t for r in seen])
+    rows = np.searchsorted(all_t, t)                      # the rows the monitor kept
+    np.testing.assert_array_equal(all_t[rows], t)
+    for name in core.bench.names:
+        q = np.concatenate([r.q[name] for r in seen])[rows]
+        want = np.degrees(q2euler_many(q)[:, 0])
+        np.testing.assert_allclose(mon.yaw[name], want, equal_nan=True, atol=1e-9)
