@@ -51,6 +51,7 @@ from .scene import Indicators, Scene, describe_rejection
 log = logging.getLogger("orientlab.gui")
 
 SENSOR_SWITCHES = (("use_gyr", "Gyroscope"), ("use_acc", "Accelerometer"), ("use_mag", "Magnetometer"))
+NIS_FLOOR = 1e-3         # the NIS plot's lowest value (a log axis labels 1e-4 as "0")
 MAX_POINTS = 300          # per plot: 15 points/s over 20 s is smooth enough
 HOLD_S = 1.0              # a rejection keeps its indicator lit this long
 PLOT_HEIGHT = 140
@@ -462,9 +463,11 @@ class Gui:
             nis_m = np.concatenate([np.full(len(acc), np.nan), mag["nis"]])[order]
             x = x[order] - t0
             ga, gm = diag.acc_nis_gate, diag.mag_nis_gate
-            # NIS is positive; a zero (exact fit) cannot sit on a log scale
-            nis_a[nis_a <= 0] = np.nan
-            nis_m[nis_m <= 0] = np.nan
+            # NIS is positive; a zero (exact fit) cannot sit on a log scale, and below
+            # NIS_FLOOR (a fit as good) the chart's tick labels round to "0"
+            for nis in (nis_a, nis_m):
+                nis[nis <= 0] = np.nan
+                np.maximum(nis, NIS_FLOOR, out=nis, where=np.isfinite(nis))
             self.p_nis.update(x, nis_a, nis_m, const(x, ga or None), const(x, gm or None))
             has_nis = bool(np.isfinite(nis_a).any() or np.isfinite(nis_m).any())
         else:
