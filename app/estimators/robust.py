@@ -85,9 +85,9 @@ from numba import njit
 from .. import quaternion as qm
 from ..params import CommonParams, DEG, param
 from .base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST,
-                   F_TIME, NFLAGS, R_DIP, R_LATE, R_NIS, R_NORM, R_REST,
+                   F_TIME, R_DIP, R_LATE, R_NIS, R_NORM, R_REST,
                    R_USED, R_GAP, R_ABSENT, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET, R_TURN,
-                   T_BACKWARD, T_GAP, T_OK, ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, BatchResult,
+                   T_BACKWARD, T_GAP, T_OK, ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC,
                    align_step,
                    Estimator, row_prologue)
 from .kalman import correct
@@ -426,18 +426,35 @@ def _lp_coef(dt, tau):
 
 
 @njit(cache=True)
+def _exp3(vx, vy, vz):
+    """exp of the rotation vector (vx, vy, vz) as four scalars (qm.quat_from_rotvec)."""
+    a = np.sqrt(vx * vx + vy * vy + vz * vz)
+    k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
+    return np.cos(0.5 * a), vx * k, vy * k, vz * k
+
+
+@njit(cache=True)
+def _rotate_slot(s, j, d0, d1, d2, d3):
+    """s[j:j+3] rotated by the unit quaternion (d0, d1, d2, d3) in place (qm.rotate)."""
+    ax, ay, az = s[j], s[j + 1], s[j + 2]
+    tx = 2.0 * (d2 * az - d3 * ay)
+    ty = 2.0 * (d3 * ax - d1 * az)
+    tz = 2.0 * (d1 * ay - d2 * ax)
+    s[j] = ax + d0 * tx + (d2 * tz - d3 * ty)
+    s[j + 1] = ay + d0 * ty + (d3 * tx - d1 * tz)
+    s[j + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
+
+
+@njit(cache=True)
 def _inject(s, P, dx, lp_frac=1.0):
     """Apply an error-state correction: q <- exp(δθ) ⊗ q, b <- b + δb, and rotate
     the world-frame low-pass with the attitude so it stays in the estimate's frame
     (with ``lp_frac`` of the tilt part of δθ only: the tilt loop's damping)."""
     # dq = exp(δθ) (qm.quat_from_rotvec), q <- normalize(dq ⊗ q) (qm.quat_mul,
-    # qm.normalize) and the low-pass rotated by dq (qm.rotate), written out in scalars
+    # qm.normalize) and the low-passes rotated by dq (qm.rotate), written out in scalars
     # with the same arithmetic: an update makes no array here
     vx, vy, vz = dx[0], dx[1], dx[2]
-    a = np.sqrt(vx * vx + vy * vy + vz * vz)
-    d0 = np.cos(0.5 * a)
-    k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
-    d1, d2, d3 = vx * k, vy * k, vz * k
+    d0, d1, d2, d3 = _exp3(vx, vy, vz)
     q0, q1, q2, q3 = s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3]
     r0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
     r1 = d0 * q1 + d1 * q0 + d2 * q3 - d3 * q2
@@ -453,30 +470,15 @@ def _inject(s, P, dx, lp_frac=1.0):
     s[S.q], s[S.q + 1], s[S.q + 2], s[S.q + 3] = r0 * c, r1 * c, r2 * c, r3 * c
     for i in range(3):
         s[S.bias + i] += dx[3 + i]
-    e0, e1, e2, e3 = d0, d1, d2, d3
     if lp_frac != 1.0:
         # the tilt's low-pass turns with the heading part and lp_frac of the tilt part
         # (the tilt loop's damping); everything else turns with the whole correction
-        ux, uy = vx * lp_frac, vy * lp_frac
-        a = np.sqrt(ux * ux + uy * uy + vz * vz)
-        e0 = np.cos(0.5 * a)
-        k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
-        e1, e2, e3 = ux * k, uy * k, vz * k
-    ax, ay, az = s[S.acc_lp], s[S.acc_lp + 1], s[S.acc_lp + 2]
-    tx = 2.0 * (e2 * az - e3 * ay)
-    ty = 2.0 * (e3 * ax - e1 * az)
-    tz = 2.0 * (e1 * ay - e2 * ax)
-    s[S.acc_lp] = ax + e0 * tx + (e2 * tz - e3 * ty)
-    s[S.acc_lp + 1] = ay + e0 * ty + (e3 * tx - e1 * tz)
-    s[S.acc_lp + 2] = az + e0 * tz + (e1 * ty - e2 * tx)
-    for j in range(S.mt_lp, S.mt_lp + 6, 3):    # the field turn test's two low-passes too
-        ax, ay, az = s[j], s[j + 1], s[j + 2]
-        tx = 2.0 * (d2 * az - d3 * ay)
-        ty = 2.0 * (d3 * ax - d1 * az)
-        tz = 2.0 * (d1 * ay - d2 * ax)
-        s[j] = ax + d0 * tx + (d2 * tz - d3 * ty)
-        s[j + 1] = ay + d0 * ty + (d3 * tx - d1 * tz)
-        s[j + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
+        e0, e1, e2, e3 = _exp3(vx * lp_frac, vy * lp_frac, vz)
+        _rotate_slot(s, S.acc_lp, e0, e1, e2, e3)
+    else:
+        _rotate_slot(s, S.acc_lp, d0, d1, d2, d3)
+    _rotate_slot(s, S.mt_lp, d0, d1, d2, d3)        # the field turn test's two low-passes
+    _rotate_slot(s, S.mt_lp + 3, d0, d1, d2, d3)
 
 
 @njit(cache=True)
@@ -967,12 +969,12 @@ def _turn_check(s, p, mw, dt, rate, has_rate):
     s[g + 2] += k * d2
     s[S.mt_rate] += k * (rate - s[S.mt_rate])
     # |d| / (|lp| τ) - rel·rate > gate, squared (the square root only for a flag)
-    d2 = d0 * d0 + d1 * d1 + d2 * d2
+    dd = d0 * d0 + d1 * d1 + d2 * d2
     l2 = s[g] * s[g] + s[g + 1] * s[g + 1] + s[g + 2] * s[g + 2]
     allowed = tau * (p[PRM.mag_turn_gate] + p[PRM.mag_turn_rel] * s[S.mt_rate])
-    if d2 <= allowed * allowed * l2 or l2 <= 0.0:
+    if dd <= allowed * allowed * l2 or l2 <= 0.0:
         return 0.0
-    return np.sqrt(d2 / l2) / tau - p[PRM.mag_turn_rel] * s[S.mt_rate]
+    return np.sqrt(dd / l2) / tau - p[PRM.mag_turn_rel] * s[S.mt_rate]
 
 
 @njit(cache=True)
