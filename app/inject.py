@@ -295,6 +295,24 @@ class Injector:
                 "recent": [a.info() for a in self.history[-10:]]}
 
 
+def inject_at(lines: list[bytes], request: dict[str, Any], at_s: float,
+              orientation: Callable[[], np.ndarray | None] | None = None
+              ) -> tuple[list[bytes], float, float]:
+    """A whole log (``lines``, in order) with the disturbance ``request`` (as
+    ``POST /api/inject`` takes it) started ``at_s`` seconds after its first line: the
+    lines (with the marks) and the disturbance's start and end (the phone's clock, s).
+    For tests and benchmarks of what a disturbance does to a recording."""
+    t0 = int(lines[0].split(b"\t")[0])
+    k = next((i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= at_s * 1000.0),
+             len(lines))
+    inj = Injector(orientation)
+    head, _ = inj.feed(lines[:k])
+    inj.start(parse_request(request))
+    tail, marks = inj.feed(lines[k:])
+    ends = [m["time_ms"] / 1000.0 for m in marks]
+    return head + tail, ends[0], (ends[1] if len(ends) > 1 else math.inf)
+
+
 def marks_in_log(lines: list[bytes]) -> list[dict[str, Any]]:
     """The orientlab marks (TXT lines) of a log: ``{"time_ms", "text"}``."""
     out = []

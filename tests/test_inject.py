@@ -11,7 +11,7 @@ import pytest
 from app.estimators import make_estimator
 from app.estimators.base import F_MAG, F_MAG_VAL, Reason
 from app.estimators import REJECTIONS
-from app.inject import InjectError, Injector, marks_in_log, parse_request
+from app.inject import InjectError, Injector, inject_at, marks_in_log, parse_request
 from app.protocol import parse_line
 from app.quaternion import Q, error_angles, quat_from_rotvec
 from app.stream import SampleOrderer, samples_to_rows
@@ -105,15 +105,11 @@ def test_primary_rides_out_a_50uT_magnet_and_the_no_rejection_variant_does_not(s
     path = (shared_dir / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
             / "sensorLog_20221024T182616_standstill.txt")
     lines = path.read_bytes().splitlines()
-    t0 = int(lines[0].split(b"\t")[0])
-    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
-    inj = Injector()
-    head, _ = inj.feed(lines[:k])
-    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": "x",
-                             "frame": "sensor", "seconds": 5}))
-    tail, marks = inj.feed(lines[k:])
-    assert [m["event"] for m in marks] == ["start", "end"]
-    clean, dist = _rows(lines), _rows(head + tail)
+    out, on, off = inject_at(lines, {"kind": "magnet", "strength_uT": 50, "direction": "x",
+                                     "frame": "sensor", "seconds": 5}, 6.0)
+    assert [m["text"].split()[-3] for m in marks_in_log(out)] == ["start", "end"]
+    assert off - on == pytest.approx(5.0, abs=0.05)
+    clean, dist = _rows(lines), _rows(out)
     w = (dist.t >= dist.t[0] + 6.0) & (dist.t <= dist.t[0] + 13.0)
     moved = {}
     for name, params in (("robust", {}), ("robust-no-rejection", no_rejection_changes("robust"))):
@@ -154,15 +150,11 @@ def _with_magnet(still, direction, frame, ramp_s):
     given the phone's true orientation then, for a magnet fixed in the world), and the
     magnet's start and end (stream s)."""
     lines, clean, ref = still
-    t0 = int(lines[0].split(b"\t")[0])
-    k = next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= 6000)
     q_then = ref.q[np.searchsorted(clean.t, clean.t[0] + 6.0)]
-    inj = Injector(orientation=lambda: q_then)
-    head, _ = inj.feed(lines[:k])
-    inj.start(parse_request({"kind": "magnet", "strength_uT": 50, "direction": direction,
-                             "frame": frame, "seconds": 5, "ramp_s": ramp_s}))
-    tail, marks = inj.feed(lines[k:])
-    return _rows(head + tail), marks[0]["time_ms"] / 1000.0, marks[1]["time_ms"] / 1000.0
+    out, on, off = inject_at(lines, {"kind": "magnet", "strength_uT": 50, "direction": direction,
+                                     "frame": frame, "seconds": 5, "ramp_s": ramp_s},
+                             6.0, orientation=lambda: q_then)
+    return _rows(out), on, off
 
 
 def _magnet_effect(still, direction, frame, ramp_s):
