@@ -119,6 +119,7 @@ class Gui:
         with tabs.add_tab("Tuning"):
             gui.add_markdown("Every change applies from the next sample. Hover a control "
                              "for what it does. The primary estimator comes first.")
+            self.bias_folder, self._bias_for = None, None   # lab's bias tool (_build_bias)
             self._build_bias(gui)
             for name in engine.core.bench.names:
                 est = engine.core.bench.estimator(name)
@@ -325,11 +326,10 @@ class Gui:
                     folder.order = order
                     if name == bench.primary:
                         folder.expand_by_default = True
-            bias = getattr(self, "bias_folder", None)
-            if bias is not None:
+            if self.bias_folder is not None:
                 order = self._folder_order(self._bias_for) - 0.5
-                if bias.order != order:
-                    bias.order = order
+                if self.bias_folder.order != order:
+                    self.bias_folder.order = order
             for c in self.controls:
                 value = getattr(bench.params_of(c.estimator), c.name)
                 if not c.gui_same(value):
