@@ -268,7 +268,7 @@ def main(argv=None) -> int:
                 continue
             er, ev = mean_err(r["robust"]), mean_err(r["VQF"])
             print(f"  {label:<13} total robust {er[0]:.2f} vs VQF {ev[0]:.2f}: "
-                  f"{'OK' if er[0] <= ev[0] else 'ABOVE'};  inclination {er[2]:.2f} vs {ev[2]:.2f}: "
+                  f"{'OK' if er[0] <= ev[0] else 'ABOVE'};  inclination {er[2]:.3f} vs {ev[2]:.3f}: "
                   f"{'OK' if er[2] <= ev[2] else 'ABOVE'}")
             ratio = [(a["err"][0] - (2 * b["err"][0] + 5.0), a["err"][0], b["err"][0], tr["name"])
                      for a, b, tr in zip(r["robust"], r["VQF"], trials)]

@@ -27,6 +27,16 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
   the bandwidth the overdamped loop had (ωn ≈ 0.28 rad/s at rest: τ = 4.5 s, τc =
   ``tilt_noise / gyr_noise`` = 3 s, before τ = 3 s, τc = 4 s): the same rejection of
   the specific force, ~30 % less lag where the gyroscope drifts (fast turns).
+- **Scale-factor noise along the net turn** (``gyr_scale_noise``). A gyroscope's scale
+  factor is off by some 0.2-3 % (``benchmarks/gyro_scale.py`` against the optical truth:
+  BROAD's research IMU 0.2 % median, the phones 2.3 %), so it turns the estimate by that
+  share of the rotation. A
+  steady turn builds that up over the tilt loop's time scale; a back-and-forth (running,
+  swinging) cancels. So tilt noise is added along the *net* turn rate, the world-frame
+  rate low-passed over ``acc_tau``: a steady turn makes the tilt correct faster, a shaking
+  phone, whose specific force the loop must average out, does not (along the raw turn
+  rate it did, and running lost). Tilt only: about the vertical the magnetometer's errors
+  grow with a turn too, and a faster heading correction follows them.
 - **Heading only from the magnetometer.** The field is rotated into the world frame
   with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
   the gain is masked so this update can never tilt the attitude.
@@ -104,10 +114,13 @@ class RobustParams(CommonParams):
     bias_max: float = param(0.3, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s", user_scale=DEG,
                             doc="a bias estimate above this is implausible (the filter is lost): it "
                                 "is reset and flagged; 0: off")
-    gyr_scale_noise: float = param(0.003, unit="√s", lo=0.0, hi=1.0,
-                                   doc="attitude noise density per rad/s of turn rate, about the rotation "
-                                       "axis (a phone gyroscope's scale factor is off by some 0.1-1 %): "
-                                       "fast turns make the filter less sure and correct faster")
+    gyr_scale_noise: float = param(0.02, unit="√s", lo=0.0, hi=1.0,
+                                   doc="tilt noise density per rad/s of net turn rate (the world-frame "
+                                       "turn rate low-passed over acc_tau): a gyroscope's scale factor, off "
+                                       "by 0.2-3 %, turns the estimate by that share of the net rotation "
+                                       "(0.02 √s: about 1 % over acc_tau), so a steady turn makes the tilt "
+                                       "correct faster; a back-and-forth (running, swinging) cancels and "
+                                       "does not; 0: off")
     bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
     bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
@@ -318,6 +331,8 @@ STATE = (
                  "mag_norm_dip_tau, then that over mag_turn_tau"),
     ("mt_rate", 1, "field turn test: low-passed turn rate (rad/s)"),
     ("mt_ok", 1, "1 once the field turn test's low-passes hold a value"),
+    ("turn_lp", 3, "net turn rate: the world-frame turn rate (rad/s, bias removed) low-passed over "
+                   "acc_tau (gyr_scale_noise)"),
 )
 # slots that start as NaN ("not yet")
 _STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
@@ -488,6 +503,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
         s[S.bias + i] = p[PRM.gyr_bias + i]
     s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
     s[S.acc_var] = 0.0
+    s[S.turn_lp:S.turn_lp + 3] = 0.0
     s[S.mb_ok] = 0.0
     s[S.mb_sum:S.mb_sum + 3] = 0.0
     s[S.mb_time:S.mb_time + 2] = 0.0
@@ -608,21 +624,24 @@ def _predict(s, P, p, w, dt):
         P[i, i] += gv
         P[3 + i, 3 + i] += bv
     if p[PRM.gyr_scale_noise] > 0.0:
-        # a scale-factor error turns the estimate about the rotation axis itself: noise along
-        # R w (world frame), so a turn about the vertical blurs the heading, not the tilt
-        ux = r00 * wx + r01 * wy + r02 * wz
-        uy = r10 * wx + r11 * wy + r12 * wz
-        uz = r20 * wx + r21 * wy + r22 * wz
+        # A scale-factor error s turns the estimate by s × the net rotation, about the turn's
+        # axis: over the tilt loop's time scale (acc_tau) a steady turn builds it up, a
+        # back-and-forth (running, swinging) cancels. So the noise runs along the net turn
+        # rate, the world-frame rate low-passed over acc_tau. Tilt only: about the vertical
+        # the magnetometer's own errors grow with a turn too (a residual hard iron sweeps the
+        # heading as the phone turns, the field lags), and a faster heading correction there
+        # follows them (BROAD's heading 1.53° -> 1.77° with it, see the README).
+        k = _lp_coef(min(dt, DT_MAX), p[PRM.acc_tau])
+        j = S.turn_lp
+        s[j] += k * ((r00 * wx + r01 * wy + r02 * wz) - s[j])
+        s[j + 1] += k * ((r10 * wx + r11 * wy + r12 * wz) - s[j + 1])
+        s[j + 2] += k * ((r20 * wx + r21 * wy + r22 * wz) - s[j + 2])
+        ux, uy = s[j], s[j + 1]
         g2 = p[PRM.gyr_scale_noise] ** 2 * dt
         P[0, 0] += g2 * ux * ux
         P[0, 1] += g2 * ux * uy
-        P[0, 2] += g2 * ux * uz
         P[1, 1] += g2 * uy * uy
-        P[1, 2] += g2 * uy * uz
-        P[2, 2] += g2 * uz * uz
         P[1, 0] = P[0, 1]
-        P[2, 0] = P[0, 2]
-        P[2, 1] = P[1, 2]
 
 
 @njit(cache=True)
