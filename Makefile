@@ -49,7 +49,9 @@ test: $(VENV)/.installed-test $(VENV)/.compiled
 	$(BIN)/python -m pytest $(ARGS)
 
 bench: $(VENV)/.installed-bench
+	$(BIN)/python benchmarks/accuracy_phones.py
 	$(BIN)/python benchmarks/accuracy_broad.py
+	$(BIN)/python benchmarks/gyro_scale.py
 	$(BIN)/python benchmarks/throughput.py
 
 clean:
