@@ -25,20 +25,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from accuracy_phones import BROAD, PHONES, load_broad, load_phones  # noqa: E402
+from app.quaternion import quat_mul_many  # noqa: E402
 
 DIFF_S = 0.05        # s between the two truth samples of a rate
 MIN_RATE = 0.5       # rad/s RMS about an axis before its scale is judged
-
-
-def _conj(q):
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _mul(a, c):
-    return np.stack([a[:, 0] * c[:, 0] - a[:, 1] * c[:, 1] - a[:, 2] * c[:, 2] - a[:, 3] * c[:, 3],
-                     a[:, 0] * c[:, 1] + a[:, 1] * c[:, 0] + a[:, 2] * c[:, 3] - a[:, 3] * c[:, 2],
-                     a[:, 0] * c[:, 2] - a[:, 1] * c[:, 3] + a[:, 2] * c[:, 0] + a[:, 3] * c[:, 1],
-                     a[:, 0] * c[:, 3] + a[:, 1] * c[:, 2] - a[:, 2] * c[:, 1] + a[:, 3] * c[:, 0]], 1)
 
 
 def scale_errors(trial: dict) -> list[tuple[int, float, float]]:
@@ -49,7 +39,7 @@ def scale_errors(trial: dict) -> list[tuple[int, float, float]]:
           & np.all(np.isfinite(g[:-d]), 1) & trial["mask"][:-d])
     if ok.sum() < 100:
         return []
-    dq = _mul(_conj(q[:-d][ok]), q[d:][ok])
+    dq = quat_mul_many(q[:-d][ok] * np.array([1.0, -1.0, -1.0, -1.0]), q[d:][ok])  # q_k⁻¹ ⊗ q_k+d
     dq *= np.where(dq[:, :1] < 0.0, -1.0, 1.0)
     vec = np.linalg.norm(dq[:, 1:], axis=1)
     ang = 2.0 * np.arctan2(vec, dq[:, 0])
