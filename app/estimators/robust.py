@@ -30,13 +30,13 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
 - **Scale-factor noise along the net turn** (``gyr_scale_noise``). A gyroscope's scale
   factor is off by some 0.2-3 % (``benchmarks/gyro_scale.py`` against the optical truth:
   BROAD's research IMU 0.2 % median, the phones 2.3 %), so it turns the estimate by that
-  share of the rotation. A
-  steady turn builds that up over the tilt loop's time scale; a back-and-forth (running,
-  swinging) cancels. So tilt noise is added along the *net* turn rate, the world-frame
-  rate low-passed over ``acc_tau``: a steady turn makes the tilt correct faster, a shaking
-  phone, whose specific force the loop must average out, does not (along the raw turn
-  rate it did, and running lost). Tilt only: about the vertical the magnetometer's errors
-  grow with a turn too, and a faster heading correction follows them.
+  share of the rotation. A steady turn builds that up over the tilt loop's time scale; a
+  back-and-forth (running, swinging) cancels. So tilt noise is added along the *net* turn
+  rate, the world-frame rate low-passed over ``acc_tau``: a steady turn makes the tilt
+  correct faster, a shaking phone, whose specific force the loop must average out, does
+  not (along the raw turn rate it did, and running lost). Tilt only: about the vertical
+  the magnetometer's errors grow with a turn too, and a faster heading correction follows
+  them.
 - **Heading only from the magnetometer.** The field is rotated into the world frame
   with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
   the gain is masked so this update can never tilt the attitude.
