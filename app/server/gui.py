@@ -475,7 +475,7 @@ class Gui:
         self.p_nis.show(has_nis)
         if not has_nis:
             notes.append(f"NIS: {primary} makes no Kalman update to test")
-        note = ("*Not shown:* " + "; ".join(notes) + ".") if notes else ""
+        note = ("*Empty charts:* " + "; ".join(notes) + ".") if notes else ""
         if note != self._note:
             self.plot_note.content = note
             self._note = note
