@@ -244,4 +244,4 @@ def stream(seed: int = 0, config: SimConfig | None = None, chunk_s: float = 0.5
         t += chunk_s
 
 
-__all__ = ["SCENES", "SimConfig", "Simulation", "SimResult", "simulate", "stream", "format_line"]
+__all__ = ["SCENES", "SimConfig", "Simulation", "SimResult", "simulate", "stream"]

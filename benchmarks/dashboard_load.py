@@ -59,7 +59,8 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
 from harness import free_port, wait_for  # noqa: E402
-from app.simulate import SimConfig, format_line, simulate  # noqa: E402
+from app.protocol import format_line  # noqa: E402
+from app.simulate import SimConfig, simulate  # noqa: E402
 
 RATE_HZ = 500
 CHUNK_S = 0.01

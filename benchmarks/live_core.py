@@ -22,7 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app.live import LiveCore  # noqa: E402
-from app.simulate import SimConfig, format_line, simulate  # noqa: E402
+from app.protocol import format_line  # noqa: E402
+from app.simulate import SimConfig, simulate  # noqa: E402
 from app.variants import ready_made  # noqa: E402
 
 RATE_HZ = 500

@@ -35,7 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from app.estimators import NAMES  # noqa: E402
 from app.readers import iter_chunks, read_recording  # noqa: E402
-from app.simulate import Simulation, format_line, stream  # noqa: E402
+from app.protocol import format_line  # noqa: E402
+from app.simulate import Simulation, stream  # noqa: E402
 from app.variants import no_rejection_changes  # noqa: E402
 from app.whatif import rerun  # noqa: E402
 

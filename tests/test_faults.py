@@ -478,7 +478,8 @@ def test_a_phone_flood_keeps_the_queue_bounded_and_loses_nothing(srv, api, monke
     from app.server import receiver
     if max_backlog is not None:
         monkeypatch.setattr(receiver, "MAX_BACKLOG", max_backlog)
-    from app.simulate import SimConfig, format_line, simulate
+    from app.protocol import format_line
+    from app.simulate import SimConfig, simulate
     cfg = SimConfig(acc_period_ms=2, gyr_period_ms=2, mag_period_ms=2, ori_period_ms=10_000_000)
     sim = simulate(duration_s=30.0, config=cfg, seed=9)
     lines = [format_line(*s) for s in sim.samples if s[1] != "ORI"]

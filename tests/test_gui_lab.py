@@ -9,7 +9,8 @@ import numpy as np
 from app.live import LiveCore
 from app.quaternion import q2euler_many
 from app.server.gui_lab import MONITOR_HZ, Monitor
-from app.simulate import format_line, simulate
+from app.protocol import format_line
+from app.simulate import simulate
 
 
 def test_the_monitor_keeps_each_estimators_heading_at_its_rate():

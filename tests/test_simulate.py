@@ -8,7 +8,8 @@ import pytest
 
 from app.protocol import parse_line
 from app.quaternion import Q, S_bar, angle_between
-from app.simulate import SCENES, SimConfig, Simulation, format_line, simulate, stream
+from app.protocol import format_line
+from app.simulate import SCENES, SimConfig, Simulation, simulate, stream
 
 
 @pytest.fixture(scope="module")

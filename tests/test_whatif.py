@@ -20,7 +20,8 @@ WALK = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
 
 def demo_log(path, seconds=40.0, seed=3):
     """A log of the simulated phone (it has ORI, and its truth is known)."""
-    from app.simulate import Simulation, format_line, stream
+    from app.protocol import format_line
+    from app.simulate import Simulation, stream
     lines = []
     boot = Simulation().config.boot_ms
     for ms, tag, vals in stream(seed):

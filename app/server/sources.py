@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ..protocol import MalformedLine, parse_line
-from ..simulate import Simulation, format_line, stream
+from ..protocol import format_line
+from ..simulate import Simulation, stream
 
 log = logging.getLogger("orientlab.sources")
 TICK_S = 0.01   # how often a source hands over the lines due
