@@ -212,12 +212,19 @@ def test_robust_keeps_its_tilt_through_a_shake():
     assert np.max(total) < 5.0
 
 
-def _turning_with_a_scale_error(scale_err=0.01, rate=1.0, seconds=120.0, fs=100.0):
-    """A phone turning at ``rate`` about a horizontal axis (its x axis, the world's x) whose
-    gyroscope reads ``scale_err`` too much: the tilt drifts by scale_err × rate, steadily."""
+def _turning_with_a_scale_error(scale_err=0.01, rate=1.0, seconds=120.0, fs=100.0, swing_hz=0.0):
+    """A phone turning about a horizontal axis (its x axis, the world's x) whose gyroscope
+    reads ``scale_err`` too much: steadily at ``rate`` (the tilt drifts by scale_err × rate),
+    or with ``swing_hz`` back and forth, ±``rate`` rad at that frequency (the drift cancels)."""
     t = np.arange(int(seconds * fs)) / fs
-    q = qm.quat_from_rotvec_many(np.outer(rate * t, [1.0, 0.0, 0.0]))
-    gyr = np.tile([(1.0 + scale_err) * rate, 0.0, 0.0], (len(t), 1))
+    if swing_hz:
+        w = 2.0 * np.pi * swing_hz
+        angle, w_x = rate * np.sin(w * t), rate * w * np.cos(w * t)
+    else:
+        angle, w_x = rate * t, np.full(t.shape, rate)
+    q = qm.quat_from_rotvec_many(np.outer(angle, [1.0, 0.0, 0.0]))
+    gyr = np.zeros((len(t), 3))
+    gyr[:, 0] = (1.0 + scale_err) * w_x          # about a fixed axis, body rate = world rate
     acc = qm.rotate_inv_many(q, G)
     mag = qm.rotate_inv_many(q, M_WORLD)
     return t, gyr, acc, mag, q
@@ -230,7 +237,8 @@ def test_robust_tilt_loop_answers_a_drifting_gyroscope_with_its_damping():
     robust). τc is read off the overdamped run; the bias is not learned here, so nothing
     else takes the drift up."""
     t, gyr, acc, mag, q = _turning_with_a_scale_error()
-    off = {"bias_motion_noise": 0.0, "bias_heading_noise": 0.0, "rest_time": 0.0}
+    off = {"bias_motion_noise": 0.0, "bias_heading_noise": 0.0, "rest_time": 0.0,
+           "gyr_scale_noise": 0.0}    # the loop's shape alone (the scale noise: below)
     late = t > 60.0
     incl = {}
     for zeta in (0.0, math.sqrt(0.5), 1.0):
@@ -244,6 +252,37 @@ def test_robust_tilt_loop_answers_a_drifting_gyroscope_with_its_damping():
         expected = d * 2.0 * zeta * math.sqrt(tau * tau_c)
         assert incl[zeta] == pytest.approx(expected, rel=0.15), (zeta, incl, expected)
     assert incl[math.sqrt(0.5)] < 0.7 * incl[0.0]
+
+
+def _tilt_after_a_turn(params, **turn):
+    """Inclination RMSE (deg) after the first 20 s, and the estimator at the end."""
+    t, gyr, acc, mag, q = _turning_with_a_scale_error(seconds=60.0, **turn)
+    est = make_estimator("robust", params)
+    res = est.run(t, gyr, acc, mag)
+    late = t > 20.0
+    return float(np.sqrt(np.mean(qm.error_angles(res.q[late], q[late])[2] ** 2)) * DEG), est
+
+
+def test_robust_scale_noise_speeds_the_tilt_up_in_a_steady_turn():
+    """A 1 % scale error in a steady 1 rad/s turn drifts the tilt by 0.01 rad/s: the tilt
+    noise along the net turn rate (gyr_scale_noise) makes the loop correct it faster."""
+    off, _ = _tilt_after_a_turn({"gyr_scale_noise": 0.0})
+    on, _ = _tilt_after_a_turn({})
+    assert on < 0.75 * off, (on, off)
+
+
+def test_robust_scale_noise_stays_small_in_a_back_and_forth():
+    """A swing of ±1 rad at 1 Hz (up to 6.3 rad/s, 4x the steady turn's mean rate) has no
+    net turn: the scale noise adds a small fraction of the tilt variance the steady turn
+    makes it add (along the raw turn rate it added more; a running phone's specific force
+    then leaked into the tilt)."""
+    def added(**turn):
+        var = [float(np.trace(_tilt_after_a_turn(p, **turn)[1].attitude_cov()[:2, :2]))
+               for p in ({}, {"gyr_scale_noise": 0.0})]
+        return var[0] - var[1]
+    steady, swing = added(), added(swing_hz=1.0)
+    assert steady > 0.0
+    assert swing < 0.2 * steady, (swing, steady)
 
 
 # the lab filter has no bias state: in the lab it is given the calibrated bias
