@@ -331,8 +331,8 @@ STATE = (
                  "mag_norm_dip_tau, then that over mag_turn_tau"),
     ("mt_rate", 1, "field turn test: low-passed turn rate (rad/s)"),
     ("mt_ok", 1, "1 once the field turn test's low-passes hold a value"),
-    ("turn_lp", 3, "net turn rate: the world-frame turn rate (rad/s, bias removed) low-passed over "
-                   "acc_tau (gyr_scale_noise)"),
+    ("turn_lp", 2, "net turn rate about the horizontal axes: the world-frame turn rate's x, y "
+                   "(rad/s, bias removed) low-passed over acc_tau (gyr_scale_noise: tilt only)"),
 )
 # slots that start as NaN ("not yet")
 _STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
@@ -503,7 +503,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
         s[S.bias + i] = p[PRM.gyr_bias + i]
     s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
     s[S.acc_var] = 0.0
-    s[S.turn_lp:S.turn_lp + 3] = 0.0
+    s[S.turn_lp:S.turn_lp + 2] = 0.0
     s[S.mb_ok] = 0.0
     s[S.mb_sum:S.mb_sum + 3] = 0.0
     s[S.mb_time:S.mb_time + 2] = 0.0
@@ -635,7 +635,6 @@ def _predict(s, P, p, w, dt):
         j = S.turn_lp
         s[j] += k * ((r00 * wx + r01 * wy + r02 * wz) - s[j])
         s[j + 1] += k * ((r10 * wx + r11 * wy + r12 * wz) - s[j + 1])
-        s[j + 2] += k * ((r20 * wx + r21 * wy + r22 * wz) - s[j + 2])
         ux, uy = s[j], s[j + 1]
         g2 = p[PRM.gyr_scale_noise] ** 2 * dt
         P[0, 0] += g2 * ux * ux
