@@ -6,7 +6,7 @@ import asyncio
 import threading
 import time
 
-from app.server.scene import LoopSafeEvent
+from app.server.scene import LoopSafeEvent, _QuietLoop, quiet_wakeups
 from harness import running_server
 
 
@@ -52,3 +52,66 @@ def test_the_servers_viewer_wakes_its_senders_the_loop_safe_way():
     with running_server() as srv:
         buf = srv.app.state.viewer._websock_server._broadcast_buffer
         assert isinstance(buf.message_event, LoopSafeEvent)
+
+
+class _CountingEvent(LoopSafeEvent):
+    """A LoopSafeEvent that counts the sets run in its loop (the wake-ups)."""
+    sets_at_home = 0
+
+    def set(self) -> None:
+        if _in_loop():
+            type(self).sets_at_home += 1
+        super().set()
+
+
+def _in_loop() -> bool:
+    try:
+        asyncio.get_running_loop()
+        return True
+    except RuntimeError:
+        return False
+
+
+def test_a_quiet_buffer_delivers_every_message_with_fewer_wakeups():
+    """viser's own message buffer, its senders in their loop, fed from this thread in
+    bursts and pauses: every message arrives (no sender left asleep with a message
+    waiting), while a message queued when the event is already set wakes nobody."""
+    from viser import _messages
+    from viser.infra._async_message_buffer import AsyncMessageBuffer
+
+    loop = asyncio.new_event_loop()
+    th = threading.Thread(target=loop.run_forever, daemon=True)
+    th.start()
+    buf = AsyncMessageBuffer(loop, persistent_messages=True)
+    quiet_wakeups(buf, loop, _CountingEvent)
+    n = 1000
+    got: set[str] = set()
+    all_in = threading.Event()
+
+    async def sender():                     # what viser's client connection does
+        async for window in buf.window_generator(client_id=1):
+            got.update(m.name for m in window)
+            if len(got) == n:
+                all_in.set()
+                return
+
+    fut = asyncio.run_coroutine_threadsafe(sender(), loop)
+    try:
+        for i in range(n):
+            buf.push(_messages.SetOrientationMessage(f"/node{i}", (1.0, 0.0, 0.0, 0.0)))
+            # a pose every ms (a sender sends 60 windows a second), and pauses in which
+            # the sender goes idle and must be woken
+            time.sleep(0.05 if i % 100 == 99 else 0.001)
+        assert all_in.wait(30.0), f"{n - len(got)} messages never sent"
+        # viser alone wakes its loop once per message; here about once per window
+        assert _CountingEvent.sets_at_home < n / 2, _CountingEvent.sets_at_home
+    finally:
+        fut.cancel()
+        loop.call_soon_threadsafe(loop.stop)
+        th.join(5.0)
+
+
+def test_the_servers_viewer_skips_wakeups_of_a_set_event():
+    with running_server() as srv:
+        buf = srv.app.state.viewer._websock_server._broadcast_buffer
+        assert isinstance(buf.event_loop, _QuietLoop) and buf.event_loop._event is buf.message_event

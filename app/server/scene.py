@@ -98,8 +98,8 @@ class LoopSafeEvent(asyncio.Event):
     never woken while the event stayed set: with a single viewer, its sender waited
     for ever (a frozen 3D view). Here a ``set()`` from another thread is handed to
     viser's loop (``call_soon_threadsafe``); a set event is left as it is (as
-    ``asyncio.Event.set`` does). viser reads the event only in its loop (waits, clears)
-    and in :func:`set_wxyz` (``is_set()``, a hint)."""
+    ``asyncio.Event.set`` does). viser reads the event only in its loop (waits, clears);
+    :class:`_QuietLoop` reads ``is_set()`` from the queuing thread."""
 
     def __init__(self, home: asyncio.AbstractEventLoop):
         super().__init__()
@@ -124,40 +124,60 @@ class LoopSafeEvent(asyncio.Event):
         asyncio.Event.set(self)
 
 
+class _QuietLoop:
+    """viser's event loop as its broadcast buffer sees it: every attribute is the loop's,
+    but a wake-up for the buffer's event (``call_soon_threadsafe(event.set)``, which viser
+    schedules after every message queued outside an ``atomic()`` block) is left out while
+    that event is set. A set event has no waiter (asyncio wakes them all when it is set);
+    a sender clears it before it polls the buffer again, and a message is counted in the
+    buffer before the wake-up is asked for, so nothing is sent later. What it saves is a
+    write to viser's self-pipe per message: viser's thread woke and took the GIL from the
+    event loop here 100 times a second for the pose alone."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, event: asyncio.Event):
+        self._loop = loop
+        self._event = event
+
+    def call_soon_threadsafe(self, callback, *args, **kwargs):
+        if callback == self._event.set and self._event.is_set():
+            return None
+        return self._loop.call_soon_threadsafe(callback, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._loop, name)
+
+
 def loop_safe_wakeups(viewer) -> None:
     """Give a started ``viser.ViserServer``'s broadcast buffer a :class:`LoopSafeEvent`
-    (viser 1.1's internals; before any viewer connects, so nobody waits on the old one)."""
+    and a :class:`_QuietLoop` (viser 1.1's internals; before any viewer connects, so
+    nobody waits on the old event)."""
     ws = viewer._websock_server
-    buf = ws._broadcast_buffer
+    quiet_wakeups(ws._broadcast_buffer, ws._background_event_loop)
+
+
+def quiet_wakeups(buf, home: asyncio.AbstractEventLoop, event_type=None) -> None:
+    """The same for one of viser's ``AsyncMessageBuffer`` whose senders run in ``home``
+    (``event_type``: a :class:`LoopSafeEvent` subclass, for tests)."""
     if isinstance(buf.message_event, LoopSafeEvent):
         return
     if buf.message_event._waiters:
         raise RuntimeError("viser's senders already wait on the buffer's event")
-    ev = LoopSafeEvent(ws._background_event_loop)
+    ev = (event_type or LoopSafeEvent)(home)
     if buf.message_event.is_set():
         asyncio.Event.set(ev)
     buf.message_event = ev
+    buf.event_loop = _QuietLoop(buf.event_loop, ev)
 
 
 def set_wxyz(handle, q) -> bool:
     """``handle.wxyz = q`` for a scene node, the cheap way (the estimate's pose goes out
-    after every batch: 100 times a second for a phone). Relies on viser 1.1's internals
-    (the handle's ``_impl``, its scene API's ``_queue_scene_message`` and the broadcast
-    buffer); False when the pose was unchanged (nothing queued). What it saves:
-
-    - viser's setter casts through ``np.asarray`` and ``np.allclose`` per call; here the
-      four plain floats are compared with the same tolerance (``allclose``'s rtol 1e-5,
-      atol 1e-8), the handle's own copy is written (its getter and later setter calls
-      see it) and the same ``SetOrientationMessage`` is queued by the same
-      owner-stamping path;
-    - a wake-up of viser's thread per update: viser's buffer sets its ``message_event``
-      and also schedules that set on viser's event loop (``call_soon_threadsafe``: a
-      write to its self-pipe, the thread wakes and takes the GIL from the event loop
-      here). While the event is already set no sender waits on it (each sends what it
-      finds when its window timer ends, 60 times a second): that second wake-up is
-      then left out (the push is done as in viser's own ``atomic()`` block, which
-      defers it, without the wake-up at its end). When the event is clear (a sender
-      is idle) the update wakes it as before: nothing is sent later than it was."""
+    after every batch: 100 times a second for a phone). viser's setter casts through
+    ``np.asarray`` and ``np.allclose`` per call; here the four plain floats are compared
+    with the same tolerance (``allclose``'s rtol 1e-5, atol 1e-8), the handle's own copy
+    is written (its getter and later setter calls see it) and the same
+    ``SetOrientationMessage`` is queued by the same owner-stamping path (viser 1.1's
+    internals: the handle's ``_impl`` and its scene API's ``_queue_scene_message``).
+    False when the pose was unchanged (nothing queued)."""
     impl = handle._impl
     if impl.removed:
         raise RuntimeError(f"Cannot assign to 'wxyz' on a removed {type(handle).__name__}.")
@@ -170,19 +190,7 @@ def set_wxyz(handle, q) -> bool:
             and abs(v[2] - c2) <= 1e-8 + 1e-5 * abs(c2) and abs(v[3] - c3) <= 1e-8 + 1e-5 * abs(c3)):
         return False
     cur[:] = v
-    msg = _messages.SetOrientationMessage(impl.name, v)
-    api = impl.api
-    buf = api._websock_interface.get_message_buffer()
-    if not buf.message_event.is_set():
-        api._queue_scene_message(msg)          # a sender may be idle: wake it
-        return True
-    with buf.buffer_lock:
-        buf.atomic_counter += 1
-    try:
-        api._queue_scene_message(msg)
-    finally:
-        with buf.buffer_lock:
-            buf.atomic_counter -= 1
+    impl.api._queue_scene_message(_messages.SetOrientationMessage(impl.name, v))
     return True
 
 
