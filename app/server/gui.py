@@ -590,8 +590,11 @@ def _readouts_html(st: dict) -> str:
 
     def used(sensor):
         d = upd.get(sensor, {})
-        rej = sum(v for k, v in d.items() if is_rejected(Reason[k.upper()]))
-        return f"{d.get('used', 0)} used, {rej} rejected"
+        # a sample flagged as specific force still enters robust's low-pass: counted apart
+        accel = d.get(Reason.ACCEL.label, 0)
+        rej = sum(v for k, v in d.items() if is_rejected(Reason[k.upper()]) and k != Reason.ACCEL.label)
+        return f"{d.get('used', 0)} used, " + (f"{accel} accelerating (averaged in), " if accel else "") \
+            + f"{rej} rejected"
 
     err = st["error_to_phone_deg"]
     err_t = st["error_to_truth_deg"]
