@@ -37,6 +37,13 @@ What makes it accurate on real data (see ``shared/notes/robust-orientation.md``)
   not (along the raw turn rate it did, and running lost). Tilt only: about the vertical
   the magnetometer's errors grow with a turn too, and a faster heading correction follows
   them.
+- **The heading's σ grows with the turn while the field is refused**
+  (``refused_turn_noise``). Then the gyroscope alone keeps the heading, off by its scale
+  error times the turn about the vertical; with only the white gyroscope noise in P, the
+  first good field after a long refusal in motion (a magnet attached for 50 s) corrected
+  at the steady rate, half a minute for 2-3°. Growing σ along the vertical turn rate
+  while refused makes it correct at once; while the field is used the term stays out
+  (the magnetometer's turn-bound errors grow as well).
 - **Heading only from the magnetometer.** The field is rotated into the world frame
   with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
   the gain is masked so this update can never tilt the attitude.
@@ -121,6 +128,13 @@ class RobustParams(CommonParams):
                                        "(0.02 √s: about 1 % over acc_tau), so a steady turn makes the tilt "
                                        "correct faster; a back-and-forth (running, swinging) cancels and "
                                        "does not; 0: off")
+    refused_turn_noise: float = param(0.01, unit="√s", lo=0.0, hi=1.0,
+                                      doc="heading noise density per rad/s of vertical turn rate while the "
+                                          "field is refused as disturbed: the gyroscope alone then keeps the "
+                                          "heading, off by its scale error (0.2-3 %) × the turn, so the heading "
+                                          "σ grows with the turn and the first good field after a long refusal "
+                                          "corrects at once, not at the steady rate (0.01 √s: 1 % of a turn "
+                                          "over a second); 0: off")
     bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
     bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
@@ -165,7 +179,7 @@ class RobustParams(CommonParams):
                                 doc="likewise when | |a| - g | > this × g; 0: off")
     acc_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
-    heading_noise: float = param(0.1, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+    heading_noise: float = param(0.15, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                                  user_scale=DEG, doc="noise density of the magnetometer heading")
     mag_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
                                 doc="NIS gate of the heading update (χ², 1 dof); 0: off")
@@ -623,6 +637,15 @@ def _predict(s, P, p, w, dt):
     for i in range(3):
         P[i, i] += gv
         P[3 + i, 3 + i] += bv
+    if p[PRM.refused_turn_noise] > 0.0 and s[S.disturbed] != 0.0:
+        # The same scale error turns the heading by its share of the turn about the vertical.
+        # While the field is used this is left out: the magnetometer's own errors grow with
+        # a turn as well (lag, residual hard iron), so a faster correction in a turn follows
+        # them (BROAD's heading gets worse, see the README). While the field is refused the
+        # gyroscope is alone: the heading σ grows with the turn, and the first good field
+        # after the refusal corrects what the turn did at once instead of at the steady rate.
+        wv = r20 * wx + r21 * wy + r22 * wz
+        P[2, 2] += p[PRM.refused_turn_noise] ** 2 * wv * wv * dt
     if p[PRM.gyr_scale_noise] > 0.0:
         # A scale-factor error s turns the estimate by s × the net rotation, about the turn's
         # axis: over the tilt loop's time scale (acc_tau) a steady turn builds it up, a

@@ -77,6 +77,8 @@ EFFECT = {
                     "overshoot (none from 1); 0: off (overdamped)",
     "acc_nis_gate": "raising it refuses fewer tilt updates; 0: off",
     "heading_noise": "raising it trusts the magnetometer heading less: slower heading corrections",
+    "refused_turn_noise": "raising it makes the heading jump back sooner when the field returns after "
+                          "a long refusal while the phone turned; 0: off (the steady, slow rate)",
     "mag_nis_gate": "raising it refuses fewer heading updates; 0: off",
     "mag_norm_gate_rel": "raising it accepts field strengths farther from the learned one "
                          "(fewer rejections, magnets disturb more); 0: off",
