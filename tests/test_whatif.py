@@ -12,6 +12,7 @@ from app.cli import main as cli_main
 from app.estimators import make_estimator
 from app.quaternion import angle_between
 from app.readers import read_recording
+from app.simulate import Simulation
 from app.variants import no_rejection_changes
 from app.whatif import WhatIfError, hold_ori, rerun
 
@@ -35,7 +36,6 @@ STILL = "alekodu_activityrecognition/sensorLog_20221024T182616_standstill.txt"
 
 
 def test_rerun_before_and_after_a_patch(tmp_path):
-    from app.simulate import Simulation
     path, truth = demo_log(tmp_path / "demo.txt")
     specs = {"robust": ("robust", {}), "lab": ("lab", {}), "phone": ("phone", {}),
              "robust-no-rejection": ("robust", no_rejection_changes("robust"))}
@@ -68,8 +68,8 @@ def test_rerun_before_and_after_a_patch(tmp_path):
                    truth={"t": rec.t, "q": truth(rec.t)})
     tt = np.asarray(scored["t"])
     scene = (tt >= t0) & (tt < t1)
-    worst = {k: float(np.nanmax(np.asarray(v["before"]["series"]["error_deg"], float)[scene]))
-             for k, v in scored["estimators"].items()}
+    worst = {name: float(np.nanmax(np.asarray(e["before"]["series"]["error_deg"], float)[scene]))
+             for name, e in scored["estimators"].items()}
     assert worst["nr"] > 3.0 * worst["robust"], worst
     n = len(out["t"])
     assert n == len(r["before"]["series"]["error_deg"]) == len(r["after"]["series"]["yaw_deg"])
