@@ -19,13 +19,24 @@ from app.readers import read_recording
 DEG = 180.0 / np.pi
 
 
-def _trial(shared_dir, name):
-    path = shared_dir / "data" / "phones-tyrex" / f"{name}.npz"
+def _npz(shared_dir, folder, name, t, ref):
+    """A trial of ``../shared/data/<folder>`` as float arrays; its times by ``t(d)``, its truth
+    under the key ``ref``. Skipped when absent."""
+    path = shared_dir / "data" / folder / f"{name}.npz"
     if not path.is_file():
         pytest.skip(f"{path} not present")
     d = np.load(path)
     f = lambda k: np.ascontiguousarray(d[k], dtype=float)  # noqa: E731
-    return dict(t=d["t"] - d["t"][0], gyr=f("gyr"), acc=f("acc"), mag=f("mag"), ref=f("gt_quat"))
+    return dict(t=t(d), gyr=f("gyr"), acc=f("acc"), mag=f("mag"), ref=f(ref))
+
+
+def _trial(shared_dir, name):
+    return _npz(shared_dir, "phones-tyrex", name, lambda d: d["t"] - d["t"][0], "gt_quat")
+
+
+def _broad(shared_dir, name):
+    return _npz(shared_dir, "broad", name, lambda d: np.arange(d["gyr"].shape[0]) / float(d["fs"]),
+                "opt_quat")
 
 
 def _heading_err_deg(q, ref):
@@ -104,16 +115,6 @@ def test_heading_lost_mid_trial_is_noticed_and_recovered(shared_dir, name):
     assert abs(rest.flags[rec[0], F_MAG_VAL]) > np.radians(30.0)  # the value is the error corrected
 
 
-def _broad(shared_dir, name):
-    path = shared_dir / "data" / "broad" / f"{name}.npz"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
-    d = np.load(path)
-    f = lambda k: np.ascontiguousarray(d[k], dtype=float)  # noqa: E731
-    return dict(t=np.arange(d["gyr"].shape[0]) / float(d["fs"]), gyr=f("gyr"), acc=f("acc"),
-                mag=f("mag"), ref=f("opt_quat"))
-
-
 def test_heading_after_a_long_refusal_in_motion_corrects_at_once(shared_dir):
     """BROAD, a magnet attached 3 cm from the IMU while it turns at 4-5 rad/s: the field is
     refused for about 50 s and the gyroscope alone keeps the heading, which drifts by
@@ -149,12 +150,8 @@ def test_implausible_bias_is_reset_and_flagged(shared_dir):
 def test_magnet_attached_is_flagged_and_a_standstill_log_is_not(shared_dir):
     """A magnet 1 cm from the IMU (BROAD, Laidig et al.) lights "mag disturbed" (NORM or DIP, with
     the value tested); an undisturbed real phone log lying still lights neither flag."""
-    path = shared_dir / "data" / "broad" / "32_disturbed_attached_magnet_1cm.npz"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
-    d = np.load(path)
-    n = d["gyr"].shape[0]
-    res = make_estimator("robust").run(np.arange(n) / float(d["fs"]), d["gyr"], d["acc"], d["mag"])
+    tr = _broad(shared_dir, "32_disturbed_attached_magnet_1cm")
+    res = make_estimator("robust").run(tr["t"], tr["gyr"], tr["acc"], tr["mag"])
     mag = res.flags[:, F_MAG].astype(int)
     dist = np.isin(mag, [Reason.NORM, Reason.DIP])
     assert dist.mean() > 0.05
