@@ -289,6 +289,21 @@ def quat_mul_many(p: np.ndarray, q: np.ndarray) -> np.ndarray:
                      p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0], axis=-1)
 
 
+def quat_conj_many(q: np.ndarray) -> np.ndarray:
+    """:func:`quat_conj` of (..., 4) arrays."""
+    return np.asarray(q, float) * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def rotvec_from_quat_many(q: np.ndarray) -> np.ndarray:
+    """:func:`rotvec_from_quat` of (..., 4) unit quaternions (angle in [0, pi]: q and -q
+    give the same rotation vector)."""
+    q = np.asarray(q, float)
+    q = q * np.where(q[..., :1] < 0.0, -1.0, 1.0)
+    vn = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(vn, q[..., :1])
+    return np.where(vn < 1e-15, 0.0, q[..., 1:] / np.where(vn < 1e-15, 1.0, vn) * angle)
+
+
 def quat_from_rotvec_many(v: np.ndarray) -> np.ndarray:
     """:func:`quat_from_rotvec` of (..., 3) rotation vectors."""
     v = np.asarray(v, float)
@@ -304,8 +319,7 @@ def rotate_inv_many(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     q = np.asarray(q, float)
     v = np.broadcast_to(np.asarray(v, float), q.shape[:-1] + (3,))
     zero = np.zeros(v.shape[:-1] + (1,))
-    conj = q * np.array([1.0, -1.0, -1.0, -1.0])
-    return quat_mul_many(quat_mul_many(conj, np.concatenate([zero, v], axis=-1)), q)[..., 1:]
+    return quat_mul_many(quat_mul_many(quat_conj_many(q), np.concatenate([zero, v], axis=-1)), q)[..., 1:]
 
 
 def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
@@ -316,7 +330,7 @@ def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
     decomposition), inclination the rest. This is BROAD's metric.
     """
     q_ref = np.atleast_2d(q_ref)
-    e = quat_mul_many(np.atleast_2d(q_est), q_ref * np.array([1.0, -1.0, -1.0, -1.0]))
+    e = quat_mul_many(np.atleast_2d(q_est), quat_conj_many(q_ref))
     e0, ez = e[:, 0], e[:, 3]
     total = 2.0 * np.arccos(np.clip(np.abs(e0), 0.0, 1.0))
     heading = 2.0 * np.arctan2(np.abs(ez), np.abs(e0))

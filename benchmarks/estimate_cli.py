@@ -28,34 +28,14 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from app.quaternion import quat_conj_many, quat_from_rotvec_many, quat_mul_many, rotate_inv_many  # noqa: E402
+
 FS = 100.0
 
 
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Row-wise quaternion product (scalar first)."""
-    w1, x1, y1, z1 = p.T
-    w2, x2, y2, z2 = q.T
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
-
-
 def _axis_angle(axis: int, angle: np.ndarray) -> np.ndarray:
-    q = np.zeros((angle.size, 4))
-    q[:, 0] = np.cos(angle / 2)
-    q[:, 1 + axis] = np.sin(angle / 2)
-    return q
-
-
-def _rotate_to_sensor(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Q(q)ᵀ v for each row: a world vector (or rows of them) seen in the sensor frame."""
-    w, x, y, z = q.T
-    R = np.empty((q.shape[0], 3, 3))
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z); R[:, 0, 1] = 2 * (x * y - w * z); R[:, 0, 2] = 2 * (x * z + w * y)
-    R[:, 1, 0] = 2 * (x * y + w * z); R[:, 1, 1] = 1 - 2 * (x * x + z * z); R[:, 1, 2] = 2 * (y * z - w * x)
-    R[:, 2, 0] = 2 * (x * z - w * y); R[:, 2, 1] = 2 * (y * z + w * x); R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return np.einsum("nji,nj->ni", R, np.broadcast_to(v, (q.shape[0], 3)))
+    return quat_from_rotvec_many(np.outer(angle, np.eye(3)[axis]))
 
 
 def make_recording(path: Path, n: int, seed: int = 0) -> None:
@@ -65,14 +45,14 @@ def make_recording(path: Path, n: int, seed: int = 0) -> None:
     yaw = 0.8 * np.sin(2 * np.pi * t / 47.0) + 0.002 * t
     pitch = 0.5 * np.sin(2 * np.pi * t / 13.0) * np.sin(2 * np.pi * t / 310.0)
     roll = 0.3 * np.sin(2 * np.pi * t / 7.3 + 1.0)
-    q = _qmul(_qmul(_axis_angle(2, yaw), _axis_angle(0, pitch)), _axis_angle(1, roll))
-    dq = _qmul(q[:-1] * [1, -1, -1, -1], q[1:])       # body-frame increment
+    q = quat_mul_many(quat_mul_many(_axis_angle(2, yaw), _axis_angle(0, pitch)), _axis_angle(1, roll))
+    dq = quat_mul_many(quat_conj_many(q[:-1]), q[1:])       # body-frame increment
     gyr = 2.0 * dq[:, 1:] * FS
     q, t = q[:-1], t[:-1]
     lin = 0.6 * np.stack([np.sin(2 * np.pi * 1.8 * t), np.cos(2 * np.pi * 1.8 * t),
                           np.sin(2 * np.pi * 3.6 * t)], axis=1)     # walking-like, world
-    acc = _rotate_to_sensor(q, np.array([0.0, 0.0, 9.81]) + lin)
-    mag = _rotate_to_sensor(q, np.array([0.0, 15.0, -45.0]))
+    acc = rotate_inv_many(q, np.array([0.0, 0.0, 9.81]) + lin)
+    mag = rotate_inv_many(q, np.array([0.0, 15.0, -45.0]))
     gyr += [0.01, -0.02, 0.005] + rng.normal(0, 0.003, (n, 3))
     acc += rng.normal(0, 0.05, (n, 3))
     mag += rng.normal(0, 0.4, (n, 3))

@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from accuracy_phones import BROAD, PHONES, load_broad, load_phones  # noqa: E402
-from app.quaternion import quat_mul_many  # noqa: E402
+from app.quaternion import quat_conj_many, quat_mul_many, rotvec_from_quat_many  # noqa: E402
 
 DIFF_S = 0.05        # s between the two truth samples of a rate
 MIN_RATE = 0.5       # rad/s RMS about an axis before its scale is judged
@@ -39,12 +39,9 @@ def scale_errors(trial: dict) -> list[tuple[int, float, float]]:
           & np.all(np.isfinite(g[:-d]), 1) & trial["mask"][:-d])
     if ok.sum() < 100:
         return []
-    dq = quat_mul_many(q[:-d][ok] * np.array([1.0, -1.0, -1.0, -1.0]), q[d:][ok])  # q_k⁻¹ ⊗ q_k+d
-    dq *= np.where(dq[:, :1] < 0.0, -1.0, 1.0)
-    vec = np.linalg.norm(dq[:, 1:], axis=1)
-    ang = 2.0 * np.arctan2(vec, dq[:, 0])
+    dq = quat_mul_many(quat_conj_many(q[:-d][ok]), q[d:][ok])        # q_k⁻¹ ⊗ q_k+d
     span = t[d:][ok] - t[:-d][ok]
-    w_true = dq[:, 1:] / np.maximum(vec, 1e-12)[:, None] * (ang / span)[:, None]
+    w_true = rotvec_from_quat_many(dq) / span[:, None]
     # the gyroscope averaged over the same span (samples k+1 .. k+d integrate it)
     csum = np.vstack([np.zeros(3), np.cumsum(np.nan_to_num(g), axis=0)])
     idx = np.nonzero(ok)[0]

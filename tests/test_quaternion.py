@@ -297,6 +297,10 @@ def test_vectorised_helpers_equal_the_scalar_ones():
                                atol=1e-12)
     np.testing.assert_allclose(qm.rotate_inv_many(q, v[0]), [qm.Q(a).T @ v[0] for a in q],
                                atol=1e-12)
+    np.testing.assert_allclose(qm.quat_conj_many(q), [qm.quat_conj(a) for a in q], atol=0)
+    signed = np.vstack([q, -q, [[1.0, 0.0, 0.0, 0.0]]])       # w < 0 too, and no rotation
+    np.testing.assert_allclose(qm.rotvec_from_quat_many(signed),
+                               [qm.rotvec_from_quat(a) for a in signed], atol=1e-12)
 
 
 @given(quats)
