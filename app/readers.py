@@ -36,13 +36,13 @@ import math
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator
+from typing import Any, BinaryIO, Iterable, Iterator
 
 import numpy as np
 
 from .protocol import (MOTION_TAGS, TAG_ARITY, VALUE_LIMITS, LineSplitter, MalformedLine,
                        impossible_rows, parse_line)
-from .stream import RATE_HISTORY, SampleOrderer, samples_to_rows
+from .stream import RATE_HISTORY, Rows, SampleOrderer, samples_to_rows
 
 # Reorder window for logs (s). Files are read at leisure, so the window can be far wider
 # than a live receiver's: it also puts back in place a block of lines written ~1 s out
@@ -135,6 +135,13 @@ def read_recording(path: str | Path) -> Recording:
             return rec
     chunks = list(iter_chunks(path))
     return concat(chunks)
+
+
+def rows_of_lines(lines: Iterable[bytes], window: float = LOG_WINDOW) -> Rows:
+    """The estimator rows of an app log held as its lines (one with a disturbance
+    injected, :func:`app.inject.inject_at`), put in order as a file is read."""
+    orderer = SampleOrderer(window=window)
+    return samples_to_rows([x for ln in lines for x in orderer.push_line(ln)] + orderer.flush())
 
 
 def concat(chunks: list[Recording]) -> Recording:

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 from app.estimators import make_estimator  # noqa: E402
 from app.inject import inject_at  # noqa: E402
 from app.quaternion import error_angles  # noqa: E402
-from app.stream import SampleOrderer, samples_to_rows  # noqa: E402
+from app.readers import rows_of_lines  # noqa: E402
 from app.variants import no_rejection_changes  # noqa: E402
 
 LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
@@ -41,17 +41,11 @@ FILTERS = {"robust (default)": ("robust", {}),
            "complementary": ("complementary", {})}
 
 
-def rows(lines):
-    o = SampleOrderer(window=2.0)
-    s = [x for ln in lines for x in o.push_line(ln)] + o.flush()
-    return samples_to_rows([x for x in s if x.tag in ("ACC", "GYR", "MAG", "ORI")])
-
-
 def with_magnet(lines, q_then, direction, frame, ramp_s):
     out, on, off = inject_at(lines, {"kind": "magnet", "strength_uT": 50, "direction": direction,
                                      "frame": frame, "seconds": 5, "ramp_s": ramp_s},
                              6.0, orientation=lambda: q_then)
-    return rows(out), on, off
+    return rows_of_lines(out), on, off
 
 
 def main() -> int:
@@ -59,7 +53,7 @@ def main() -> int:
         print(f"magnet: {LOG} not present (../shared beside the repository)")
         return 0
     lines = LOG.read_bytes().splitlines()
-    clean = rows(lines)
+    clean = rows_of_lines(lines)
     print("magnet: 50 µT for 5 s on a real still phone, 10 directions; the largest heading "
           "change (deg) during it and the second after, against the same filter without it")
     print(f"  {'filter':24s} {'put down at once':>18s} {'ramp 0.5 s':>12s} {'ramp 1 s':>10s}")

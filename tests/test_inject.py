@@ -8,13 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from app.estimators import make_estimator
+from app.estimators import REJECTIONS, make_estimator
 from app.estimators.base import F_MAG, F_MAG_VAL, Reason
-from app.estimators import REJECTIONS
 from app.inject import InjectError, Injector, inject_at, marks_in_log, parse_request
 from app.protocol import parse_line
 from app.quaternion import Q, error_angles, quat_from_rotvec
-from app.stream import SampleOrderer, samples_to_rows
+from app.readers import rows_of_lines
 from app.variants import no_rejection_changes
 
 
@@ -92,12 +91,6 @@ def test_shake_adds_a_sinusoid_to_the_accelerometer():
     np.testing.assert_allclose(acc[:, 1:], [[0.0, 9.81]] * len(acc), atol=1e-6)
 
 
-def _rows(lines):
-    o = SampleOrderer(window=2.0)
-    s = [x for ln in lines for x in o.push_line(ln)] + o.flush()
-    return samples_to_rows([x for x in s if x.tag in ("ACC", "GYR", "MAG", "ORI")])
-
-
 def test_primary_rides_out_a_50uT_magnet_and_the_no_rejection_variant_does_not(shared_dir):
     """A real still phone (standstill log) with a 50 µT magnet for 5 s: with the
     defaults the primary refuses it and its heading moves < 3°; the same filter with
@@ -109,7 +102,7 @@ def test_primary_rides_out_a_50uT_magnet_and_the_no_rejection_variant_does_not(s
                                      "frame": "sensor", "seconds": 5}, 6.0)
     assert [m["text"].split()[-3] for m in marks_in_log(out)] == ["start", "end"]
     assert off - on == pytest.approx(5.0, abs=0.05)
-    clean, dist = _rows(lines), _rows(out)
+    clean, dist = rows_of_lines(lines), rows_of_lines(out)
     w = (dist.t >= dist.t[0] + 6.0) & (dist.t <= dist.t[0] + 13.0)
     moved = {}
     for name, params in (("robust", {}), ("robust-no-rejection", no_rejection_changes("robust"))):
@@ -140,7 +133,7 @@ def still(request):
     if not path.is_file():
         pytest.skip(f"{path} not present")
     lines = path.read_bytes().splitlines()
-    clean = _rows(lines)
+    clean = rows_of_lines(lines)
     ref = make_estimator("robust").run(clean.t, clean.gyr, clean.acc, clean.mag, clean.ori)
     return lines, clean, ref
 
@@ -154,7 +147,7 @@ def _with_magnet(still, direction, frame, ramp_s):
     out, on, off = inject_at(lines, {"kind": "magnet", "strength_uT": 50, "direction": direction,
                                      "frame": frame, "seconds": 5, "ramp_s": ramp_s},
                              6.0, orientation=lambda: q_then)
-    return _rows(out), on, off
+    return rows_of_lines(out), on, off
 
 
 def _magnet_effect(still, direction, frame, ramp_s):

@@ -459,3 +459,12 @@ def test_real_logs_whole_file_read_is_the_line_by_line_read(real_log):
     fast = _applog_whole(real_log)
     assert fast is not None
     _same_recording(fast, _line_by_line(real_log))
+
+
+def test_a_logs_lines_held_in_memory_give_the_files_rows(real_log):
+    """rows_of_lines (a log with a disturbance injected, not on disk) puts the samples in
+    order as reading the file does."""
+    from app.readers import rows_of_lines
+    rows, rec = rows_of_lines(real_log.read_bytes().splitlines()), read_recording(real_log)
+    for k in ("t", "gyr", "acc", "mag"):
+        np.testing.assert_array_equal(getattr(rows, k), getattr(rec, k), err_msg=k)
