@@ -48,12 +48,6 @@ def test_a_loop_safe_event_set_from_another_thread_wakes_its_loop():
     assert not ev3.is_set()
 
 
-def test_the_servers_viewer_wakes_its_senders_the_loop_safe_way():
-    with running_server() as srv:
-        buf = srv.app.state.viewer._websock_server._broadcast_buffer
-        assert isinstance(buf.message_event, LoopSafeEvent)
-
-
 class _CountingEvent(LoopSafeEvent):
     """A LoopSafeEvent that counts the sets run in its loop (the wake-ups)."""
     sets_at_home = 0
@@ -111,7 +105,10 @@ def test_a_quiet_buffer_delivers_every_message_with_fewer_wakeups():
         th.join(5.0)
 
 
-def test_the_servers_viewer_skips_wakeups_of_a_set_event():
+def test_the_servers_viewer_wakes_its_senders_the_loop_safe_way_and_quietly():
+    """The server's viser buffer has both: the loop-safe event, and the loop that skips
+    the wake-up of an event already set (one server start for both checks)."""
     with running_server() as srv:
         buf = srv.app.state.viewer._websock_server._broadcast_buffer
+        assert isinstance(buf.message_event, LoopSafeEvent)
         assert isinstance(buf.event_loop, _QuietLoop) and buf.event_loop._event is buf.message_event

@@ -6,9 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.protocol import parse_line
+from app.protocol import format_line, parse_line
 from app.quaternion import Q, S_bar, angle_between
-from app.protocol import format_line
 from app.simulate import SCENES, SimConfig, Simulation, simulate, stream
 
 

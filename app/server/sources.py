@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..protocol import MalformedLine, parse_line
-from ..protocol import format_line
+from ..protocol import MalformedLine, format_line, parse_line
 from ..simulate import Simulation, stream
 
 log = logging.getLogger("orientlab.sources")
