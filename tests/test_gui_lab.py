@@ -43,7 +43,7 @@ def test_readouts_count_a_running_phones_specific_force_apart_from_refusals(real
     every accelerometer sample the primary judged."""
     import re
 
-    from app.estimators import Reason, is_rejected
+    from app.estimators import AVERAGED_IN, Reason, is_rejected
     from app.live.views import state
     from app.server.gui import _readouts_html
 
@@ -61,6 +61,7 @@ def test_readouts_count_a_running_phones_specific_force_apart_from_refusals(real
     assert m, html
     used, accel, rej = int(m[1]), int(m[2] or 0), int(m[3])
     assert used == acc.get("used", 0) and accel == acc.get(Reason.ACCEL.label, 0)
+    assert AVERAGED_IN == {Reason.ACCEL}
     assert rej == sum(v for k, v in acc.items() if k != "accel" and is_rejected(Reason[k.upper()]))
     if "running" in real_log_9dof.name:
         assert accel > rej and accel > 0.5 * (used + accel + rej)   # a running phone accelerates

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import (ALERTS, BatchResult, Diagnostics, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT,
+from .base import (ALERTS, AVERAGED_IN, BatchResult, Diagnostics, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT,
                    REJECTIONS, StepFlags, TimeIssue, count_flags, is_rejected)
 
 DEFAULT = "robust"
@@ -33,6 +33,6 @@ def make_estimator(name: str = DEFAULT, params: dict[str, Any] | None = None) ->
     return cls(**(params or {}))
 
 
-__all__ = ["ALERTS", "BatchResult", "Diagnostics", "Estimator", "FLAG_COLUMNS", "Reason", "REASON_TEXT", "REJECTIONS",
+__all__ = ["ALERTS", "AVERAGED_IN", "BatchResult", "Diagnostics", "Estimator", "FLAG_COLUMNS", "Reason", "REASON_TEXT", "REJECTIONS",
            "StepFlags", "TimeIssue", "count_flags", "is_rejected", "DEFAULT", "NAMES", "estimator_class",
            "make_estimator"]

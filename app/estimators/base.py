@@ -312,6 +312,9 @@ class StepFlags:
 # Reasons that mean "a valid sample was refused or not trusted by a gate": the ONE place
 # deciding what the dashboard shows as "disturbed" (indicators, red samples, rejection counts).
 REJECTIONS = frozenset({Reason.NORM, Reason.NIS, Reason.DIP, Reason.FIELD, Reason.ACCEL, Reason.TURN})
+# Of those, the ones whose sample still enters the estimate (a specific-force sample is
+# averaged into robust's low-pass): a read-out counts them apart from the refused ones.
+AVERAGED_IN = frozenset({Reason.ACCEL})
 # Reasons that report an event worth telling the user (the filter corrected itself).
 ALERTS = frozenset({Reason.NEW_FIELD, Reason.RECOVER, Reason.BIAS_RESET})
 

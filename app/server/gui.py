@@ -36,8 +36,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from ..estimators import Reason
-from ..estimators.base import is_rejected
+from ..estimators import AVERAGED_IN, Reason, is_rejected
 from ..params import describe, fields_of
 from ..quaternion import q2euler_many
 from .controls import Control, build_control, show_value
@@ -589,11 +588,11 @@ def _readouts_html(st: dict) -> str:
     upd = c["updates"].get(st["primary"], {})
 
     def used(sensor):
-        d = upd.get(sensor, {})
-        # a sample flagged as specific force still enters robust's low-pass: counted apart
-        accel = d.get(Reason.ACCEL.label, 0)
-        rej = sum(v for k, v in d.items() if is_rejected(Reason[k.upper()]) and k != Reason.ACCEL.label)
-        return f"{d.get('used', 0)} used, " + (f"{accel} accelerating (averaged in), " if accel else "") \
+        d = {Reason[k.upper()]: v for k, v in upd.get(sensor, {}).items()}
+        # a flagged sample that still enters the estimate (AVERAGED_IN) is counted apart
+        kept = sum(v for r, v in d.items() if r in AVERAGED_IN)
+        rej = sum(v for r, v in d.items() if is_rejected(r) and r not in AVERAGED_IN)
+        return f"{d.get(Reason.USED, 0)} used, " + (f"{kept} accelerating (averaged in), " if kept else "") \
             + f"{rej} rejected"
 
     err = st["error_to_phone_deg"]

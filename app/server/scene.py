@@ -442,6 +442,6 @@ def describe_rejection(sensor: str, f) -> str:
         return f"dip off by {math.degrees(v):.1f}°"
     if r == Reason.NIS:
         return f"NIS = {v:.1f}"
-    if getattr(Reason, "ACCEL", None) is not None and r == Reason.ACCEL:
+    if r == Reason.ACCEL:
         return f"accelerating, {math.degrees(v):.0f}° off gravity"
     return f"{r.label} {v:.3g}"
