@@ -23,14 +23,15 @@ STAMP = "numba-sources.sha256"
 
 
 def compiled_sources(root: Path = ROOT) -> list[Path]:
-    """Every source file with numba-compiled functions."""
-    return [root / "quaternion.py", *sorted((root / "estimators").glob("*.py"))]
+    """Every source file with numba-compiled functions (the estimators' packages too:
+    ``estimators/robust/``)."""
+    return [root / "quaternion.py", *sorted((root / "estimators").rglob("*.py"))]
 
 
 def sources_digest(root: Path = ROOT) -> str:
     h = sha256()
     for p in compiled_sources(root):
-        h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
+        h.update(p.relative_to(root).as_posix().encode() + b"\0" + p.read_bytes() + b"\0")
     return h.hexdigest()
 
 

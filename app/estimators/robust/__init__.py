@@ -1,0 +1,54 @@
+"""``robust``: orientlab's default estimator, an error-state EKF built for real phones.
+
+Structure (4c) of the lab manual (gyroscope as input, its bias in the state) in the
+error-state (multiplicative) form: the nominal attitude ``q`` is a unit quaternion; the
+filter's state is the small rotation ``δθ`` (world frame, ``q_true = exp(δθ) ⊗ q``) and
+the gyroscope bias ``b`` (sensor frame), 6 states with a well-conditioned 6x6 ``P``
+(no covariance along the unit-norm constraint, no renormalisation hack).
+
+What makes it accurate on real data (see ``shared/notes/robust-orientation.md``), each
+explained in the module that does it:
+
+- :mod:`.tilt`: **tilt from an inertial low-pass of the accelerometer**, **a damped tilt
+  loop** (``tilt_damping``), **specific force flagged** (ACCEL).
+- :mod:`.kernel` (the time update): **scale-factor noise along the net turn**
+  (``gyr_scale_noise``), **the heading's σ grows with the turn while the field is
+  refused** (``refused_turn_noise``), the reset of an implausible bias (``bias_max``).
+- :mod:`.heading`: **heading only from the magnetometer**, **magnetic disturbance
+  detection** (VQF's logic), **the field turn test**, **never lost** (RECOVER).
+- :mod:`.bias`: **rest detection**, **bias in motion from the correction rates**.
+- **Measurement noise as densities** (``tilt_noise``, ``heading_noise`` in rad·√s):
+  ``R = σ²/Δt`` per update, so the correction time constants, ``tilt_noise /
+  gyr_noise`` and ``heading_noise / gyr_noise``, do not depend on the sample rates.
+
+Every update goes through :func:`app.estimators.kalman.correct`. The per-row code is
+numba-compiled (``robust_step``); ``robust_run`` loops it over arrays for batch
+use. The same functions run uncompiled (``.py_func``) as the readable numpy reference.
+The kernels read the parameters, the coefficients derived from them and the state from
+two flat arrays whose slots are named once (``PRM`` in :mod:`.params`, ``S`` in
+:mod:`.state`).
+
+The modules: :mod:`.params` (the parameters, the parameter vector), :mod:`.state` (the
+state vector, and the kernels every update uses on it: the error-state injection, the
+low-pass coefficient, the update-rate accumulator), :mod:`.bias`, :mod:`.tilt`,
+:mod:`.heading` (the mechanisms), :mod:`.kernel` (time update, alignment, one row, a
+batch), :mod:`.estimator` (the :class:`RobustEKF` class).
+"""
+
+from __future__ import annotations
+
+from app.estimators.robust.bias import BIAS_UPD_S, H_BIAS, heading_bias_update, motion_bias_update, rest_update
+from app.estimators.robust.estimator import RobustEKF
+from app.estimators.robust.heading import heading_innovation, heading_jacobian, mag_update
+from app.estimators.robust.kernel import robust_run, robust_step
+from app.estimators.robust.params import (DERIVED, GRAVITY, NPARAM, PRM, RobustParams, derived, layout,
+                                          param_vector)
+from app.estimators.robust.state import (DT_MAX, NSTATE, S, STATE, STATE_NAN, inject, lp_coef, new_state,
+                                         rotate3, update_is_due)
+from app.estimators.robust.tilt import acc_update, tilt_innovation, tilt_jacobian
+
+__all__ = ["BIAS_UPD_S", "DERIVED", "DT_MAX", "GRAVITY", "H_BIAS", "NPARAM", "NSTATE", "PRM", "RobustEKF",
+           "RobustParams", "S", "STATE", "STATE_NAN", "acc_update", "derived", "heading_bias_update",
+           "heading_innovation", "heading_jacobian", "inject", "layout", "lp_coef", "mag_update",
+           "motion_bias_update", "new_state", "param_vector", "rest_update", "robust_run", "robust_step",
+           "rotate3", "tilt_innovation", "tilt_jacobian", "update_is_due"]

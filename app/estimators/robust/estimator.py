@@ -1,0 +1,78 @@
+"""``RobustEKF``: the robust filter as an :class:`~app.estimators.base.Estimator`.
+
+It holds the parameter vector (rebuilt on every change of the parameters), the state
+vector and the 6x6 covariance, hands rows to the compiled kernels (:mod:`.kernel`) and
+reads its estimates and diagnostics out of the state's named slots.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.estimators.base import Diagnostics, Estimator, vec3
+from app.estimators.robust.kernel import robust_run, robust_step
+from app.estimators.robust.params import GRAVITY, RobustParams, param_vector
+from app.estimators.robust.state import S, new_state
+
+
+class RobustEKF(Estimator):
+    name = "robust"
+    title = "Robust error-state EKF (default)"
+    Params = RobustParams
+
+    def _on_params(self) -> None:
+        self._p = param_vector(self._params)
+
+    def _reset_state(self) -> None:
+        self._s = new_state()
+        self._P = np.eye(6) * 1e-4
+
+    def _step(self, t, gyr, acc, mag, ori, flags) -> None:
+        robust_step(self._s, self._P, self._p, t, gyr, acc, mag, flags)
+
+    def _run_rows(self, t, G, A, M, O, qs, flags) -> None:
+        robust_run(self._s, self._P, self._p, t, G, A, M, qs, flags)
+
+    @property
+    def t(self) -> float:
+        return float(self._s[S.t])
+
+    @property
+    def initialized(self) -> bool:
+        return bool(self._s[S.aligned])
+
+    @property
+    def q(self) -> np.ndarray:
+        return self._s[S.q:S.q + 4].copy()
+
+    def attitude_cov(self) -> np.ndarray:
+        return self._P[0:3, 0:3].copy()
+
+    @property
+    def gyr_bias(self) -> np.ndarray:
+        return self._s[S.bias:S.bias + 3].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self._P.copy()
+
+    def diagnostics(self):
+        """Diagnostics: gravity as the reference, the learned field (None until learned)."""
+        p, s = self._params, self._s
+        ok = bool(s[S.ref_ok])
+        ref_n, dip = float(s[S.ref_norm]), float(s[S.ref_dip])
+        return Diagnostics(
+            g0=(0.0, 0.0, GRAVITY),
+            # the expected field in world coordinates (µT): north and the learned dip
+            m0=vec3((0.0, ref_n * np.cos(dip), ref_n * np.sin(dip))) if ok else None,
+            acc_band=(GRAVITY * (1 - p.acc_band_rel), GRAVITY * (1 + p.acc_band_rel))
+            if p.acc_band_rel > 0 else None,
+            mag_band=(ref_n * (1 - p.mag_norm_gate_rel), ref_n * (1 + p.mag_norm_gate_rel))
+            if p.mag_norm_gate_rel > 0 and ok else None,
+            acc_nis_gate=float(p.acc_nis_gate), mag_nis_gate=float(p.mag_nis_gate),
+            mag_ref_norm=ref_n if ok else None,
+            mag_ref_dip=dip if ok else None,
+            acc_lp_world=vec3(s[S.acc_lp:S.acc_lp + 3]),
+            gyr_bias=vec3(s[S.bias:S.bias + 3]),
+            rest=bool(s[S.rest]),
+        )

@@ -1,0 +1,289 @@
+"""The heading: the magnetometer update, the field checks, and the recovery when lost.
+
+- **Heading only from the magnetometer.** The field is rotated into the world frame
+  with the current tilt and only its horizontal direction is used (scalar ``h = δθz``);
+  the gain is masked so this update can never tilt the attitude.
+- **Magnetic disturbance detection** (VQF's logic, :func:`_field_check`). The low-passed
+  field strength and dip angle are compared with a reference learned while undisturbed
+  (``mag_norm_gate_rel``, ``mag_dip_gate``); the first reference is a field stable for
+  ``mag_first_field_time`` (never the first samples of a phone that starts moving); a
+  new homogeneous field (stable strength and dip while the phone turns for
+  ``mag_new_field_time``) becomes the reference; after ``mag_max_reject`` seconds of
+  refusal the heading update resumes ``mag_reject_factor`` times slower. Within the
+  gates, a deviation from the reference adds heading noise (``mag_dev_weight``).
+- **Field turn test** (:func:`_turn_check`). A real field is fixed in the world: seen
+  through the estimate (whose turns are the gyroscope's) it stays put while the phone
+  turns. A magnet brought in over half a second turns the horizontal field by tens of
+  degrees before its strength or dip leave their gates, and the heading would follow; so
+  a world-frame field changing faster than ``mag_turn_gate`` beyond ``mag_turn_rel`` ×
+  the turn rate is a disturbance too (flag TURN, value: the unexplained rate), ended like
+  the others after ``mag_min_undisturbed`` of a field within every gate.
+- **Never lost.** An undisturbed field farther than ``mag_lost_angle`` from the heading
+  for ``mag_lost_time`` means the estimate is wrong: the heading σ grows to the error,
+  the field's heading is taken, the bias learned meanwhile is dropped (flag RECOVER);
+  a bias estimate above ``bias_max`` is reset (flag BIAS_RESET, :mod:`.kernel`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD, R_NIS, R_NORM,
+                                R_RECOVER, R_TURN, R_USED)
+from app.estimators.kalman import correct
+from app.estimators.robust.bias import BIAS_UPD_S, heading_bias_update
+from app.estimators.robust.params import PRM
+from app.estimators.robust.state import DT_MAX, S, inject, lp_coef, rotate3, update_is_due
+
+_MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+
+
+@njit(cache=True)
+def heading_jacobian(m_world):
+    """d heading_innovation / dx (1x6): (-mx mz, -my mz, mx² + my²) / (mx² + my²).
+    The tilt columns are not zero (a tilt error changes the apparent heading of a
+    dipping field); the update masks them, so heading never tilts the estimate,
+    but S accounts for the tilt uncertainty."""
+    h2 = m_world[0] ** 2 + m_world[1] ** 2
+    H = np.zeros((1, 6))
+    H[0, 0] = -m_world[0] * m_world[2] / h2
+    H[0, 1] = -m_world[1] * m_world[2] / h2
+    H[0, 2] = 1.0
+    return H
+
+
+@njit(cache=True)
+def heading_innovation(m_world):
+    """Angle (rad) of the horizontal field east of north: zero when the heading is right."""
+    out = np.empty(1)
+    out[0] = np.arctan2(m_world[0], m_world[1])
+    return out
+
+
+@njit(cache=True)
+def _field_check(s, p, n, dip, dt, rate, turn, f):
+    """Judge the field (strength ``n``, dip) against the learned reference, as VQF does:
+    a disturbance is a strength or dip off the reference; it ends after the field has been
+    within the gates for ``mag_min_undisturbed``; a new homogeneous field (stable strength
+    and dip while the phone turns for ``mag_new_field_time``) becomes the reference; the
+    first reference is the first field stable for ``mag_first_field_time`` (a phone that
+    starts moving, or next to a desk, must not fix it from its first samples).
+    A field that changes faster than the phone turns (``turn`` > 0, the unexplained change
+    rate, see :func:`_turn_check`) is a disturbance too (TURN), judged after strength and dip.
+    Returns True when the sample may correct the heading (no reference yet, or undisturbed)."""
+    # low-pass of strength and dip: one sample's noise is no disturbance
+    if s[S.mag_nd_ok] == 0.0:
+        s[S.mag_nd_norm] = n
+        s[S.mag_nd_dip] = dip
+        s[S.mag_nd_ok] = 1.0
+        s[S.cand_norm] = n
+        s[S.cand_dip] = dip
+        s[S.cand_time] = 0.0
+    else:
+        k = lp_coef(dt, p[PRM.mag_norm_dip_tau])
+        s[S.mag_nd_norm] += k * (n - s[S.mag_nd_norm])
+        s[S.mag_nd_dip] += k * (dip - s[S.mag_nd_dip])
+    nf, df = s[S.mag_nd_norm], s[S.mag_nd_dip]
+    # candidate for a new homogeneous field: stable strength and dip (while turning)
+    cn_dev = abs(nf - s[S.cand_norm]) / max(s[S.cand_norm], 1e-6)
+    cd_dev = abs(df - s[S.cand_dip])
+    if (cn_dev <= max(p[PRM.mag_norm_gate_rel], p[PRM.mag_cand_norm_rel])
+            and cd_dev <= max(p[PRM.mag_dip_gate], p[PRM.mag_cand_dip])):
+        if rate >= p[PRM.mag_new_min_rate] or s[S.ref_ok] == 0.0:
+            s[S.cand_time] += dt
+        kc = lp_coef(dt, p[PRM.mag_cand_tau]) if dt > 0 else 0.0
+        s[S.cand_norm] += kc * (nf - s[S.cand_norm])
+        s[S.cand_dip] += kc * (df - s[S.cand_dip])
+    else:
+        s[S.cand_norm] = nf
+        s[S.cand_dip] = df
+        s[S.cand_time] = 0.0
+    if s[S.ref_ok] == 0.0:
+        if s[S.cand_time] >= p[PRM.mag_first_field_time]:
+            s[S.ref_norm] = s[S.cand_norm]
+            s[S.ref_dip] = s[S.cand_dip]
+            s[S.ref_ok] = 1.0
+            s[S.disturbed] = 0.0
+            s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
+        return True
+    # disturbance: strength or dip off the reference
+    n_dev = abs(nf - s[S.ref_norm]) / s[S.ref_norm]
+    d_dev = abs(df - s[S.ref_dip])
+    reason = R_USED
+    if p[PRM.mag_norm_gate_rel] > 0.0 and n_dev > p[PRM.mag_norm_gate_rel]:
+        reason = R_NORM
+    elif p[PRM.mag_dip_gate] > 0.0 and d_dev > p[PRM.mag_dip_gate]:
+        reason = R_DIP
+    elif turn > 0.0:
+        reason = R_TURN
+    if reason == R_USED:
+        s[S.undisturbed_time] += dt
+        if s[S.undisturbed_time] >= p[PRM.mag_min_undisturbed]:
+            s[S.disturbed] = 0.0
+            kr = lp_coef(dt, p[PRM.mag_ref_tau]) if dt > 0 else 0.0
+            s[S.ref_norm] += kr * (nf - s[S.ref_norm])
+            s[S.ref_dip] += kr * (df - s[S.ref_dip])
+    else:
+        s[S.undisturbed_time] = 0.0
+        s[S.disturbed] = 1.0
+        s[S.dist_reason] = reason
+        s[S.dist_val] = turn
+    if s[S.disturbed] != 0.0 and s[S.cand_time] >= p[PRM.mag_new_field_time]:
+        # a new homogeneous field: the phone moved to another place (or a magnet stays on it)
+        s[S.ref_norm] = s[S.cand_norm]
+        s[S.ref_dip] = s[S.cand_dip]
+        s[S.disturbed] = 0.0
+        s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
+        s[S.reject_time] = 0.0
+        f[F_MAG] = R_NEW_FIELD
+        f[F_MAG_VAL] = s[S.ref_norm]
+        return True
+    if s[S.disturbed] != 0.0:
+        f[F_MAG] = s[S.dist_reason]
+        r = s[S.dist_reason]
+        f[F_MAG_VAL] = nf if r == R_NORM else (s[S.dist_val] if r == R_TURN else d_dev)
+        return False
+    return True
+
+
+@njit(cache=True)
+def _turn_check(s, p, mw, dt, rate, has_rate):
+    """The field turn test: a real field is fixed in the world; seen through the estimate
+    (whose turn is the gyroscope's) it stays put while the phone turns. Its change rate is
+    measured as the distance between the world-frame field low-passed over
+    ``mag_norm_dip_tau`` (one sample's noise is no change) and that low-passed again over
+    ``mag_turn_tau``, over ``mag_turn_tau`` and the field's strength (an angle, or a
+    relative change of strength, per second: a steady change of rate r leaves the second
+    low-pass behind by r·τ). Beyond ``mag_turn_rel`` × the low-passed turn rate (scale
+    errors, saturation, lag and hard iron make a real field seem to move while the phone
+    turns) it is what the turn does not explain: returned (rad/s) when above
+    ``mag_turn_gate``, else 0. Off without a gyroscope."""
+    if p[PRM.mag_turn_gate] <= 0.0 or not has_rate:
+        s[S.mt_ok] = 0.0
+        return 0.0
+    if s[S.mt_ok] == 0.0:
+        for i in range(3):
+            s[S.mt_lp + i] = mw[i]
+            s[S.mt_lp_slow + i] = mw[i]
+        s[S.mt_rate] = rate
+        s[S.mt_ok] = 1.0
+        return 0.0
+    tau = p[PRM.mag_turn_tau]
+    kf = lp_coef(dt, p[PRM.mag_norm_dip_tau])
+    k = lp_coef(dt, tau)
+    fx, fy, fz = S.mt_lp_x, S.mt_lp_y, S.mt_lp_z                 # the field, low-passed
+    gx, gy, gz = S.mt_lp_slow_x, S.mt_lp_slow_y, S.mt_lp_slow_z  # and low-passed again
+    s[fx] += kf * (mw[0] - s[fx])
+    s[fy] += kf * (mw[1] - s[fy])
+    s[fz] += kf * (mw[2] - s[fz])
+    d0, d1, d2 = s[fx] - s[gx], s[fy] - s[gy], s[fz] - s[gz]
+    s[gx] += k * d0
+    s[gy] += k * d1
+    s[gz] += k * d2
+    s[S.mt_rate] += k * (rate - s[S.mt_rate])
+    # |d| / (|lp| τ) - rel·rate > gate, squared (the square root only for a flag)
+    dd = d0 * d0 + d1 * d1 + d2 * d2
+    l2 = s[gx] * s[gx] + s[gy] * s[gy] + s[gz] * s[gz]
+    allowed = tau * (p[PRM.mag_turn_gate] + p[PRM.mag_turn_rel] * s[S.mt_rate])
+    if dd <= allowed * allowed * l2 or l2 <= 0.0:
+        return 0.0
+    return np.sqrt(dd / l2) / tau - p[PRM.mag_turn_rel] * s[S.mt_rate]
+
+
+@njit(cache=True)
+def _far(s, elapsed):
+    """The heading disagrees with an undisturbed field: count the time; at its start,
+    keep the bias estimate (what follows may be learned from a wrong heading)."""
+    if s[S.far_time] == 0.0:
+        s[S.bias_good:S.bias_good + 3] = s[S.bias:S.bias + 3]
+    s[S.far_time] += elapsed
+
+
+@njit(cache=True)
+def mag_update(s, P, p, t, mag, rate, has_rate, f):
+    """A magnetometer sample: the turn test and the field check; a field judged usable is
+    averaged in the world frame and corrects the heading at most at ``update_rate_hz``
+    (and, when an undisturbed field has disagreed for long, the estimate is recovered)."""
+    mw = rotate3(s, mag)
+    n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
+    dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
+    dt = t - s[S.mag_t] if np.isfinite(s[S.mag_t]) else 0.0
+    dt = min(max(dt, 0.0), DT_MAX)
+    s[S.mag_t] = t
+    f[F_MAG_VAL] = n
+    f[F_MAG] = R_USED
+    turn = _turn_check(s, p, mw, dt, rate, has_rate)
+    ok = _field_check(s, p, n, dip, dt, rate, turn, f)
+    scale = 1.0
+    if ok:
+        s[S.reject_time] = max(s[S.reject_time] - p[PRM.mag_reject_factor] * dt, 0.0)
+    elif p[PRM.mag_max_reject] > 0.0 and s[S.reject_time] > p[PRM.mag_max_reject]:
+        # refused for long: a field that stays is the field; resume, slower (still flagged)
+        scale = p[PRM.mag_reject_factor]
+    else:
+        s[S.reject_time] += dt
+        return
+    # the samples used are averaged in the world frame; the heading correction with
+    # their mean runs at most at update_rate_hz
+    for i in range(3):
+        s[S.mag_sum + i] += mw[i]
+    s[S.mag_count] += 1.0
+    due, elapsed = update_is_due(s, S.mag_upd_time, dt, p)
+    if not due:
+        return
+    mx = s[S.mag_sum_x] / s[S.mag_count]
+    my = s[S.mag_sum_y] / s[S.mag_count]
+    mz = s[S.mag_sum_z] / s[S.mag_count]
+    s[S.mag_sum:S.mag_sum + 3] = 0.0
+    s[S.mag_count] = 0.0
+    hn = np.sqrt(mx * mx + my * my)
+    if hn < 1e-3 * n:
+        return  # field (almost) vertical: no heading information
+    m_mean = np.empty(3)
+    m_mean[0], m_mean[1], m_mean[2] = mx, my, mz
+    innov = heading_innovation(m_mean)
+    Rm = np.empty((1, 1))
+    Rm[0, 0] = (scale * p[PRM.heading_noise]) ** 2 / elapsed
+    if s[S.ref_ok] != 0.0 and p[PRM.mag_dev_weight] > 0.0:
+        # a field off its reference by Δ (strength change, or |m|·Δdip) can turn the
+        # horizontal field by up to Δ/|m_h|: that much heading noise, within the gates too
+        nh = s[S.ref_norm] * np.cos(s[S.ref_dip])
+        dn = s[S.mag_nd_norm] - s[S.ref_norm]
+        dd = s[S.mag_nd_norm] * (s[S.mag_nd_dip] - s[S.ref_dip])
+        Rm[0, 0] += p[PRM.mag_dev_weight] ** 2 * (dn * dn + dd * dd) / max(nh * nh, 1e-6)
+    H = heading_jacobian(m_mean)
+    gate = p[PRM.mag_nis_gate]
+    lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]
+    if lost:
+        # an undisturbed field has disagreed with the estimate for long: the estimate is
+        # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
+        # the bias learned meanwhile (from a heading that was wrong) is dropped.
+        P[2, 2] += innov[0] ** 2
+        gate = 0.0
+        s[S.bias:S.bias + 3] = s[S.bias_good:S.bias_good + 3]
+    ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING)
+    f[F_MAG_NIS] = nis
+    if ok2:
+        inject(s, P, dx)
+        if not lost and p[PRM.bias_heading_noise] > 0.0 and s[S.rest] == 0.0:
+            s[S.mb_sum_z] += dx[2]
+            s[S.mb_time_heading] += elapsed
+            if s[S.mb_time_heading] >= BIAS_UPD_S:
+                heading_bias_update(s, P, p, s[S.mb_sum_z], s[S.mb_time_heading])
+                s[S.mb_sum_z] = 0.0
+                s[S.mb_time_heading] = 0.0
+        if lost:
+            f[F_MAG] = R_RECOVER
+            f[F_MAG_VAL] = innov[0]
+            s[S.far_time] = 0.0
+        elif ok and p[PRM.mag_lost_angle] > 0.0 and abs(innov[0]) > p[PRM.mag_lost_angle]:
+            _far(s, elapsed)  # accepted, but still far: the slow correction may not do
+        else:
+            s[S.far_time] = 0.0
+    else:
+        if f[F_MAG] == R_USED:
+            f[F_MAG] = R_NIS
+            f[F_MAG_VAL] = nis
+        if ok:
+            _far(s, elapsed)

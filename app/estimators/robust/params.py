@@ -1,0 +1,245 @@
+"""The robust filter's parameters and the compiled kernels' parameter vector.
+
+The compiled kernels keep the filter in two flat float arrays, the state ``s`` and the
+parameter vector ``p`` (numba's fastest form). Their slots are NAMED, once: ``PRM.gyr_noise``
+is the offset of that parameter in ``p`` (here), ``S.q`` the offset of the attitude in ``s``
+(:mod:`.state`). As in vqf's pyvqf.py, three kinds of numbers are kept apart: parameters
+(the user's, :class:`RobustParams`), coefficients derived from them (``DERIVED`` below,
+recomputed by ``RobustEKF._on_params`` on every change) and the state (``STATE``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+from dataclasses import MISSING, dataclass, fields as dataclass_fields
+
+import numpy as np
+
+from app.params import CommonParams, DEG, param
+
+GRAVITY = 9.81
+
+
+@dataclass(frozen=True)
+class RobustParams(CommonParams):
+    gyr_noise: float = param(0.005, unit="rad/√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/√s",
+                             user_scale=DEG, doc="gyroscope noise density (attitude random walk)")
+    bias_noise: float = param(3e-5, unit="rad/s/√s", lo=0.0, hi=0.1, log=True, user_unit="deg/s/√s",
+                              user_scale=DEG, doc="gyroscope bias random walk")
+    bias_max: float = param(0.3, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s", user_scale=DEG,
+                            doc="a bias estimate above this is implausible (the filter is lost): it "
+                                "is reset and flagged; 0: off")
+    gyr_scale_noise: float = param(0.02, unit="√s", lo=0.0, hi=1.0,
+                                   doc="tilt noise density per rad/s of net turn rate (the world-frame "
+                                       "turn rate low-passed over acc_tau): a gyroscope's scale factor, off "
+                                       "by 0.2-3 %, turns the estimate by that share of the net rotation "
+                                       "(0.02 √s: about 1 % over acc_tau), so a steady turn makes the tilt "
+                                       "correct faster; a back-and-forth (running, swinging) cancels and "
+                                       "does not; 0: off")
+    refused_turn_noise: float = param(0.01, unit="√s", lo=0.0, hi=1.0,
+                                      doc="heading noise density per rad/s of vertical turn rate while the "
+                                          "field is refused as disturbed: the gyroscope alone then keeps the "
+                                          "heading, off by its scale error (0.2-3 %) × the turn, so the heading "
+                                          "σ grows with the turn and the first good field after a long refusal "
+                                          "corrects at once, not at the steady rate (0.01 √s: 1 % of a turn "
+                                          "over a second); 0: off")
+    bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
+                             user_scale=DEG, doc="σ of the gyroscope bias at the start")
+    bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
+                                     user_scale=DEG,
+                                     doc="noise density of the bias seen in the rate of the tilt corrections "
+                                         "(during motion the specific force left after the low-pass makes "
+                                         "the corrections wander for seconds); 0: no bias learning in motion")
+    bias_motion_clip: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s",
+                                    user_scale=DEG,
+                                    doc="a correction rate is taken to show at most this much bias error "
+                                        "(a first correction after a moving start, a shake, is no bias); "
+                                        "the estimate itself is not clipped: a phone's 3-6 °/s is learned "
+                                        "at rest at once, in motion in steps of this; 0: no clip")
+    bias_heading_noise: float = param(2.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
+                                      user_scale=DEG,
+                                      doc="likewise for the bias about the vertical, seen in the rate of the "
+                                          "heading corrections (indoor fields bend the heading by degrees "
+                                          "for many seconds: larger than the tilt's); 0: off")
+    gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
+                            doc="initial gyroscope bias (calibration)")
+    tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+                              user_scale=DEG, doc="noise density of the low-passed gravity direction")
+    acc_tau: float = param(4.5, unit="s", lo=0.0, hi=60.0,
+                           doc="time constant of the inertial low-pass of the accelerometer")
+    tilt_damping: float = param(math.sqrt(0.5), lo=0.0, hi=2.0,
+                                doc="damping ratio ζ of the tilt loop (the low-pass and the corrections "
+                                    "together, a second-order system): 1/√2 as VQF's Butterworth "
+                                    "low-pass, a drift error of 2ζ/ωn; 1 critically damped; 0: off (the "
+                                    "low-pass turns with every correction: overdamped, ζ >= 1, it lags "
+                                    "more)")
+    acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
+                                doc="tilt corrections pause while | |a| - g | > this × g (every sample "
+                                    "still enters the low-pass); 0: off")
+    tilt_motion_time: float = param(0.0, unit="s", lo=0.0, hi=10.0,
+                                    doc="correlation time of the specific force: its power (low-passed, "
+                                        "over g²) times this is added to tilt_noise² (0: off)")
+    acc_flag_angle: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
+                                  user_scale=DEG, doc="a sample this far from the low-passed gravity is "
+                                                      "flagged as specific force (ACCEL; it still enters "
+                                                      "the low-pass); 0: off")
+    acc_flag_rel: float = param(0.1, lo=0.0, hi=5.0,
+                                doc="likewise when | |a| - g | > this × g; 0: off")
+    acc_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
+                                doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
+    heading_noise: float = param(0.15, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+                                 user_scale=DEG, doc="noise density of the magnetometer heading")
+    mag_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
+                                doc="NIS gate of the heading update (χ², 1 dof); 0: off")
+    mag_norm_gate_rel: float = param(0.15, lo=0.0, hi=2.0,
+                                     doc="field strength may differ from the reference by this fraction; 0: off")
+    mag_dip_gate: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
+                                doc="dip angle may differ from the reference by this much; 0: off")
+    mag_ref_tau: float = param(20.0, unit="s", lo=0.1, hi=3600.0,
+                               doc="time constant of learning the field reference while undisturbed")
+    mag_new_field_time: float = param(20.0, unit="s", lo=0.0, hi=600.0,
+                                      doc="a new homogeneous field is accepted after this long while turning")
+    mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
+                                    user_scale=DEG, doc="turn rate that counts towards accepting a new field")
+    mag_max_reject: float = param(60.0, unit="s", lo=0.0, hi=3600.0,
+                                  doc="after this long refused as disturbed, the heading update resumes "
+                                      "mag_reject_factor times slower (a field that stays is the field); "
+                                      "0: never")
+    mag_reject_factor: float = param(2.0, lo=1.0, hi=100.0,
+                                     doc="heading noise multiplier of the resumed updates in a field "
+                                         "judged disturbed; the rejection budget refills this much faster")
+    mag_dev_weight: float = param(1.0, lo=0.0, hi=100.0,
+                                  doc="heading σ added per relative deviation of the field from its "
+                                      "reference (Δ/|m_h|), within the gates too; 0: off")
+    mag_first_field_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
+                                        doc="the first field reference is a field stable this long (until "
+                                            "then every sample corrects the heading: nothing to judge it by)")
+    mag_min_undisturbed: float = param(0.5, unit="s", lo=0.0, hi=60.0,
+                                       doc="a field within the gates this long ends a disturbance")
+    mag_norm_dip_tau: float = param(0.05, unit="s", lo=0.0, hi=10.0,
+                                    doc="time constant of the low-pass of strength and dip (and of the "
+                                        "world-frame field of the turn test) before the gates")
+    mag_turn_gate: float = param(15.0 / DEG, unit="rad/s", lo=0.0, hi=100.0, user_unit="deg/s",
+                                 user_scale=DEG,
+                                 doc="a real field is fixed in the world: seen through the estimate, whose "
+                                     "turns are the gyroscope's, it stays put while the phone turns. A field "
+                                     "that changes faster than this (relative change, as an angle per second) "
+                                     "beyond what the turn explains is a disturbance (flag TURN): a magnet "
+                                     "brought in, before its strength or dip leave their gates. 2.5× a "
+                                     "phone's largest gyroscope bias (0.1 rad/s, which turns the field this "
+                                     "way until it is learned); 0: off")
+    mag_turn_rel: float = param(0.5, lo=0.0, hi=10.0,
+                                doc="change rate of the world-frame field (rad/s) allowed per rad/s of turn "
+                                    "rate: a saturated gyroscope (running) reads at least 2/3 of the turn; "
+                                    "scale error, magnetometer lag and residual hard iron are smaller")
+    mag_turn_tau: float = param(0.2, unit="s", lo=0.01, hi=10.0,
+                                doc="the turn test's time scale: the world-frame field low-passed over "
+                                    "mag_norm_dip_tau is low-passed again over this, a change at rate r "
+                                    "leaves it behind by r × this; the turn rate is low-passed over it too")
+    rest_gyr_th: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s", user_scale=DEG,
+                               doc="rest: gyroscope deviation from its low-pass below this")
+    rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,
+                               doc="rest: accelerometer deviation from its low-pass below this")
+    rest_time: float = param(1.5, unit="s", lo=0.0, hi=60.0, doc="quiet this long = at rest; 0: no rest detection")
+    rest_noise: float = param(0.0016, unit="rad/s·√s", lo=1e-6, hi=1.0, log=True, user_unit="deg/s·√s",
+                              user_scale=DEG, doc="noise density of the bias measurement at rest (VQF's "
+                                                  "0.09 °/s·√s: ten times a phone gyroscope's white noise, "
+                                                  "for a table that trembles; a short rest must teach "
+                                                  "the bias, motion teaches it slowly)")
+    rw_noise: float = param(0.5, unit="rad/√s", lo=1e-4, hi=10.0, log=True,
+                            doc="attitude random walk without gyroscope")
+    update_rate_hz: float = param(50.0, unit="Hz", lo=0.0, hi=10000.0,
+                                  doc="most measurement updates per second and sensor (the low-passes "
+                                      "and averages see every sample); 0: every sample")
+    rest_lp_tau: float = param(0.5, unit="s", lo=0.0, hi=10.0,
+                               doc="rest detection: time constant of the gyroscope and accelerometer "
+                                   "low-passes the samples are compared with")
+    mag_cand_tau: float = param(2.0, unit="s", lo=0.0, hi=60.0,
+                                doc="time constant of the candidate new field's strength and dip")
+    mag_cand_norm_rel: float = param(0.05, lo=0.0, hi=2.0,
+                                     doc="a candidate new field stays one while its strength stays within "
+                                         "this fraction (at least mag_norm_gate_rel)")
+    mag_cand_dip: float = param(0.05, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
+                                doc="likewise for its dip angle (at least mag_dip_gate)")
+    mag_lost_angle: float = param(30.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
+                                  user_scale=DEG, doc="an undisturbed field this far from the estimated "
+                                                      "heading for mag_lost_time means the estimate is lost")
+    mag_lost_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
+                                 doc="after this long with an undisturbed field far from the heading (or "
+                                     "refused by the NIS gate), the estimate is judged lost: its heading σ "
+                                     "grows to the error and the field's heading is taken (flag RECOVER); "
+                                     "0: never")
+    init_tilt_std: float = param(10.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
+                                 user_scale=DEG, doc="σ of the tilt after the initial alignment")
+    init_heading_std: float = param(20.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
+                                    user_scale=DEG, doc="σ of the heading after an alignment with the field")
+    noacc_tilt_std: float = param(30.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
+                                  user_scale=DEG, doc="σ of the tilt of a start without accelerometer (level)")
+
+
+# ----------------------------------------------------------------- layouts
+
+def layout(name: str, fields) -> tuple:
+    """A namedtuple of offsets for ``fields`` ((name, size), ...) and the total size.
+    A size may be given as the names of the slot's components instead (a string of
+    one-letter names or a tuple of names): ``("q", "wxyz")`` names the slot ``q`` (its
+    first offset) and each component, ``q_w``, ``q_x``, ``q_y``, ``q_z``, so code reads
+    ``s[S.q_x]``, never ``s[S.q + 1]``. numba folds a global namedtuple's fields into
+    constants: no cost per access."""
+    offsets, n = {}, 0
+
+    def name_slot(slot: str, offset: int) -> None:
+        if slot in offsets:
+            raise ValueError(f"{name}: {slot!r} named twice")
+        offsets[slot] = offset
+
+    for fname, size in fields:
+        name_slot(fname, n)
+        if not isinstance(size, int):
+            for i, c in enumerate(size):
+                name_slot(f"{fname}_{c}", n + i)
+            size = len(size)
+        n += size
+    return namedtuple(name, offsets)(**offsets), n
+
+
+# coefficients derived from the parameters (appended to the parameter vector)
+DERIVED = (
+    ("upd_dt", 1, "s between two measurement updates of a sensor (1/update_rate_hz; 0: every sample)"),
+    ("acc_flag_cos", 1, "cos(acc_flag_angle): the flag test compares cosines"),
+)
+
+
+def _param_fields():
+    """(name, size) of every RobustParams field, in order, then the derived coefficients."""
+    out = []
+    for f in dataclass_fields(RobustParams):
+        default = f.default_factory() if f.default is MISSING else f.default
+        out.append((f.name, len(default) if isinstance(default, tuple) else 1))
+    return tuple(out) + tuple((n, k) for n, k, _ in DERIVED)
+
+
+PRM, NPARAM = layout("ParamLayout", _param_fields())
+
+
+def derived(p: RobustParams) -> dict[str, float]:
+    """The coefficients derived from the parameters (see ``DERIVED``)."""
+    return {"upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0,
+            "acc_flag_cos": math.cos(p.acc_flag_angle)}
+
+
+def param_vector(p: RobustParams) -> np.ndarray:
+    """The compiled kernels' parameter vector: every field of ``p`` at its ``PRM`` offset
+    (booleans as 0/1, vectors over consecutive slots), then the derived coefficients."""
+    v = np.zeros(NPARAM)
+    for f in dataclass_fields(RobustParams):
+        val = getattr(p, f.name)
+        off = getattr(PRM, f.name)
+        if isinstance(val, tuple):
+            v[off:off + len(val)] = val
+        else:
+            v[off] = float(val)
+    for name, val in derived(p).items():
+        v[getattr(PRM, name)] = val
+    return v

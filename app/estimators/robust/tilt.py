@@ -1,0 +1,170 @@
+"""The tilt: the accelerometer update, its inertial low-pass and the tilt loop's damping.
+
+- **Tilt from an inertial low-pass of the accelerometer.** Each specific-force sample
+  is rotated into the world frame and low-pass filtered there (``acc_tau``, 4.5 s), so
+  the phone's accelerations, which average to zero, cancel, while gravity stays. The
+  filtered direction is the measurement (2 components, ``h = (-δθy, δθx)``); the
+  filter state is rotated with every correction, so it always lives in the current
+  estimate's world frame (by how much: below). Every valid sample enters the low-pass
+  (leaving out the peaks of a movement would bias its mean); an innovation (NIS) gate, and optionally
+  a norm band (off by default: it costs accuracy on real data), hold the correction.
+- **A damped tilt loop** (``tilt_damping``). The low-pass (time constant τ =
+  ``acc_tau``) and the corrections (time constant τc = 1/gain, from P) form a
+  second-order loop. Turning the low-pass with every correction makes its poles real,
+  -1/τ and -1/τc: overdamped, and a gyroscope drift d leaves d·(τ + τc) of tilt error.
+  Turning it with a share ρ of each tilt correction gives s² + (1/τ + ρ/τc) s + 1/(τ τc):
+  the same rejection of fast specific force (1/(τ τc ω²)), damping ζ set by ρ =
+  2ζ√(τc/τ) - τc/τ, a drift error of d·(τc + ρτ) = d·2ζ/ωn with ωn = 1/√(τ τc).
+  The default is VQF's damping, ζ = 1/√2 (its second-order Butterworth low-pass), at
+  the bandwidth the overdamped loop had (ωn ≈ 0.28 rad/s at rest: τ = 4.5 s, τc =
+  ``tilt_noise / gyr_noise`` = 3 s, before τ = 3 s, τc = 4 s): the same rejection of
+  the specific force, ~30 % less lag where the gyroscope drifts (fast turns).
+- **Specific force flagged.** An accelerometer sample far from the low-passed gravity
+  (``acc_flag_angle``, ``acc_flag_rel``) is flagged ACCEL with the angle (it still
+  enters the low-pass): a shake shows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from app import quaternion as qm
+from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_NORM, R_USED
+from app.estimators.kalman import correct
+from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
+from app.estimators.robust.params import GRAVITY, PRM
+from app.estimators.robust.state import S, inject, lp_coef, rotate3, update_is_due
+
+_MASK_ATTITUDE = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+
+# Measurement models in the error state x = [δθ (world), δb]. With q_true = exp(δθ) ⊗ q,
+# a world-frame vector v seen through the estimate is v - δθ × v, so dv/dδθ = [v]×.
+# The Jacobians here and in :mod:`.heading` follow from that (tested against finite
+# differences).
+
+
+@njit(cache=True)
+def tilt_innovation(a_world):
+    """Horizontal components of the (low-passed) specific-force direction in the
+    estimate's world frame: zero when the estimate's 'up' is right."""
+    n = qm.norm3(a_world)
+    out = np.empty(2)
+    out[0] = a_world[0] / n
+    out[1] = a_world[1] / n
+    return out
+
+
+@njit(cache=True)
+def tilt_jacobian(a_world):
+    """d tilt_innovation / dx (2x6): (I - â âᵀ)/|a| [a]× restricted to x, y; for
+    a along +z it is [[0, -1, 0], [1, 0, 0]] (the tilt error, rotated)."""
+    n = qm.norm3(a_world)
+    u0, u1, u2 = a_world[0] / n, a_world[1] / n, a_world[2] / n
+    H = np.zeros((2, 6))
+    u = (u0, u1, u2)
+    for r in range(2):
+        for c in range(3):
+            # [â]× column c, without making the matrix
+            c0, c1, c2 = ((0.0, u2, -u1) if c == 0 else ((-u2, 0.0, u0) if c == 1 else (u1, -u0, 0.0)))
+            v = c0 if r == 0 else c1
+            v -= u[r] * u0 * c0
+            v -= u[r] * u1 * c1
+            v -= u[r] * u2 * c2
+            H[r, c] = v
+    return H
+
+
+@njit(cache=True)
+def acc_update(s, P, p, t, acc, f):
+    """An accelerometer sample: into the inertial low-pass (flagged when it is far from
+    gravity), then, at most at ``update_rate_hz``, the tilt correction from the low-pass."""
+    n = qm.norm3(acc)
+    f[F_ACC_VAL] = n
+    dt = t - s[S.acc_t] if np.isfinite(s[S.acc_t]) else 0.0
+    s[S.acc_t] = t
+    if dt <= 0.0:
+        dt = 1e-3
+    # inertial low-pass, with a running mean while younger than acc_tau (fast start)
+    k = lp_coef(dt, p[PRM.acc_tau])
+    age = t - s[S.t0]
+    if age > 0.0 and dt / (age + dt) > k:
+        k = dt / (age + dt)
+    aw = rotate3(s, acc)
+    d2 = 0.0
+    for i in range(3):
+        s[S.acc_lp + i] += k * (aw[i] - s[S.acc_lp + i])
+        d2 += (aw[i] - s[S.acc_lp + i]) ** 2
+    # the power of the specific force over the same window (what the low-pass averages out)
+    s[S.acc_var] += k * (d2 - s[S.acc_var])
+    f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
+    # specific force: the sample is far from the low-passed gravity (angle) or from g
+    # (norm): the phone accelerates. It still enters the low-pass (the accelerations
+    # average out there) but is flagged, so a shake shows, with the angle as its value.
+    if p[PRM.acc_flag_angle] > 0.0 or p[PRM.acc_flag_rel] > 0.0:
+        ln = qm.norm3(s[S.acc_lp:S.acc_lp + 3])
+        c = (aw[0] * s[S.acc_lp_x] + aw[1] * s[S.acc_lp_y] + aw[2] * s[S.acc_lp_z]) / max(n * ln, 1e-12)
+        c = min(1.0, max(-1.0, c))
+        # angle > acc_flag_angle  <=>  cos(angle) < cos(acc_flag_angle): the arccos only for a flag
+        if ((p[PRM.acc_flag_angle] > 0.0 and c < p[PRM.acc_flag_cos])
+                or (p[PRM.acc_flag_rel] > 0.0 and abs(n - GRAVITY) > p[PRM.acc_flag_rel] * GRAVITY)):
+            f[F_ACC] = R_ACCEL
+            f[F_ACC_VAL] = np.arccos(c)
+    # Every valid sample enters the low-pass: the specific force only averages out if
+    # none is left out (refusing the peaks of a movement would bias the mean). The norm
+    # band gates the *correction* instead: no tilt update while |a| is far from g.
+    if p[PRM.acc_band_rel] > 0.0 and abs(n - GRAVITY) > p[PRM.acc_band_rel] * GRAVITY:
+        f[F_ACC] = R_NORM
+        return
+    due, elapsed = update_is_due(s, S.acc_upd_time, dt, p)
+    if not due:
+        return
+    dt = elapsed
+    a = s[S.acc_lp:S.acc_lp + 3]
+    an = qm.norm3(a)
+    if an < 1e-6:
+        return
+    # noise density of the low-passed direction: the sensor's, plus what the specific force
+    # leaves in it (its power over g², times its correlation time): a walking or running
+    # phone's gravity estimate is trusted less than a still one's
+    r = (p[PRM.tilt_noise] ** 2 + p[PRM.tilt_motion_time] * s[S.acc_var] / (GRAVITY * GRAVITY)) / dt
+    Rm = np.zeros((2, 2))
+    Rm[0, 0] = r
+    Rm[1, 1] = r
+    # the tilt update corrects the attitude only: its error is the specific force left in the
+    # low-pass, correlated for seconds, which a white-noise model would let the bias absorb
+    # (the bias is learned from the corrections' rate below, slowly, as VQF does)
+    lp_frac = _tilt_lp_share(P, r, dt, p) if p[PRM.tilt_damping] > 0.0 else 1.0
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[PRM.acc_nis_gate], _MASK_ATTITUDE)
+    f[F_ACC_NIS] = nis
+    if ok:
+        inject(s, P, dx, lp_frac)
+        if p[PRM.bias_motion_noise] > 0.0:
+            s[S.mb_sum_x] += dx[0]
+            s[S.mb_sum_y] += dx[1]
+            s[S.mb_time_tilt] += dt
+            if s[S.mb_time_tilt] >= BIAS_UPD_S:
+                motion_bias_update(s, P, p, s[S.mb_sum_x], s[S.mb_sum_y], s[S.mb_time_tilt])
+                s[S.mb_sum_x] = 0.0
+                s[S.mb_sum_y] = 0.0
+                s[S.mb_time_tilt] = 0.0
+    else:
+        f[F_ACC] = R_NIS
+        f[F_ACC_VAL] = nis
+
+
+@njit(cache=True)
+def _tilt_lp_share(P, r, dt, p):
+    """The share ρ of a tilt correction the low-pass turns with, for a tilt loop of damping
+    ζ = ``tilt_damping``: ρ = 2ζ√x - x with x = τc/τ (module doc). τc is the correction's
+    time constant, dt/-ln(1 - k) for this update's gain k = P/(P + R) on the tilt (the
+    Jacobian of a vertical low-pass is a rotation: the gain is that of one axis)."""
+    ptt = 0.5 * (P[0, 0] + P[1, 1])
+    k = ptt / (ptt + r)
+    if k >= 1.0:
+        return 0.0
+    tau = p[PRM.acc_tau]
+    if tau <= 0.0 or k <= 0.0:
+        return 1.0
+    x = dt / (-np.log(1.0 - k) * tau)
+    return min(1.0, max(0.0, 2.0 * p[PRM.tilt_damping] * np.sqrt(x) - x))
