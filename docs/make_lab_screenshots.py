@@ -38,8 +38,8 @@ STILL = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activit
 
 
 def demo_log(path: Path, seconds: float) -> None:
-    from app.protocol import format_line
-    from app.simulate import Simulation, stream
+    from app.sources.sensorfusion import format_line
+    from app.sources.simulate import Simulation, stream
     boot = Simulation().config.boot_ms
     with open(path, "w") as fh:
         for ms, tag, vals in stream(5):

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
-from app.protocol import MalformedLine, parse_line  # noqa: E402
+from app.sources.sensorfusion import MalformedLine, parse_line
 from harness import (CHROMIUM, CHROMIUM_ARGS, Phone, hide_notices, log_lines,  # noqa: E402
                      running_server)
 
