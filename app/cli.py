@@ -1,7 +1,7 @@
 """The ``orientlab`` command: estimate orientation from a recording, calibrate, serve.
 
 ``orientlab estimate INPUT --out OUT.csv``
-    Reads INPUT (a Sensor Fusion app log, a CSV or an npz: see :mod:`app.readers`),
+    Reads INPUT (a Sensor Fusion app log, a CSV or an npz: see :mod:`app.sources.readers`),
     runs one estimator over it in chunks (memory stays bounded; the estimator's state
     carries over from chunk to chunk) and writes a CSV with the header
     ``t,qw,qx,qy,qz,`` followed by the flag columns of
@@ -28,7 +28,7 @@
     the estimation only, not reading or writing). ``--quiet`` keeps only that last line.
 
 ``orientlab calibrate INPUT --out PRESET.toml``
-    Statistics of a stationary recording (lab manual exercise 2, :mod:`app.calibration`):
+    Statistics of a stationary recording (lab manual exercise 2, :mod:`app.toolkit.calibration`):
     prints the report and writes a preset for ``--config``.
 
 ``orientlab serve``
@@ -56,22 +56,17 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-import numpy as np
-
-from .config import ConfigError, load_config
-from .estimators import DEFAULT, FLAG_COLUMNS, NAMES, Reason, TimeIssue, make_estimator
-from .estimators.base import (F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL,
-                              F_REST, F_TIME, count_flags)
-from .params import ParamError
-from .readers import DEFAULT_CHUNK_ROWS, ReaderError, iter_chunks
-from .warmup import prepare
+from app.config import ConfigError, load_config
+from app.estimators import DEFAULT, NAMES, make_estimator
+from app.estimators.base import count_flags
+from app.params import ParamError
+from app.sources.readers import DEFAULT_CHUNK_ROWS, ReaderError, iter_chunks
+from app.toolkit.recording import OUTPUT_COLUMNS, format_rows
+from app.warmup import prepare
 
 PROG = "orientlab"
 # inputs at least this large show a progress line even when stderr is not a terminal
 PROGRESS_MIN_BYTES = 20_000_000
-OUTPUT_COLUMNS = ("t", "qw", "qx", "qy", "qz") + FLAG_COLUMNS
-_REASON_LABELS = {int(r): r.label for r in Reason}
-_TIME_LABELS = {int(r): r.name.lower() for r in TimeIssue}
 
 
 class CliError(Exception):
@@ -154,8 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="TCP port the phone streams to (3400, the app's default)")
     s.add_argument("--config", "-c", metavar="FILE", help="preset TOML")
     s.add_argument("--source", default="demo", metavar="SOURCE",
-                   help="'demo' (simulated phone), 'none' (wait for a phone) or a "
-                        "recording to replay (default demo)")
+                   help="'demo' (simulated phone), 'none' (wait for a phone), "
+                        "'phyphox:http://PHONE:PORT' (poll a phyphox phone's remote access) "
+                        "or a recording to replay (default demo)")
     s.add_argument("--open", action="store_true",
                    help="trusted network: no presenter token, anyone may change the session "
                         "(default: only the link printed at start, which holds a token)")
@@ -184,31 +180,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # ---------------------------------------------------------------- estimate
-
-def _labels(col: np.ndarray, table: dict[int, str]) -> list[str]:
-    return [table.get(v, str(v)) for v in col.astype(int).tolist()]
-
-
-def _numbers(col: np.ndarray, fmt: str) -> list[str]:
-    return ["" if v != v else fmt % v for v in col.tolist()]
-
-
-def format_rows(t: np.ndarray, q: np.ndarray, flags: np.ndarray) -> str:
-    """CSV text (no header) of estimates and flag records, see the module doc."""
-    cols = [_numbers(t, "%.6f")] + [_numbers(q[:, i], "%.9f") for i in range(4)]
-    for j in range(flags.shape[1]):
-        if j in (F_GYR, F_ACC, F_MAG):
-            cols.append(_labels(flags[:, j], _REASON_LABELS))
-        elif j == F_TIME:
-            cols.append(_labels(flags[:, j], _TIME_LABELS))
-        elif j == F_REST:
-            cols.append(["1" if v > 0.5 else "0" for v in flags[:, j].tolist()])
-        elif j in (F_ACC_VAL, F_ACC_NIS, F_MAG_VAL, F_MAG_NIS):
-            cols.append(_numbers(flags[:, j], "%.6g"))
-    if not cols[0]:
-        return ""
-    return "\n".join(",".join(r) for r in zip(*cols)) + "\n"
-
 
 def _merge_counts(total: dict, part: dict) -> None:
     for key, sub in part.items():
@@ -344,8 +315,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- calibrate
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibration import calibrate, format_report, to_preset
-    from .readers import read_recording
+    from app.toolkit.calibration import calibrate, format_report, to_preset
+    from app.sources.readers import read_recording
 
     rec = read_recording(args.input)
     stats = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
@@ -370,7 +341,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- serve, compile
 
 def cmd_compile(args: argparse.Namespace) -> int:
-    from .warmup import compile_all
+    from app.warmup import compile_all
     if args.jobs is not None and args.jobs < 1:
         raise CliError("--jobs must be at least 1")
     return compile_all(jobs=args.jobs)
@@ -378,7 +349,7 @@ def cmd_compile(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     try:
-        from .server.run import serve
+        from app.server.run import serve
     except ImportError as e:
         raise CliError(f"serve is not available ({e})") from None
     try:
@@ -388,7 +359,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_params(args) -> int:
-    from .config import defaults_toml, params_table
+    from app.config import defaults_toml, params_table
     print(defaults_toml() if args.toml else params_table(), end="")
     return 0
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .jitcache import ensure_fresh
+from app.jitcache import ensure_fresh
 
 ensure_fresh()   # before anything compiled runs: a cache older than its sources is dropped
 

@@ -36,8 +36,8 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
     per row as a stream sends them, and the read-outs) and ``orientlab estimate``
     (``batch``: arrays with and without magnetometer and ORI) take, so numba compiles
     (or loads) them."""
-    from . import quaternion as qm
-    from .estimators import make_estimator
+    from app import quaternion as qm
+    from app.estimators import make_estimator
 
     est = make_estimator(name)
     g, a, m = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 9.81]), np.array([0.0, 20.0, -45.0])
@@ -64,7 +64,7 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
     est.attitude_cov()
     est.reset()
     # the live bench's per-chunk bookkeeping (app.live.bench)
-    from .estimators.base import NFLAGS, split_rows, tally_rows
+    from app.estimators.base import NFLAGS, split_rows, tally_rows
     kind = np.array([0, 1, 2, 3], dtype=np.int8)
     G, A, M, O = np.empty((4, 3)), np.empty((4, 3)), np.empty((4, 3)), np.empty((4, 4))
     split_rows(kind, np.zeros((4, 4)), G, A, M, O)
@@ -78,7 +78,7 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
 
 
 def names() -> tuple[str, ...]:
-    from .estimators import NAMES
+    from app.estimators import NAMES
     return tuple(NAMES)
 
 
@@ -151,7 +151,7 @@ def compile_all(jobs: int | None = None, out: TextIO | None = None,
     and returns 0, or 1 with the failing child's error output."""
     out = out if out is not None else sys.stderr
     jobs = max(1, jobs or os.cpu_count() or 1)
-    from .jitcache import ensure_fresh
+    from app.jitcache import ensure_fresh
     if ensure_fresh():   # here, once, before the children load the cache
         print(f"{prog}: the filters' sources changed: their numba cache was dropped",
               file=out, flush=True)

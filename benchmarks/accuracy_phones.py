@@ -94,7 +94,7 @@ def load_broad(data: Path = BROAD) -> list[dict]:
 
 def load_app_logs() -> list[dict]:
     from conftest import REAL_LOGS
-    from app.readers import read_recording
+    from app.sources.readers import read_recording
     out = []
     for rel in REAL_LOGS:
         p = SHARED / "sensorfusion-app" / rel

@@ -8,7 +8,7 @@ What it does
   receive every scene, GUI and plot update) **and 5 ``WS /ws/state`` clients** (every
   estimate); all ten read everything they are sent;
 - plays a phone over TCP on loopback: ACC, GYR and MAG at **500 Hz each** (1500 lines/s,
-  simulated with :mod:`app.simulate`), sent in 10 ms chunks at real-time speed, for
+  simulated with :mod:`app.sources.simulate`), sent in 10 ms chunks at real-time speed, for
   ``--seconds`` (default 20) after a 3 s warm-up; Nagle's algorithm stays on, as in a
   phone app that does not set ``TCP_NODELAY`` (the receiver acknowledges at once so
   the chunks are not held back);
@@ -59,8 +59,8 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
 from harness import free_port, wait_for  # noqa: E402
-from app.protocol import format_line  # noqa: E402
-from app.simulate import SimConfig, simulate  # noqa: E402
+from app.sources.sensorfusion import format_line
+from app.sources.simulate import SimConfig, simulate
 
 RATE_HZ = 500
 CHUNK_S = 0.01
@@ -77,12 +77,12 @@ def cpu_seconds(pid: int) -> np.ndarray:
 
 
 # The server process: ``orientlab serve``; with variants, they are put on the bench as the
-# live core is built (the two ready-made ones of app/variants.py, as a lab would run them).
+# live core is built (the two ready-made ones of app/toolkit/variants.py, as a lab would run them).
 SERVER_CODE = """
 import sys, types
 from app.live import core
 from app.server.run import serve
-from app.variants import ready_made
+from app.toolkit.variants import ready_made
 
 N_VARIANTS = {variants}
 _init = core.LiveCore.__init__

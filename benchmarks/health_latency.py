@@ -39,8 +39,8 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
 from harness import free_port, wait_for  # noqa: E402
-from app.protocol import format_line  # noqa: E402
-from app.simulate import SimConfig, simulate, stream  # noqa: E402
+from app.sources.sensorfusion import format_line
+from app.sources.simulate import SimConfig, simulate, stream
 
 RATE_HZ = 500
 

@@ -22,9 +22,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from app.live import LiveCore  # noqa: E402
-from app.protocol import format_line  # noqa: E402
-from app.simulate import SimConfig, simulate  # noqa: E402
-from app.variants import ready_made  # noqa: E402
+from app.sources.sensorfusion import format_line
+from app.sources.simulate import SimConfig, simulate
+from app.toolkit.variants import ready_made
+from app.sources.sensorfusion import decode_lines  # noqa: E402
+from collections import Counter  # noqa: E402
+
+
+def feed_chunk(core, s, lines):
+    """A chunk of the app's lines as the TCP source feeds it: decoded, then fed."""
+    return core.feed(s, decode_lines(lines, Counter()))
 
 RATE_HZ = 500
 CHUNK = 15          # lines per 10 ms at 3 x 500 Hz
@@ -39,12 +46,12 @@ def one_run(lines: list[bytes], variants: int) -> dict[str, float]:
     chunks = [lines[i:i + CHUNK] for i in range(0, len(lines), CHUNK)]
     warm = len(chunks) // 10
     for c in chunks[:warm]:
-        core.process(s, core.feed(s, c))
+        core.process(s, feed_chunk(core, s, c))
     t_feed = t_proc = 0.0
     n = 0
     for c in chunks[warm:]:
         t0 = time.process_time()
-        released = core.feed(s, c)
+        released = feed_chunk(core, s, c)
         t1 = time.process_time()
         core.process(s, released)
         t2 = time.process_time()

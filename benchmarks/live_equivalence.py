@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import REAL_LOGS, SHARED  # noqa: E402
-from app.stream import SampleOrderer  # noqa: E402
+from app.sources.ordering import SampleOrderer
 
 CHUNK = 40
 NAMES = ("robust", "lab", "complementary", "phone")

@@ -1,7 +1,7 @@
 """A virtual 50 µT magnet on a real still phone: how far each filter's heading moves.
 
 Reads the Sensor Fusion app's standstill log (``../shared/data/sensorfusion-app``),
-adds a 50 µT magnet from 6 s to 11 s with :class:`app.inject.Injector` (the same
+adds a 50 µT magnet from 6 s to 11 s with :class:`app.toolkit.inject.Injector` (the same
 injection as the dashboard's *Bring a magnet*), along each of the phone's axes and
 the four compass directions (a magnet on the phone or on the desk), put down at once
 or brought in over ``ramp_s`` (0.5 s and 1 s: a hand), and prints for each filter
@@ -24,10 +24,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from app.estimators import make_estimator  # noqa: E402
-from app.inject import inject_at  # noqa: E402
+from app.toolkit.inject import inject_at
 from app.quaternion import error_angles  # noqa: E402
-from app.readers import rows_of_lines  # noqa: E402
-from app.variants import no_rejection_changes  # noqa: E402
+from app.sources.readers import rows_of_lines
+from app.toolkit.variants import no_rejection_changes
 
 LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
        / "sensorLog_20221024T182616_standstill.txt")

@@ -1,14 +1,14 @@
 """What-if re-run speed: a 10-minute 100 Hz recording re-run through every estimator.
 
 Writes a log of the simulated phone (ACC, GYR and ORI at 100 Hz, MAG at 50 Hz: 201 000
-lines for 10 minutes) to a temporary folder, then times :func:`app.whatif.rerun` with
+lines for 10 minutes) to a temporary folder, then times :func:`app.toolkit.whatif.rerun` with
 every estimator (``robust``, ``lab``, ``complementary``, ``phone`` and the variant
 ``robust-no-rejection``), once without a patch and once with a patch for ``robust``
 (so it runs twice). Prints the rows, the recording's duration, per estimator the CPU
 time, and the ratio to real time (target: >= 300x) for
 
 - **cold**: the whole re-run counted from the file (reading the log with
-  :func:`app.readers.read_recording`, then every estimator), as the first what-if on a
+  :func:`app.sources.readers.read_recording`, then every estimator), as the first what-if on a
   recording;
 - **warm**: a re-run of the log already parsed (the server keeps the last two parsed
   recordings: a what-if is repeated with new parameters).
@@ -16,7 +16,7 @@ time, and the ratio to real time (target: >= 300x) for
 Each figure is the best of ``--repeat`` runs, as wall time and as this process's CPU
 time (the machine may be shared: the load average is printed before and after; the CPU
 figure is what the code costs, the wall figure what a user waits on a loaded machine).
-The log is also read once line by line (:func:`app.readers.iter_chunks`, the streaming
+The log is also read once line by line (:func:`app.sources.readers.iter_chunks`, the streaming
 reader the whole-file read replaces for a what-if) for comparison. A warm-up run on a
 short log first, so numba's compilation is not counted.
 Usage: ``python benchmarks/whatif.py [--minutes 10] [--repeat 3]``.
@@ -34,11 +34,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from app.estimators import NAMES  # noqa: E402
-from app.readers import iter_chunks, read_recording  # noqa: E402
-from app.protocol import format_line  # noqa: E402
-from app.simulate import Simulation, stream  # noqa: E402
-from app.variants import no_rejection_changes  # noqa: E402
-from app.whatif import rerun  # noqa: E402
+from app.sources.readers import iter_chunks, read_recording
+from app.sources.sensorfusion import format_line
+from app.sources.simulate import Simulation, stream
+from app.toolkit.variants import no_rejection_changes
+from app.toolkit.whatif import rerun
 
 
 def write_log(path: Path, seconds: float) -> int:

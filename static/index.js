@@ -1,21 +1,101 @@
-// Embed the viser viewer (same host, its own port) and show how to connect a phone.
+// Embed the viser viewer (same host, its own port); the Connect tab (presenter only):
+// how each app reaches this PC, with QR codes, and the phone's status.
+let presenter = false;
+const $ = (id) => document.getElementById(id);
+
 async function init() {
   const info = await (await fetch("/api/info")).json();
+  presenter = info.presenter;
   let url = `${location.protocol}//${location.hostname}:${info.viewer_port}/`;
   if (info.viewer_token) {  // the presenter: the viewer's WebSocket carries the token
     const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${info.viewer_port}/?token=${encodeURIComponent(info.viewer_token)}`;
     url += `?websocket=${encodeURIComponent(ws)}`;
   }
-  document.body.classList.toggle("watch-only", !info.presenter);
-  if (!info.presenter) document.getElementById("source").title = "watch-only: the presenter's link holds the token that allows changes";
-  document.getElementById("viewer").src = url;
-  document.getElementById("viewer-link").href = url;
-  document.getElementById("lan-ip").textContent = info.lan_ip;
-  document.getElementById("phone-port").textContent = info.phone_port;
+  document.body.classList.toggle("watch-only", !presenter);
+  if (!presenter) $("source").title = "watch-only: the presenter's link holds the token that allows changes";
+  $("viewer").src = url;
+  $("viewer-link").href = url;
+  $("watch-note").hidden = presenter;
+  $("presenter-connect").hidden = !presenter;
+  tabs(".tabs [role=tab]", (b) => { for (const p of document.querySelectorAll("aside > section")) p.hidden = p.id !== b.dataset.panel; });
+  tabs(".apps [role=tab]", (b) => { for (const a of document.querySelectorAll(".app")) a.hidden = a.id !== "app-" + b.dataset.app; });
+  if (presenter) {
+    for (const img of document.querySelectorAll("img.qr")) img.src = `/api/connect/qr/${img.dataset.qr}.svg`;
+    $("release").onclick = () => post("/api/phone", { release: true });
+    $("lock").onclick = () => post("/api/phone", { locked: $("lock").dataset.locked !== "true" });
+    $("sl-convention").onchange = (e) => post("/api/sensorlogger/convention", { convention: e.target.value });
+    $("poll-form").onsubmit = (e) => { e.preventDefault(); post("/api/phyphox/poll", { url: $("poll-url").value }); };
+    connect();
+  }
   poll();
 }
+
+function tabs(selector, show) {
+  const buttons = document.querySelectorAll(selector);
+  for (const b of buttons) b.onclick = () => {
+    for (const o of buttons) o.setAttribute("aria-selected", String(o === b));
+    show(b);
+  };
+}
+
+async function post(path, body) {
+  const r = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+  if (!r.ok) {
+    const j = await r.json().catch(() => ({}));
+    const msg = Array.isArray(j.detail) ? j.detail.map((d) => d.msg).join("; ") : (j.detail || r.statusText);
+    $("phone-status").textContent = "refused: " + msg;
+  }
+  connect();
+}
+
+const fmt = (x, d = 0) => (x === null || x === undefined ? "–" : Number(x).toFixed(d));
+
+function describe(v) {
+  const slot = v.slot, s = v.stream, lines = [];
+  if (slot.holder) lines.push(`<b>${slot.holder.app_name}</b>: ${slot.holder.label}, streaming for ${fmt(slot.holder.for_s)} s` +
+    (slot.holder.silent_s > 1 ? `, silent for ${fmt(slot.holder.silent_s)} s` : ""));
+  else lines.push(s.kind === "phone" ? `last phone: ${s.label} (${s.close_reason || "ended"})` : "no phone: " + (s.kind || "waiting"));
+  const http = v.http.streams.find((x) => x.holder) || v.http.streams[0];
+  if (http && http.platform) lines.push(`platform ${http.platform}, convention ${http.convention} (${http.convention_source})`);
+  if (http && http.orientation) lines.push(`phone's own orientation: ${typeof http.orientation === "string" ? http.orientation : (http.orientation.message || http.orientation.state)}`);
+  if (s.kind && s.rates_hz) lines.push("rates: " + Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k)).map(([k, r]) => `${k} ${fmt(r)} Hz`).join(", "));
+  if (s.kind) lines.push(`late ${s.late}, clamped ${s.clamped}, malformed ${s.malformed}` +
+    (http ? `, gaps ${http.gaps ?? 0}, out of order ${http.out_of_order ?? 0}, duplicates ${http.duplicates ?? 0}` : ""));
+  if (http && http.clock_offset_s !== undefined && http.clock_offset_s !== null) lines.push(`phone clock − PC clock: ${fmt(http.clock_offset_s, 2)} s`);
+  if (s.last_sample_t !== null && s.last_sample_t !== undefined) lines.push(`last sample at ${fmt(s.last_sample_t, 2)} s (phone clock)`);
+  if (slot.locked) lines.push("<b>slot locked</b>: no new phone is accepted");
+  if (slot.last_refusal) lines.push(`refused ${slot.refused}×: ${slot.last_refusal.replace(/^orientlab: /, "")}`);
+  return lines.join("<br>");
+}
+
+async function connect() {
+  try {
+    const r = await fetch("/api/connect");
+    if (!r.ok) throw new Error(r.statusText);
+    const v = await r.json();
+    $("sl-url").textContent = v.sensor_logger.url;
+    $("px-url").textContent = v.phyphox.push_url;
+    $("sf-host").textContent = v.sensorfusion.host;
+    $("sf-port").textContent = v.sensorfusion.port;
+    $("phone-status").innerHTML = describe(v);
+    $("lock").textContent = v.slot.locked ? "Unlock slot" : "Lock slot";
+    $("lock").dataset.locked = String(v.slot.locked);
+    $("release").disabled = !v.slot.holder;
+    const sl = v.http.streams.find((x) => x.app === "sensorlogger");
+    $("sl-detected").textContent = sl ? `detected: ${sl.platform}, ${sl.convention} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
+    if (document.activeElement !== $("sl-convention")) $("sl-convention").value = v.http.sensorlogger_convention;
+    const p = v.http.poll;
+    $("poll-status").textContent = p ? `${p.url}: ${p.state}${p.last_error ? " (" + p.last_error + ")" : ""}` : "";
+    if (v.other_hosts.length) $("net-note").dataset.hosts = v.other_hosts.join(", ");
+  } catch (e) {
+    $("phone-status").textContent = "server not reachable";
+  }
+  clearTimeout(connect.timer);
+  connect.timer = setTimeout(connect, 1000);
+}
+
 async function poll() {
-  const badge = document.getElementById("source");
+  const badge = $("source");
   try {
     const st = await (await fetch("/api/state")).json();
     badge.textContent = st.status;

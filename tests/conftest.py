@@ -50,3 +50,11 @@ def _app_log(shared_dir: Path, name: str) -> Path:
 def real_log_9dof(request, shared_dir) -> Path:
     """Each real app log with accelerometer, gyroscope and magnetometer."""
     return _app_log(shared_dir, request.param)
+
+
+# Tests live in folders that mirror the package (sources, estimators, live, toolkit,
+# server); the shared helpers (harness.py) stay here, importable from every folder.
+import sys as _sys
+
+_HERE = Path(__file__).resolve().parent
+_sys.path[:0] = [str(_HERE), str(_HERE / "sources")]   # + the apps' data converters

@@ -18,7 +18,10 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+from collections import Counter
+
 from app.server.run import make_server
+from app.sources.sensorfusion import decode_lines
 from app.server.settings import Settings
 
 START_TIMEOUT_S = 300.0   # the first start may compile the estimators (numba)
@@ -166,3 +169,13 @@ class Phone:
 def log_lines(path: str | Path) -> list[str]:
     """The lines of an app log (text, without line ends)."""
     return Path(path).read_text(errors="replace").splitlines()
+
+
+def feed_lines(core, session, lines) -> list:
+    """Lines of the Sensor Fusion app's format into a live core as the TCP source feeds
+    them: decoded, the malformed ones counted in the session; the samples released."""
+    bad: Counter = Counter()
+    samples = decode_lines(lines, bad)
+    for reason, n in bad.items():
+        session.count_malformed(reason, n)
+    return core.feed(session, samples)

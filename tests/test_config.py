@@ -11,7 +11,7 @@ import pytest
 from app.config import ConfigError, defaults_toml, estimator_params, load_config, params_table
 from app.estimators import NAMES, estimator_class, make_estimator
 from app.params import CONFIG_DIR, DEFAULT_CONFIG, load_toml, to_dict
-from app.simulate import simulate
+from app.sources.simulate import simulate
 
 
 def test_default_toml_is_the_parameter_definitions():
@@ -29,8 +29,8 @@ def test_default_toml_is_the_parameter_definitions():
 def test_every_shipped_preset_loads_and_runs(preset):
     cfg = load_config(preset)
     res = simulate(("still", "turn_x", "shake"), seed=1)
-    from app.protocol import Sample
-    from app.stream import samples_to_rows
+    from app.sources.samples import Sample
+    from app.sources.ordering import samples_to_rows
     rows = samples_to_rows([Sample(m, t, tuple(v)) for m, t, v in res.samples])
     for name in NAMES:
         est = make_estimator(name, estimator_params(cfg, name))

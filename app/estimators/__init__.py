@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import (ALERTS, AVERAGED_IN, BatchResult, Diagnostics, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT,
+from app.estimators.base import (ALERTS, AVERAGED_IN, BatchResult, Diagnostics, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT,
                    REJECTIONS, StepFlags, TimeIssue, count_flags, is_rejected)
 
 DEFAULT = "robust"
@@ -13,16 +13,16 @@ NAMES = ("robust", "lab", "complementary", "phone")
 
 def estimator_class(name: str) -> type[Estimator]:
     if name == "robust":
-        from .robust import RobustEKF
+        from app.estimators.robust import RobustEKF
         return RobustEKF
     if name == "lab":
-        from .lab import LabEKF
+        from app.estimators.lab import LabEKF
         return LabEKF
     if name == "complementary":
-        from .complementary import ComplementaryDNRF
+        from app.estimators.complementary import ComplementaryDNRF
         return ComplementaryDNRF
     if name == "phone":
-        from .phone import PhoneOrientation
+        from app.estimators.phone import PhoneOrientation
         return PhoneOrientation
     raise KeyError(f"unknown estimator {name!r} (known: {', '.join(NAMES)})")
 

@@ -26,7 +26,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numba import njit
 
-from ..params import replace_params, to_dict
+from app.params import replace_params, to_dict
 
 
 class Reason(IntEnum):

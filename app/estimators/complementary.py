@@ -78,9 +78,9 @@ import math
 import numpy as np
 from numba import njit
 
-from .. import quaternion as qm
-from ..params import CommonParams, ParamError, param
-from .base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
+from app import quaternion as qm
+from app.params import CommonParams, ParamError, param
+from app.estimators.base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
                    F_MAG_VAL, R_INIT, R_USED, R_WAIT, Diagnostics, Estimator,
                    begin_row)
 

@@ -29,12 +29,12 @@ import math
 import numpy as np
 from numba import njit
 
-from .. import quaternion as qm
-from ..params import CommonParams, DEG, ParamError, param
-from .base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
+from app import quaternion as qm
+from app.params import CommonParams, DEG, ParamError, param
+from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
                    F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
                    R_WAIT, Diagnostics, Estimator, align_step, begin_row, vec3)
-from .kalman import correct
+from app.estimators.kalman import correct
 
 
 

@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .. import quaternion as qm
-from ..params import CommonParams
-from .base import (B_N, B_SEEN, F_ACC, F_GYR, F_MAG, R_DISABLED, R_USED,
+from app import quaternion as qm
+from app.params import CommonParams
+from app.estimators.base import (B_N, B_SEEN, F_ACC, F_GYR, F_MAG, R_DISABLED, R_USED,
                    Diagnostics, Estimator, begin_row)
 
 P_INIT, P_ORI_T = B_N, B_N + 1      # state slots after the row bookkeeping

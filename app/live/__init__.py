@@ -8,12 +8,12 @@
 - :mod:`.core`: :class:`LiveCore`, the one object the async shell drives.
 """
 
-from .bench import Bench, BenchError, Instance, Records
-from .changes import Change, PatchError, Variant
-from .core import LiveCore
-from .history import History, Ring, Window
-from .session import Session, Totals
-from .views import Snapshot
+from app.live.bench import Bench, BenchError, Instance, Records
+from app.live.changes import Change, PatchError, Variant
+from app.live.core import LiveCore
+from app.live.history import History, Ring, Window
+from app.live.session import Session, Totals
+from app.live.views import Snapshot
 
 __all__ = ["Bench", "BenchError", "Change", "History", "Instance", "LiveCore", "PatchError",
            "Records", "Ring", "Session", "Snapshot", "Totals", "Variant", "Window"]

@@ -22,24 +22,35 @@ last row of each sensor (``decision``). It also guards the estimators:
   every :data:`GOOD_EVERY_S` seconds) and counts it in ``restored``; the rows from the
   first non-finite one on report the restored estimate.
 
+**The schema** (:class:`BenchSchema`, :attr:`Bench.schema`): what a change is validated
+against (the instances' names, bases, parameter sets, identities, the primary), an
+immutable value replaced whole after every add, remove and primary change. Changes are
+validated on other threads (the HTTP handlers, viser's GUI threads) while the filter
+task may add or remove a variant: they read one schema (never the live ``instances``
+dict), so they see the bench before or after a change, never half of it; the filter
+task's :func:`app.live.changes.apply_change` then refuses a change whose instance is
+gone or was replaced meanwhile (its ``uid`` differs).
+
 Pure and synchronous: no asyncio, no I/O; unit-tested without a server.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import re
 import time
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from types import MappingProxyType
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from ..estimators import NAMES, REJECTIONS, Estimator, Reason, StepFlags, estimator_class
-from ..estimators.base import (F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags, split_rows,
+from app.estimators import NAMES, REJECTIONS, Estimator, Reason, StepFlags, estimator_class
+from app.estimators.base import (F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags, split_rows,
                                tally_rows)
-from ..params import replace_params
-from ..protocol import Sample
+from app.params import replace_params
+from app.sources.samples import Sample
 
 log = logging.getLogger("orientlab.bench")
 
@@ -52,6 +63,7 @@ _IS_REJECTION = np.zeros(NREASON, dtype=bool)    # by reason code (a lookup: np.
 _IS_REJECTION[[int(r) for r in REJECTIONS]] = True
 GOOD_EVERY_S = 1.0          # how often (wall clock) an instance's good state is kept
 NAME_RE = re.compile(r"[a-z][a-z0-9_-]{0,39}")
+_UIDS = itertools.count(1)      # every Instance ever made has its own (next() is atomic)
 
 
 class BenchError(ValueError):
@@ -89,6 +101,9 @@ class Instance:
     last_error: str = ""
     _good: Any = None
     _good_at: float = -np.inf
+    # this instance's identity: a variant removed and added again under the same name is
+    # another instance (a change validated against the first is not applied to it)
+    uid: int = field(default_factory=lambda: next(_UIDS))
 
     def clear(self) -> None:
         self.counts[:] = 0
@@ -119,6 +134,43 @@ class Instance:
                 for s, row in zip(SENSORS, self.counts)}
 
 
+@dataclass(frozen=True)
+class InstanceInfo:
+    """One instance as validation sees it (part of a :class:`BenchSchema`)."""
+    name: str
+    base: str
+    builtin: bool
+    uid: int
+    estimator: Estimator            # only its ``params`` are read (a frozen dataclass,
+                                    # replaced whole by set_params: one atomic read)
+
+    @property
+    def params(self):
+        return self.estimator.params
+
+
+@dataclass(frozen=True)
+class BenchSchema:
+    """An immutable picture of the bench for validating changes on any thread (see the
+    module doc). The same read methods as :class:`Bench` for what validation needs."""
+    instances: Mapping[str, InstanceInfo]
+    primary: str
+    version: int
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.instances)
+
+    def params_of(self, name: str):
+        return self.instances[name].params
+
+    def base_of(self, name: str) -> str:
+        return self.instances[name].base
+
+    def uid_of(self, name: str) -> int:
+        return self.instances[name].uid
+
+
 @dataclass
 class Records:
     """What one :meth:`Bench.step` made: one row per motion or ORI sample, in order."""
@@ -145,7 +197,7 @@ class Records:
 
     def of(self, name: str):
         """(q, flags) rows of one instance, as an :class:`~app.estimators.BatchResult`."""
-        from ..estimators import BatchResult
+        from app.estimators import BatchResult
         return BatchResult(t=self.t, q=self.q[name], flags=self.flags[name])
 
 
@@ -177,7 +229,7 @@ class Bench:
 
     def __init__(self, config: dict[str, Any] | None = None):
         if config is None:
-            from ..config import load_config
+            from app.config import load_config
             config = load_config(None)
         self.instances: dict[str, Instance] = {}
         for name in NAMES:
@@ -191,10 +243,21 @@ class Bench:
             raise RuntimeError("no estimator available")
         p = config.get("primary")
         self.primary = p if p in self.instances else next(iter(self.instances))
+        self._version = 0
+        self._publish()
+
+    def _publish(self) -> None:
+        """Replace :attr:`schema` (one attribute store: atomic for readers on other
+        threads) after the instances or the primary changed."""
+        self._version += 1
+        self.schema = BenchSchema(
+            MappingProxyType({n: InstanceInfo(n, i.base, i.builtin, i.uid, i.estimator)
+                              for n, i in self.instances.items()}),
+            self.primary, self._version)
 
     @classmethod
     def from_config(cls, path=None) -> "Bench":
-        from ..config import load_config
+        from app.config import load_config
         return cls(load_config(path))
 
     # ----------------------------------------------------------------- instances
@@ -238,6 +301,7 @@ class Bench:
         inst = Instance(name, base, estimator if estimator is not None else estimator_class(base)(p),
                         builtin=False)
         self.instances[name] = inst
+        self._publish()
         return inst
 
     def remove(self, name: str) -> None:
@@ -249,11 +313,13 @@ class Bench:
         del self.instances[name]
         if self.primary == name:
             self.primary = inst.base
+        self._publish()
 
     def set_primary(self, name: str) -> None:
         if name not in self.instances:
             raise BenchError("primary", f"must be one of {', '.join(self.instances)}; got {name!r}")
         self.primary = name
+        self._publish()
 
     def set_params(self, name: str, changes: dict[str, Any]) -> None:
         """Validate and apply (nothing applied on a ParamError)."""
@@ -359,4 +425,4 @@ class Bench:
         return sum(i.restored for i in self.instances.values())
 
 
-__all__ = ["Bench", "BenchError", "Instance", "Records", "rows_of"]
+__all__ = ["Bench", "BenchError", "BenchSchema", "Instance", "InstanceInfo", "Records", "rows_of"]

@@ -16,6 +16,14 @@
 Everything is checked against copies of the current parameters; :class:`PatchError`
 names the offending field (its path in the body) and nothing is applied unless every
 field passes. The bench applies a change between two chunks (:meth:`LiveCore.apply`).
+
+**Threads.** Validation runs wherever the request is (the event loop, viser's GUI
+threads) while the filter task may add or remove a variant: it reads one
+:class:`~app.live.bench.BenchSchema` (``bench.schema``, replaced whole by the filter
+task after each change), never the live bench, and the :class:`Change` records which
+instance (``uid``) each name meant. :func:`apply_change`, on the filter task, refuses
+(PatchError "raced with another change", nothing applied) a change whose instance has
+been removed or replaced since.
 """
 
 from __future__ import annotations
@@ -23,10 +31,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..config import renamed_message
-from ..estimators import NAMES, estimator_class
-from ..params import SHARED_MEANINGS, ParamError, fields_of, replace_params, to_dict
-from .bench import Bench, BenchError
+from app.config import renamed_message
+from app.estimators import NAMES, estimator_class
+from app.params import SHARED_MEANINGS, ParamError, fields_of, replace_params, to_dict
+from app.live.bench import Bench, BenchError, BenchSchema
 
 
 class PatchError(ValueError):
@@ -59,23 +67,33 @@ class Change:
     # (magcal_set); the line stage that applies it listens (Engine.change_listeners).
     magcal: dict[str, Any] | None = None
     magcal_set: bool = False
+    # the instances the change was validated against (name -> Instance.uid): applied only
+    # if each is still on the bench, the same instance (not removed, not added again)
+    against: dict[str, int] = field(default_factory=dict)
 
 
-def shared_names(bench: Bench) -> list[str]:
+def _schema(bench: Bench | BenchSchema) -> BenchSchema:
+    """The one immutable picture a validation reads (see the module doc)."""
+    return bench.schema if isinstance(bench, Bench) else bench
+
+
+def shared_names(bench: Bench | BenchSchema) -> list[str]:
     """The names a PATCH takes at the top level: shared quantities some instance has."""
+    bench = _schema(bench)
     have = set()
     for n in bench.names:
         have.update(fields_of(bench.params_of(n)))
     return [k for k in SHARED_MEANINGS if k in have]
 
 
-def common_names(bench: Bench) -> list[str]:
+def common_names(bench: Bench | BenchSchema) -> list[str]:
     """Parameters every instance has (GET /api/params shows the primary's values)."""
+    bench = _schema(bench)
     sets = [set(fields_of(bench.params_of(n))) for n in bench.names]
     return sorted(set.intersection(*sets)) if sets else []
 
 
-def _top_level_refusal(bench: Bench, key: str) -> str:
+def _top_level_refusal(bench: BenchSchema, key: str) -> str:
     owners = [n for n in bench.names if key in fields_of(bench.params_of(n))]
     renames = [m for m in (renamed_message(b, key, estimator_class(b).Params) for b in NAMES) if m]
     parts = []
@@ -92,10 +110,12 @@ def _top_level_refusal(bench: Bench, key: str) -> str:
     return "; ".join(parts)
 
 
-def validate_patch(bench: Bench, body: Any) -> Change:
-    """Check a PATCH body (see the module doc); the :class:`Change` or PatchError."""
+def validate_patch(bench: Bench | BenchSchema, body: Any) -> Change:
+    """Check a PATCH body (see the module doc); the :class:`Change` or PatchError.
+    Safe on any thread: it reads one schema of the bench."""
     if not isinstance(body, dict):
         raise PatchError(("body",), "must be a JSON object")
+    bench = _schema(bench)
     names = bench.names
     shared = set(shared_names(bench))
     changes: dict[str, dict[str, Any]] = {n: {} for n in names}
@@ -141,31 +161,60 @@ def validate_patch(bench: Bench, body: Any) -> Change:
             raise PatchError(origin.get((name, e.field), ("estimators", name, e.field)),
                              e.reason) from None
     ch.params = {n: c for n, c in changes.items() if c}
+    ch.against = {n: bench.uid_of(n) for n in ch.params}
+    if ch.primary is not None:
+        ch.against[ch.primary] = bench.uid_of(ch.primary)
     return ch
 
 
-def change_from_config(bench: Bench, config: dict[str, Any]) -> Change:
+def change_from_config(bench: Bench | BenchSchema, config: dict[str, Any]) -> Change:
     """A change setting every builtin to its defaults + the preset (load_config's dict)
     and the magnetometer calibration to the preset's (none if it has none); variants
-    keep their parameters."""
+    keep their parameters. Safe on any thread (one schema of the bench)."""
+    bench = _schema(bench)
     p = config.get("primary")
     mc = config.get("magcal")
-    ch = Change(primary=p if p in bench.names else None, magcal=dict(mc) if mc else None,
+    ch = Change(primary=p if p in bench.instances else None, magcal=dict(mc) if mc else None,
                 magcal_set=True)
-    for name in bench.names:
-        if not bench.instances[name].builtin:
+    for name, info in bench.instances.items():
+        if not info.builtin:
             continue
-        params = replace_params(type(bench.params_of(name))(), config.get(name, {}))
+        params = replace_params(type(info.params)(), config.get(name, {}))
         ch.params[name] = to_dict(params)
+        ch.against[name] = info.uid
+    if ch.primary is not None:
+        ch.against[ch.primary] = bench.uid_of(ch.primary)
     return ch
+
+
+def _check_against(bench: Bench, ch: Change) -> None:
+    """PatchError unless every instance the change names is still the one it was
+    validated against (on the filter task, before anything is applied)."""
+    for n, uid in ch.against.items():
+        inst = bench.instances.get(n)
+        if inst is None or inst.uid != uid:
+            what = "was removed" if inst is None else "was removed and added again"
+            loc = ("primary",) if n == ch.primary and n not in ch.params else ("estimators", n)
+            raise PatchError(loc, f"raced with another change: {n} {what} meanwhile; "
+                                  "nothing applied")
+    for n in ch.params:
+        if n not in bench.instances:
+            raise PatchError(("estimators", n), f"raced with another change: no estimator {n!r} "
+                                                "on the bench now; nothing applied")
+    if ch.primary is not None and ch.primary not in bench.instances \
+            and ch.primary not in {v.name for v in ch.add}:
+        raise PatchError(("primary",), f"raced with another change: no estimator "
+                                       f"{ch.primary!r} on the bench now; nothing applied")
 
 
 def apply_change(bench: Bench, ch: Change) -> None:
-    """Apply a validated change (between two chunks). Validated again against the current
-    parameters (another change may have come first): PatchError, nothing applied."""
+    """Apply a validated change (between two chunks), on the thread that owns the bench
+    (the filter task). Validated again against the current parameters and instances
+    (another change may have come first, e.g. removed the variant it names): PatchError,
+    nothing applied."""
+    _check_against(bench, ch)
     try:
-        new = {n: replace_params(bench.params_of(n), c) for n, c in ch.params.items()
-               if n in bench.instances}
+        new = {n: replace_params(bench.params_of(n), c) for n, c in ch.params.items()}
         for v in ch.add:
             bench.check_new(v.name, v.base, v.params)
         for r in ch.remove:
@@ -181,7 +230,7 @@ def apply_change(bench: Bench, ch: Change) -> None:
         bench.remove(r)
     for v in ch.add:
         bench.add(v.name, v.base, v.params)
-    if ch.primary is not None and ch.primary in bench.instances:
+    if ch.primary is not None:
         bench.set_primary(ch.primary)
     if ch.reset:
         bench.reset()

@@ -2,9 +2,10 @@
 
 One :class:`LiveCore` per dashboard. The async shell (:mod:`app.server.engine`) calls:
 
-- :meth:`LiveCore.open_session` / :meth:`close_session` / :meth:`feed`: a stream's lines
-  in, the samples it releases out (parse, count, reorder; the raw-line listeners see
-  every line: the recorder's hook);
+- :meth:`LiveCore.open_session` / :meth:`close_session` / :meth:`feed`: a stream's samples
+  in (any source: the sources decode their own wire formats), the samples it releases
+  out (count, reorder; the sample stages see every chunk first: the lab toolkit's
+  injection, recorder and magnetometer calibration);
 - :meth:`LiveCore.start` (a new stream: the estimators start afresh) and
   :meth:`LiveCore.process` (released samples -> every instance steps; the plots' rings,
   counters and the record listeners follow);
@@ -13,7 +14,7 @@ One :class:`LiveCore` per dashboard. The async shell (:mod:`app.server.engine`) 
 - the read models: :meth:`snapshot`, :meth:`state`, :meth:`params_view`, :meth:`counts`,
   :meth:`status_text`, :meth:`source_kind`.
 
-Nothing here knows asyncio, viser or FastAPI; tests build one and feed it lines.
+Nothing here knows asyncio, viser or FastAPI; tests build one and feed it samples.
 """
 
 from __future__ import annotations
@@ -24,19 +25,18 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..estimators.base import F_ACC_NIS, F_MAG_NIS
-from ..params import describe, to_dict
-from ..protocol import Sample
-from . import views
-from .bench import Bench, Records
-from .changes import Change, apply_change, change_from_config, common_names, validate_patch
-from .history import History
-from .session import Session, Totals
+from app.estimators.base import F_ACC_NIS, F_MAG_NIS
+from app.params import describe, to_dict
+from app.sources.samples import Sample
+from app.live import views
+from app.live.bench import Bench, Records
+from app.live.changes import Change, apply_change, change_from_config, common_names, validate_patch
+from app.live.history import History
+from app.live.session import Session, Totals
 
 log = logging.getLogger("orientlab.live")
 
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-RawListener = Callable[[Session, list], None]          # (session, lines of one chunk)
 RecordListener = Callable[[Session, Records], None]    # (session, what one chunk made)
 
 
@@ -50,10 +50,10 @@ class LiveCore:
         self.reorder_window_s = reorder_window_s
         self.totals = Totals()
         self.session: Session | None = None
-        self.raw_listeners: list[RawListener] = []
-        # line stages run first and may rewrite a chunk's lines (the lab toolkit: virtual
-        # disturbances, the magnetometer calibration): (session, lines) -> lines
-        self.line_filters: list[Callable[[Session, list], list]] = []
+        # sample stages run first and may rewrite a chunk's samples (the lab toolkit:
+        # virtual disturbances, the recorder's copy, the magnetometer calibration):
+        # (session, samples) -> samples
+        self.sample_stages: list[Callable[[Session, list[Sample]], list[Sample]]] = []
         self.record_listeners: list[RecordListener] = []
         self._reset_stream_state()
 
@@ -64,9 +64,13 @@ class LiveCore:
         self.history.clear()
 
     # ----------------------------------------------------------------- streams
-    def open_session(self, kind: str, label: str, truth=None) -> Session:
-        """A new stream replaces the one on show (which is closed)."""
-        s = Session(kind, label, self.reorder_window_s, truth)
+    def open_session(self, kind: str, label: str, truth=None, app: str = "",
+                     window_s: float | None = None) -> Session:
+        """A new stream replaces the one on show (which is closed). ``window_s``: its
+        reorder window (default the core's; a source that delivers in batches may ask
+        for more)."""
+        s = Session(kind, label, self.reorder_window_s if window_s is None else window_s,
+                    truth, app=app)
         if self.session is not None and self.session.open:
             self.session.close(f"replaced by {kind} {label}")
         self.session = s
@@ -77,19 +81,15 @@ class LiveCore:
         """End a stream; the samples its reorder buffer still held (to process)."""
         return s.close(reason)
 
-    def feed(self, s: Session, lines: list) -> list[Sample]:
-        """Lines of one received chunk into the stream; the samples it releases."""
-        for f in self.line_filters:
+    def feed(self, s: Session, samples: list[Sample]) -> list[Sample]:
+        """Samples of one received chunk (arrival order) into the stream; the samples it
+        releases, in time order."""
+        for f in self.sample_stages:
             try:
-                lines = f(s, lines)
+                samples = f(s, samples)
             except Exception:  # a stage's bug must not stop the stream
-                log.exception("line stage failed")
-        for cb in self.raw_listeners:
-            try:
-                cb(s, lines)
-            except Exception:  # a listener's bug must not stop the stream
-                log.exception("raw line listener failed")
-        return s.push_lines(lines)
+                log.exception("sample stage failed")
+        return s.push(samples)
 
     def start(self, s: Session) -> None:
         """A new stream is on: every instance starts afresh (a new clock)."""

@@ -1,9 +1,11 @@
 """A stream on show and the counters that describe it.
 
-A :class:`Session` is one stream: a phone connection, the demo, or one loop of a replayed
-log. It holds the stream's :class:`~app.stream.SampleOrderer` (parse, count, reorder,
-clock offsets) and its own counters; producers call its methods (:meth:`Session.push_lines`,
-:meth:`Session.count_malformed`, :meth:`Session.close`), never its fields.
+A :class:`Session` is one stream: a phone connection (of any app), the demo, or one loop of
+a replayed log. It holds the stream's :class:`~app.sources.ordering.SampleOrderer` (count,
+reorder, clock offsets) and its own counters; producers call its methods
+(:meth:`Session.push`, :meth:`Session.count_malformed`, :meth:`Session.close`), never its
+fields. A session sees samples only: each source decodes its own wire format and counts
+what it could not use with :meth:`Session.count_malformed`.
 :class:`Totals` counts over every session (connections refused, lines too long, samples,
 step errors).
 """
@@ -16,8 +18,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..protocol import Sample
-from ..stream import SampleOrderer
+from app.sources.samples import Sample
+from app.sources.ordering import SampleOrderer
 
 
 class Session:
@@ -25,12 +27,13 @@ class Session:
     orientations (N, 4)."""
 
     def __init__(self, kind: str, label: str, window_s: float,
-                 truth: Callable[[np.ndarray], np.ndarray] | None = None):
+                 truth: Callable[[np.ndarray], np.ndarray] | None = None, app: str = ""):
         self.kind = kind            # "phone", "demo", "replay"
         self.label = label
+        self.app = app              # the phone app feeding a "phone" stream (sources.APPS)
         self.orderer = SampleOrderer(window=window_s)
         self.truth = truth
-        self.lines = 0
+        self.lines = 0              # readings received (samples and malformed ones)
         self.samples = 0            # processed by the estimators
         self.opened = time.time()
         self.closed: float | None = None
@@ -41,15 +44,15 @@ class Session:
     def open(self) -> bool:
         return self.closed is None
 
-    def push_lines(self, lines: list) -> list[Sample]:
-        """Lines of one received chunk (bytes or str, without line ends): parsed, counted,
-        reordered; the samples released, in time order."""
-        self.lines += len(lines)
+    def push(self, samples: list[Sample]) -> list[Sample]:
+        """Samples of one received chunk (arrival order): counted, reordered; the samples
+        released, in time order."""
+        self.lines += len(samples)
         self.last_rx = time.monotonic()
         released: list[Sample] = []
-        push = self.orderer.push_line
-        for line in lines:
-            released.extend(push(line))
+        push = self.orderer.push
+        for smp in samples:
+            released.extend(push(smp))
         return released
 
     def close(self, reason: str = "end of stream") -> list[Sample]:
@@ -59,8 +62,11 @@ class Session:
             self.close_reason = reason
         return self.orderer.flush()
 
-    def count_malformed(self, reason: str) -> None:
-        self.orderer.counters.malformed[reason] += 1
+    def count_malformed(self, reason: str, n: int = 1) -> None:
+        """A reading the source could not use (``reason``: a short key)."""
+        if n:
+            self.orderer.counters.malformed[reason] += n
+            self.lines += n
 
     def count_processed(self, n: int) -> None:
         self.samples += n

@@ -12,16 +12,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from ..estimators import REASON_TEXT, Diagnostics, Reason, StepFlags
-from ..estimators.base import is_rejected
-from ..quaternion import angle_between, q2euler
+from app.estimators import REASON_TEXT, Diagnostics, Reason, StepFlags
+from app.estimators.base import is_rejected
+from app.quaternion import angle_between, q2euler
 
-if TYPE_CHECKING:
-    from .core import LiveCore
+from app.live.bench import Bench
+from app.live.session import Session
+
+
+class CoreReadout(Protocol):
+    """What the read models read of the live core (:class:`app.live.core.LiveCore` is
+    one): the views are defined on this, so ``core`` imports ``views`` and not back."""
+    bench: Bench
+    session: Session | None
+    t_sent: float | None
+    last_vec: list
+
+    def truth_q(self) -> np.ndarray | None: ...
+    def source_kind(self) -> str: ...
+    def status_text(self) -> str: ...
+    def counts(self) -> dict[str, Any]: ...
 
 
 def num(x) -> float | None:
@@ -80,7 +94,7 @@ class Snapshot:
     diag: Diagnostics
 
 
-def snapshot(core: "LiveCore") -> Snapshot:
+def snapshot(core: CoreReadout) -> Snapshot:
     b = core.bench
     inst = b.instances[b.primary]
     est = inst.estimator
@@ -98,7 +112,7 @@ def error_deg(qa, qb) -> float | None:
     return num(math.degrees(angle_between(qa, qb)))
 
 
-def estimator_state(core: "LiveCore", name: str, phone_q=None, truth_q=None) -> dict[str, Any]:
+def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None) -> dict[str, Any]:
     inst = core.bench.instances[name]
     est = inst.estimator
     q = est.q
@@ -111,7 +125,7 @@ def estimator_state(core: "LiveCore", name: str, phone_q=None, truth_q=None) -> 
             "step_errors": inst.step_errors, "restored": inst.restored}
 
 
-def state(core: "LiveCore") -> dict[str, Any]:
+def state(core: CoreReadout) -> dict[str, Any]:
     """GET /api/state."""
     b = core.bench
     phone_q = b.phone_q

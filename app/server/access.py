@@ -136,6 +136,24 @@ async def require_presenter(request: Request) -> None:
                                  "the token as X-Orientlab-Token)")
 
 
+async def phone_push(request: Request) -> None:
+    """FastAPI dependency that marks a route a phone app calls (Sensor Logger's and
+    phyphox's pushes): no token (a phone has none) and no Origin (an app sends none); who
+    may stream is decided by the phone slot (:mod:`app.sources.slot`), and what a push
+    may do is only that: add samples to the stream on show."""
+    return None
+
+
+async def require_presenter_read(request: Request) -> None:
+    """FastAPI dependency for what only the presenter may *see* (the addresses phones
+    connect to, their QR codes): 403 unless the request carries the token (or
+    ``--open``); no Origin check (reading changes nothing)."""
+    acc: Access = request.app.state.access
+    if not acc.is_presenter(request):
+        raise HTTPException(403, "refused: only the presenter sees how phones connect "
+                                 "(open the presenter's link printed at start)")
+
+
 def websocket_origin_ok(ws: WebSocket) -> bool:
     acc: Access = ws.app.state.access
     return acc.origin_ok(ws.headers.get("origin"), ws.headers.get("host"))
@@ -146,24 +164,24 @@ def websocket_origin_ok(ws: WebSocket) -> bool:
 def _viewer_inputs():
     """viser's client -> server message classes that change something (everything a
     watcher must not send). Camera moves and the scene pointer stay free (per client)."""
-    from viser import _messages as m
+    from app.server import viser_adapter as va
     names = ("GuiUpdateMessage", "GuiButtonHoldMessage", "GuiFormSubmitMessage",
              "GuiFormDirtyMessage", "FileTransferStartUpload", "FileTransferPart",
              "CommandTriggerMessage", "SceneNodeClickMessage", "ShareUrlRequest",
              "ShareUrlDisconnect")
-    return tuple(getattr(m, n) for n in names if hasattr(m, n))
+    return va.message_classes(names)
 
 
 def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
     """Put the presenter rule on a running ``viser.ViserServer`` (see the module doc).
 
-    Relies on viser 1.1's internals (``_websock_server``: its per-client connection and
-    its incoming-message handler table); checked by tests/test_faults.py."""
-    ws_server = viewer._websock_server
+    Relies on viser's WebSocket server (a connection's upgrade request, the incoming
+    message handlers) through :mod:`app.server.viser_adapter`; checked by
+    tests/server/test_faults.py."""
+    from app.server import viser_adapter as va
 
-    @ws_server.on_client_connect
     async def _check(conn) -> None:   # awaited before any message flows to the client
-        live = ws_server._live_connections.get(conn.client_id)
+        live = va.websocket_connection(viewer, conn.client_id)
         req = getattr(live, "request", None)
         headers = req.headers if req is not None else {}
         if not access.origin_ok(headers.get("Origin"), headers.get("Host")):
@@ -176,20 +194,22 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
             with access.lock:
                 access.presenters.add(conn.client_id)
 
-    @ws_server.on_client_disconnect
+    va.on_websocket_connect(viewer, _check)
+
     async def _gone(conn) -> None:
         with access.lock:
             access.presenters.discard(conn.client_id)
+
+    va.on_websocket_disconnect(viewer, _gone)
 
     gui_update = None
     for cls in _viewer_inputs():
         if cls.__name__ == "GuiUpdateMessage":
             gui_update = cls
-        handlers = ws_server._incoming_handlers.get(cls)
-        if not handlers:
-            continue
-        ws_server._incoming_handlers[cls] = [_guarded(cb, cls, viewer, access, gui_update,
-                                                      after_refusal) for cb in handlers]
+        va.wrap_incoming_handlers(
+            viewer, cls,
+            lambda cb, cls=cls, gui_update=gui_update: _guarded(cb, cls, viewer, access,
+                                                                gui_update, after_refusal))
 
     @viewer.on_client_connect
     def _watch_only(client) -> None:
@@ -200,7 +220,7 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
                                 auto_close_seconds=8.0)
         _disable_controls(viewer, client)
         # the GUI's own messages may still be on their way to this client: say it again
-        loop = viewer._websock_server._background_event_loop
+        loop = va.background_loop(viewer)
         if loop is not None:
             for delay in (1.0, 4.0):
                 loop.call_later(delay, _disable_controls, viewer, client)
@@ -208,16 +228,15 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
 
 def _disable_controls(viewer, client) -> None:
     """Show every input control disabled, to this client only."""
-    from viser import _messages as m
+    from app.server import viser_adapter as va
     if client.client_id not in viewer.get_clients():
         return   # gone meanwhile
     try:
-        handles = list(viewer.gui._gui_input_handle_from_uuid.items())
+        handles = va.gui_input_handles(viewer)
         with client.atomic():
             for uuid, h in handles:
-                if not getattr(h._impl, "removed", False):
-                    client._websock_connection.queue_message(
-                        m.GuiUpdateMessage(uuid, {"disabled": True}))
+                if not va.is_removed(h):
+                    va.queue_to_client(client, va.gui_update_message(uuid, {"disabled": True}))
     except Exception:  # a client gone meanwhile
         log.debug("could not disable a viewer's controls", exc_info=True)
 
@@ -225,15 +244,16 @@ def _disable_controls(viewer, client) -> None:
 def _guarded(cb, cls, viewer, access: Access, gui_update, after_refusal):
     """``cb`` run only for presenter clients; a refused GUI change is set back on the
     client that sent it."""
+    from app.server import viser_adapter as va
 
     def refuse(client_id, message) -> None:
         log.info("viewer: refused %s from a watch-only client", cls.__name__)
         if gui_update is not None and isinstance(message, gui_update):
             client = viewer.get_clients().get(client_id)
-            h = viewer.gui._gui_input_handle_from_uuid.get(message.uuid)
+            h = va.gui_input_handle(viewer, message.uuid)
             if client is not None and h is not None and "value" in message.updates:
-                client._websock_connection.queue_message(
-                    gui_update(message.uuid, {"value": h._impl.value, "disabled": True}))
+                va.queue_to_client(client, gui_update(message.uuid, {"value": va.handle_value(h),
+                                                                     "disabled": True}))
         if after_refusal is not None:
             after_refusal(client_id)
 

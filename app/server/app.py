@@ -20,20 +20,25 @@ from fastapi import FastAPI, Request
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from ..config import load_config
-from .engine import Engine
-from .access import COOKIE, Access, guard_viewer
-from .gui import Gui, run_gui
-from .limits import BodyLimit, install_error_handlers
-from .net import lan_ipv4
-from .receiver import PhoneServer
-from .routers import calibrate, estimators, health, params, phone, recordings, replay, state
-from .routers import inject as inject_router
-from .gui_lab import LabGui, run_lab_gui
-from .lab import LabTools
-from .scene import Scene, loop_safe_wakeups
-from .settings import Settings
-from .sources import ReplayControl, run_demo, run_replay
+from app.config import load_config
+from app.server.engine import Engine
+from app.server.access import COOKIE, Access, guard_viewer
+from app.server import viser_adapter
+from app.server.gui.main import Gui, run_gui
+from app.server.limits import BodyLimit, install_error_handlers
+from app.server.connect import Connect
+from app.server.phones import HttpPhones
+from app.sources.phyphox import PhyphoxPoller
+from app.sources.sensorfusion_tcp import PhoneServer
+from app.sources.slot import PhoneSlot
+from app.server.routers import (calibrate, connect, estimators, health, params, phone, push,
+                                recordings, replay, state)
+from app.server.routers import inject as inject_router
+from app.server.gui.lab import LabGui, run_lab_gui
+from app.server.lab import LabTools
+from app.server.gui.scene import Scene, loop_safe_wakeups
+from app.server.settings import Settings
+from app.sources.runners import ReplayControl, run_demo, run_replay
 
 log = logging.getLogger("orientlab.server")
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
@@ -55,7 +60,10 @@ def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, h
         "  orientlab is running",
         *page,
         f"    3D viewer only:     http://{host}:{viewer_port}/",
-        f"    phone app address:  {lan_ip}   port {phone_port}   (Sensor Fusion app: Stream, 100 Hz)",
+        "    connect a phone (one at a time; the page's Connect tab has QR codes):",
+        f"      Sensor Logger:      HTTP push URL  http://{lan_ip}:{http_port}/sensorlogger",
+        f"      phyphox:            experiment     http://{lan_ip}:{http_port}/phyphox/orientlab.phyphox",
+        f"      Sensor Fusion app:  address {lan_ip}   port {phone_port}   (Stream, 100 Hz)",
         f"    source:             {settings.source}",
         "  Ctrl-C stops.",
         "",
@@ -65,8 +73,8 @@ def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, h
 def start_source(engine: Engine, settings: Settings, lab: LabTools | None = None) -> asyncio.Task | None:
     if settings.source == "demo":
         return asyncio.create_task(run_demo(engine, settings.demo_seed), name="demo")
-    if settings.source == "none":
-        engine.pause_background()
+    if settings.source == "none" or settings.phyphox_url is not None:
+        engine.pause_background()       # a polled phyphox phone: started by the lifespan
         return None
     path = Path(settings.source)
     control = ReplayControl(path.read_bytes().splitlines(), path.name)
@@ -78,7 +86,9 @@ def start_source(engine: Engine, settings: Settings, lab: LabTools | None = None
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    if settings.source not in ("demo", "none") and not Path(settings.source).is_file():
+    if settings.phyphox_url is not None:
+        PhyphoxPoller(settings.phyphox_url, lambda samples, new: None)   # ValueError: exit 2
+    elif settings.source not in ("demo", "none") and not Path(settings.source).is_file():
         raise FileNotFoundError(f"--source: no such log file: {settings.source}")
     config = load_config(settings.config)  # read once; a bad preset is refused before anything starts
     access = Access.from_settings(settings)
@@ -95,6 +105,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         st.viewer = viser.ViserServer(host=settings.viewer_bind, port=settings.viewer_port,
                                       label="orientlab", verbose=False)
         try:
+            viser_adapter.check(st.viewer)   # every viser internal relied on exists, else a clear error
             loop_safe_wakeups(st.viewer)     # before any viewer connects
             st.scene = Scene(st.viewer)
             st.gui = Gui(st.viewer, engine, st.scene, settings)
@@ -102,9 +113,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             engine.pose_listeners.append(st.scene.draw_pose)
             engine.atomic = st.viewer.atomic
             engine.listeners.append(st.scene.draw)
-            st.phone = PhoneServer(engine, settings)
+            st.slot = PhoneSlot(settings.phone_idle_s)     # one phone at a time, every app
+            st.phone = PhoneServer(engine, settings, st.slot)
             await st.phone.start()
-            st.lan_ip = lan_ipv4()
+            st.http_phones = HttpPhones(engine, settings, st.slot)
+            st.tasks["phones"] = asyncio.create_task(st.http_phones.run(), name="phones")
+            st.connect = Connect(settings, st)
+            st.lan_ip = st.connect.host()
+            if settings.phyphox_url is not None:
+                st.http_phones.start_poll(settings.phyphox_url)
             st.tasks["engine"] = asyncio.create_task(engine.run(), name="engine")
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
             st.lab = LabTools(engine, settings, config)      # the lab toolkit (issue 9)
@@ -123,6 +140,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             for t in st.tasks.values():
                 t.cancel()
+            if getattr(st, "http_phones", None) is not None:
+                st.http_phones.stop_poll()
             if getattr(st, "phone", None) is not None:
                 await st.phone.stop()
             await asyncio.gather(*st.tasks.values(), return_exceptions=True)
@@ -137,12 +156,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.access = access
     app.state.settings = settings
     install_error_handlers(app)
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
+                       paths={"/sensorlogger": settings.max_push_bytes,
+                              "/phyphox": settings.max_push_bytes})
     app.include_router(health.router)
     app.include_router(state.router)
     app.include_router(params.router)
     app.include_router(phone.router)
-    for r in (recordings, calibrate, replay, estimators, inject_router):
+    for r in (recordings, calibrate, replay, estimators, inject_router, push, connect):
         app.include_router(r.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 

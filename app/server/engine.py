@@ -4,9 +4,9 @@ Everything the filter does lives in :class:`app.live.LiveCore` (pure and synchro
 sessions, the bench of estimators, changes, history, read models). This module only
 moves work onto the event loop and results off it:
 
-- **the inbox**: one asyncio queue, in posting order. Streams (the phone receiver, the
-  demo, a replayed log) call :meth:`Engine.feed_lines` from the event loop; the core's
-  session parses, counts and reorders, and the released samples are queued with the
+- **the inbox**: one asyncio queue, in posting order. Streams (a phone of any app, the
+  demo, a replayed log) call :meth:`Engine.feed` with samples from the event loop; the
+  core's session counts and reorders, and the released samples are queued with the
   arrival time of their chunk. Parameter changes are validated first
   (:meth:`LiveCore.validate`, from the HTTP API or viser's GUI threads) and posted with
   ``loop.call_soon_threadsafe`` (:meth:`Engine.post`). Session starts are queued too.
@@ -44,11 +44,11 @@ from typing import Any, Callable
 import msgspec
 import numpy as np
 
-from ..config import load_config
-from ..live import Change, LiveCore, PatchError, Session, Snapshot
-from ..live.views import Latency
-from ..live.bench import TAG_OF_KIND
-from ..protocol import Sample
+from app.config import load_config
+from app.live import Change, LiveCore, PatchError, Session, Snapshot
+from app.live.views import Latency
+from app.live.bench import TAG_OF_KIND
+from app.sources.samples import Sample
 
 log = logging.getLogger("orientlab.engine")
 SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the loop
@@ -182,14 +182,14 @@ class Engine:
         """Run every estimator through a few rows (the batch path the stream takes) and
         reset them, so numba's compilation or cache loading happens before the first
         real sample."""
-        lines = []
+        fed = []
         for k in range(4):
             t = 10 * k
-            lines += [f"{t}\tGYR\t0.01\t0\t0", f"{t + 2}\tACC\t0\t0\t9.81",
-                      f"{t + 4}\tMAG\t0\t20\t-45", f"{t + 6}\tORI\t1\t0\t0\t0"]
+            fed += [Sample(t, "GYR", (0.01, 0.0, 0.0)), Sample(t + 2, "ACC", (0.0, 0.0, 9.81)),
+                    Sample(t + 4, "MAG", (0.0, 20.0, -45.0)), Sample(t + 6, "ORI", (1.0, 0.0, 0.0, 0.0))]
         core = self.core
         s = Session("warm-up", "warm-up", 0.0)
-        samples = s.push_lines(lines) + s.close()
+        samples = s.push(fed) + s.close()
         core.bench.step(samples)
         for n in core.bench.names:
             est = core.bench.estimator(n)
@@ -199,9 +199,10 @@ class Engine:
         core.bench.reset()
 
     # ----------------------------------------------------------------- sessions
-    def open_session(self, kind: str, label: str, truth=None) -> Session:
+    def open_session(self, kind: str, label: str, truth=None, app: str = "",
+                     window_s: float | None = None) -> Session:
         """Start a stream; it replaces the one on show (the estimators start afresh)."""
-        s = self.core.open_session(kind, label, truth)
+        s = self.core.open_session(kind, label, truth, app=app, window_s=window_s)
         self.inbox.put_nowait(("session", s))
         return s
 
@@ -212,11 +213,11 @@ class Engine:
             self.queued += len(rest)
             self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
 
-    def feed_lines(self, s: Session, lines: list, t_arrival: float | None = None) -> None:
-        """Lines of one received chunk (bytes or str, without line ends) into the stream."""
+    def feed(self, s: Session, samples: list[Sample], t_arrival: float | None = None) -> None:
+        """Samples of one received chunk (arrival order) into the stream."""
         if t_arrival is None:
             t_arrival = time.perf_counter()
-        released = self.core.feed(s, lines)
+        released = self.core.feed(s, samples)
         if released:
             self.queued += len(released)
             self.inbox.put_nowait(("samples", s, released, t_arrival))

@@ -4,15 +4,15 @@ calibration, replay control, what-if, variants and disturbance injection.
 One :class:`LabTools` per dashboard (on ``app.state.lab``), built in the lifespan. It
 hangs on the live core's hooks and owns the toolkit's state; the routers
 (:mod:`app.server.routers.recordings`, ``calibrate``, ``replay``, ``estimators``,
-``inject``) and the page (:mod:`app.server.gui_lab`) call its methods. Everything here
+``inject``) and the page (:mod:`app.server.gui.lab`) call its methods. Everything here
 runs on the server's event loop (the page's callbacks hand over with
 ``run_coroutine_threadsafe``); CPU-heavy work (a what-if re-run, statistics) runs in a
 worker thread on copies.
 
-The stream's lines pass, in order: the injector (a virtual magnet or shake, marked by
-TXT lines) -> the recorder (the log is what the estimators got, before the magnetometer
-calibration) -> the magnetometer calibration (hard and soft iron, applied to MAG) -> the
-core (parse, reorder, estimators).
+The stream's samples (of any source) pass, in order: the injector (a virtual magnet or
+shake, marked by TXT samples) -> the recorder (the log is what the estimators got, before
+the magnetometer calibration) -> the magnetometer calibration (hard and soft iron, applied
+to MAG) -> the core (reorder, estimators).
 """
 
 from __future__ import annotations
@@ -27,15 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from .. import calibration as calmod
-from .. import magcal
-from ..inject import Disturbance, Injector, parse_request
-from ..params import dump_toml, to_dict
-from ..protocol import MalformedLine, parse_line
-from ..recording import (Recorder, RecordingError, list_recordings, read_estimates,
-                         recording_files)
-from ..variants import no_rejection_changes
-from ..whatif import rerun
+from app.toolkit import calibration as calmod
+from app.toolkit import magcal
+from app.toolkit.inject import Disturbance, Injector, parse_request
+from app.params import dump_toml, to_dict
+from app.toolkit.recording import (Recorder, RecordingError, list_recordings, read_estimates,
+    recording_files)
+from app.toolkit.variants import no_rejection_changes
+from app.toolkit.whatif import rerun
 
 log = logging.getLogger("orientlab.lab")
 
@@ -142,14 +141,11 @@ class LabTools:
         self._rec_session = None
         self._raw_mag: list[np.ndarray] = []
         self._recording_cache: dict = {}
-        self.core.raw_listeners.append(self._on_raw)
         self.core.record_listeners.append(self._on_records)
         engine.change_listeners.append(self._on_change)
         engine.param_listeners.append(self._on_params)
         engine.preset_parts.append(self._preset_part)
-        filters = getattr(self.core, "line_filters", None)
-        if filters is not None:
-            filters.append(self.filter_lines)
+        self.core.sample_stages.append(self.sample_stage)
 
     # ----------------------------------------------------------------- the stream
     def _orientation(self) -> np.ndarray | None:
@@ -164,36 +160,31 @@ class LabTools:
             q = est.q if est.initialized else None
         return q
 
-    def filter_lines(self, session, lines: list) -> list:
-        """The line stage before the core: injection, then (after the recorder's copy)
-        the magnetometer calibration. Never raises (a bug passes the lines unchanged)."""
+    def sample_stage(self, session, samples: list) -> list:
+        """The sample stage before the core: injection, then (after the recorder's copy)
+        the magnetometer calibration. Never raises (a bug passes the samples unchanged)."""
         try:
             if self.injector.busy:
-                lines, marks = self.injector.feed(lines)
+                samples, marks = self.injector.feed(samples)
                 for m in marks:
                     self._on_mark(m, session)
             if self.recorder is not None:
-                self._record_lines(session, lines)
+                self._record_samples(session, samples)
             if self.mag_capture is not None and self.mag_capture.result is None:
-                self._collect_raw_mag(lines)
+                self._collect_raw_mag(samples)
             if self.magcal is not None:
-                lines = magcal.correct_lines(self.magcal, lines)
+                samples = magcal.correct_samples(self.magcal, samples)
         except Exception:
-            log.exception("lab line stage failed (lines passed unchanged)")
-        return lines
+            log.exception("lab sample stage failed (samples passed unchanged)")
+        return samples
 
-    def _on_raw(self, session, lines: list) -> None:
-        # the recorder's copy is taken in filter_lines when the core has the line stage
-        if getattr(self.core, "line_filters", None) is None and self.recorder is not None:
-            self._record_lines(session, lines)
-
-    def _record_lines(self, session, lines: list) -> None:
+    def _record_samples(self, session, samples: list) -> None:
         rec = self.recorder
         if session is not self._rec_session:
             if self._rec_session is not None:
                 rec.new_segment(session.label)
             self._rec_session = session
-        rec.write_lines(lines)
+        rec.write_samples(samples)
         self._check_recorder()
 
     def _on_mark(self, m: dict[str, Any], session=None) -> None:
@@ -337,7 +328,7 @@ class LabTools:
         if files["estimates"] is not None:
             truth = read_estimates(files["estimates"]).get("truth")
         specs = self.specs()
-        from ..whatif import WhatIfError
+        from app.toolkit.whatif import WhatIfError
         loop = asyncio.get_running_loop()
 
         def run():
@@ -356,7 +347,7 @@ class LabTools:
         """The recording at ``path``, parsed once: a what-if is re-run again and again
         with new parameters (reading a 10-minute log costs more than re-running it).
         Keyed on the file's size and time, so a rewritten file is read again; two kept."""
-        from ..readers import read_recording
+        from app.sources.readers import read_recording
         st = path.stat()
         key = (str(path), st.st_size, st.st_mtime_ns)
         cache = self._recording_cache
@@ -403,7 +394,7 @@ class LabTools:
 
     def calibrate_recording(self, name: str, from_s: float = 0.0, to_s: float | None = None) -> dict[str, Any]:
         """The statistics of a stretch of a recording (seconds from its start)."""
-        from ..readers import read_recording
+        from app.sources.readers import read_recording
         rec = read_recording(self.files(name)["log"])
         if not len(rec):
             raise LabError("name", "the recording has no samples")
@@ -427,22 +418,17 @@ class LabTools:
 
     def save_calibration_preset(self, name: str) -> Path:
         """The current parameters with the calibration's values and the magnetometer
-        calibration, as a preset (what "apply" then "save" gives)."""
-        from .presets import preset_path
-        path = preset_path(self.settings, name)
-        sections: dict[str, Any] = {"primary": self.core.bench.base_of(self.core.bench.primary)}
-        b = self.core.bench
-        for n in b.names:
-            if b.base_of(n) == n:
-                sections[n] = to_dict(b.params_of(n))
-        if self.magcal is not None:
-            sections["magcal"] = self.magcal.preset()
-        path.parent.mkdir(parents=True, exist_ok=True)
+        calibration, as a preset (what "apply" then "save" gives). Saved by the one save
+        path of every preset (:func:`app.server.presets.save_preset`: name rules, no
+        shipped name, the cap, an atomic write); PatchError (a refused name) or
+        :class:`~app.server.presets.PresetWriteError` (the folder refused the write)."""
+        from app.server.presets import save_preset
         header = "orientlab preset from a calibration on the page"
         if self.last_calibration is not None:
             header += "\n\n" + self.last_calibration["report"].rstrip("\n")
-        path.write_text(dump_toml(sections, header=header))
-        return path
+        # the builtins' parameters, the primary and (engine.preset_parts) the
+        # magnetometer calibration in force
+        return save_preset(self.engine, name, header=header)
 
     # ----------------------------------------------------------------- magnetometer
     def magcal_start(self, seconds: float) -> dict[str, Any]:
@@ -456,14 +442,10 @@ class LabTools:
         self.mag_result = None
         return self.magcal_status()
 
-    def _collect_raw_mag(self, lines: list) -> None:
+    def _collect_raw_mag(self, samples: list) -> None:
         cap = self.mag_capture
-        for ln in lines:
-            if b"\tMAG\t" not in (ln if isinstance(ln, bytes) else ln.encode()):
-                continue
-            try:
-                s = parse_line(ln)
-            except MalformedLine:
+        for s in samples:
+            if s.tag != "MAG":
                 continue
             t = s.time_ms / 1000.0
             if cap.t0 is None:
@@ -505,7 +487,7 @@ class LabTools:
 
     # ----------------------------------------------------------------- variants
     def variant_change(self, name: str, base: str, params: dict[str, Any] | None):
-        from ..live.changes import Change, Variant
+        from app.live.changes import Change, Variant
         b = self.core.bench
         try:
             b.check_new(name, base, params)
@@ -521,7 +503,7 @@ class LabTools:
         return f"{base}-no-rejection", base, no_rejection_changes(base)
 
     def remove_change(self, name: str):
-        from ..live.changes import Change
+        from app.live.changes import Change
         b = self.core.bench
         if name not in b.names:
             raise LabError("name", f"no estimator {name!r} (known: {', '.join(b.names)})", 404)
@@ -531,7 +513,7 @@ class LabTools:
 
     # ----------------------------------------------------------------- injection
     def inject(self, body: dict[str, Any]) -> dict[str, Any]:
-        from ..inject import InjectError
+        from app.toolkit.inject import InjectError
         try:
             d: Disturbance = parse_request(body)
         except InjectError as e:
@@ -570,11 +552,11 @@ class LabTools:
     def start_replay(self, app_state, name: str) -> None:
         """Replay recording ``name`` of the folder (it replaces the demo or the replay on
         show; a connected phone still has priority)."""
-        from .sources import ReplayControl, run_replay
+        from app.sources.runners import ReplayControl, run_replay
         if not isinstance(name, str):
             raise LabError("name", "must be a recording's name")
         path = self.files(name)["log"]
-        from ..readers import detect_format, ReaderError
+        from app.sources.readers import detect_format, ReaderError
         try:
             if detect_format(path) != "applog":
                 raise LabError("name", f"{path.name} is not an app log (only logs can be replayed)")
@@ -591,7 +573,7 @@ class LabTools:
 
     def stop_replay(self, app_state) -> None:
         """Back to the demo (or to waiting for a phone when started with --source none)."""
-        from .sources import run_demo
+        from app.sources.runners import run_demo
         self.replay, self.replay_name = None, None
         demo = self.settings.source != "none"
         self._set_source(app_state, run_demo(self.engine, self.settings.demo_seed) if demo else None)

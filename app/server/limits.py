@@ -30,23 +30,26 @@ log = logging.getLogger("orientlab.limits")
 
 
 class BodyLimit:
-    """ASGI middleware: 413 for a request body over ``max_bytes``."""
+    """ASGI middleware: 413 for a request body over ``max_bytes`` (``paths``: a larger
+    cap for the given paths, the phones' pushes)."""
 
-    def __init__(self, app, max_bytes: int):
+    def __init__(self, app, max_bytes: int, paths: dict[str, int] | None = None):
         self.app = app
-        self.max_bytes = int(max_bytes)
+        self.default_bytes = int(max_bytes)
+        self.paths = {k: int(v) for k, v in (paths or {}).items()}
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
+        max_bytes = self.paths.get(scope.get("path", ""), self.default_bytes)
         for k, v in scope.get("headers", ()):
             if k == b"content-length":
                 try:
                     n = int(v)
                 except ValueError:
-                    return await _too_large(send, self.max_bytes, "bad Content-Length")
-                if n > self.max_bytes:
-                    return await _too_large(send, self.max_bytes)
+                    return await _too_large(send, max_bytes, "bad Content-Length")
+                if n > max_bytes:
+                    return await _too_large(send, max_bytes)
         seen = 0
         refused = False     # 413 sent: whatever the app answers after it is dropped
 
@@ -61,9 +64,9 @@ class BodyLimit:
             message = await receive()
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
-                if seen > self.max_bytes:
+                if seen > max_bytes:
                     refused = True
-                    await _too_large(send, self.max_bytes)
+                    await _too_large(send, max_bytes)
                     return {"type": "http.disconnect"}   # the app stops reading
             return message
 

@@ -23,8 +23,9 @@ class Health(BaseModel):
 class Info(BaseModel):
     """What the landing page needs to embed the viewer and explain the phone set-up."""
     viewer_port: int
-    phone_port: int
-    lan_ip: str
+    phone_port: int | None = Field(None, description="the Sensor Fusion app's TCP port "
+                                   "(presenter only: watchers are not told how to connect)")
+    lan_ip: str | None = Field(None, description="the PC's address for phones (presenter only)")
     source: str
     presenter: bool = Field(False, description="this browser holds the presenter's token "
                             "(or the server runs with --open): it may change the session")

@@ -32,6 +32,12 @@ def _candidates() -> list[str]:
 def lan_ipv4() -> str:
     """The best guess of the address a phone on the same network should use:
     a private (RFC 1918) address first, then any non-loopback one, else 127.0.0.1."""
+    return lan_ipv4_all()[0]
+
+
+def lan_ipv4_all() -> list[str]:
+    """Every address a phone might use, best first (see :func:`lan_ipv4`): a PC with a
+    wired and a wireless network, or a VPN, has several."""
     addrs = []
     for a in _candidates():
         try:
@@ -41,4 +47,8 @@ def lan_ipv4() -> str:
         if not ip.is_loopback and not ip.is_link_local and a not in addrs:
             addrs.append(a)
     private = [a for a in addrs if ipaddress.IPv4Address(a).is_private]
-    return (private or addrs or ["127.0.0.1"])[0]
+    # 192.168.x and 10.x are the usual Wi-Fi and hotspot networks; 172.16-31.x is more
+    # often a container or VM bridge: those last among the private ones
+    private.sort(key=lambda a: a.startswith("172."))
+    rest = [a for a in addrs if a not in private]
+    return private + rest or ["127.0.0.1"]

@@ -9,7 +9,11 @@ Used by the GUI's Presets tab and the API (``/api/presets``).
 - **Names** are checked with ``re.fullmatch`` (1-64 letters, digits, ``-``, ``_``; no
   trailing newline, no path): ``<preset_dir>/<name>.toml``. At most
   ``Settings.max_presets`` are saved (then saving a new name is refused).
-- **Writes are atomic**: a temporary file in the same folder, then ``os.replace``.
+- **One save path** (:func:`write_preset`) for every preset: the dashboard's "save",
+  an uploaded file kept, a calibration's ``save_as`` (:meth:`app.server.lab.LabTools.save_calibration_preset`).
+- **Writes are atomic**: a temporary file in the same folder, then ``os.replace``; a
+  folder that refuses the write (read-only, full) is :class:`PresetWriteError` (HTTP
+  507 with the reason), nothing left behind.
 - **Loading** by name (the user's folder first, then the shipped ones), from a **path**
   (a file written by ``orientlab calibrate``, anywhere on this PC), or from the **text**
   of an uploaded file (at most :data:`MAX_PRESET_BYTES`); each sets every estimator to
@@ -24,13 +28,17 @@ from __future__ import annotations
 import os
 import re
 import tempfile
-import tomllib
 from pathlib import Path
 
-from ..config import DEFAULT_CONFIG, ConfigError, _merge, load_config, validate_config
-from ..params import CONFIG_DIR, dump_toml, load_toml
-from ..live import Change, PatchError
-from .engine import Engine
+from app.config import DEFAULT_CONFIG, ConfigError, _merge, load_config, validate_config
+from app.params import CONFIG_DIR, dump_toml, load_toml
+from app.live import Change, PatchError
+from app.server.engine import Engine
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10 (pyproject: requires-python >= 3.10; tomli is a dependency there)
+    import tomli as tomllib
 
 NAME_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
 MAX_PRESET_BYTES = 64 * 1024
@@ -116,6 +124,13 @@ def load_preset_text(engine: Engine, text: str | bytes, source: str = "upload") 
     return engine.core.change_from_config(config)
 
 
+class PresetWriteError(PatchError):
+    """The preset folder refused the write (read-only, full, not a folder...): nothing
+    was written (an HTTP 507 with ``reason``, never a 500)."""
+
+    status = 507
+
+
 def _check_writable(settings, name: str) -> Path:
     _check_name(name)
     if name in shipped_names():
@@ -127,6 +142,13 @@ def _check_writable(settings, name: str) -> Path:
         raise PatchError(("name",), f"already {cap} saved presets: delete some in "
                                     f"{settings.preset_dir} first")
     return path
+
+
+def check_save(settings, name: str) -> Path:
+    """Would :func:`write_preset` take ``name``? Its path, or the PatchError it would
+    raise (the name rules, a shipped name, the cap); e.g. before a calibration is
+    applied with ``save_as``, so a refused name applies nothing."""
+    return _check_writable(settings, name)
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -146,21 +168,39 @@ def _write_atomic(path: Path, text: str) -> None:
         raise
 
 
-def save_preset(engine: Engine, name: str) -> Path:
+def write_preset(settings, name: str, text: str | bytes) -> Path:
+    """**The** way a preset is saved (the dashboard's "save", an upload kept, a
+    calibration's ``save_as``): the name is checked (the name rules, no shipped name),
+    the cap (``Settings.max_presets``) applies to a new name, the file is written
+    atomically (a temporary file, then ``os.replace``: a reader never sees half a
+    preset, a failed write leaves the old file and no temporary). PatchError for a
+    refused name; :class:`PresetWriteError` when the folder refuses the write."""
+    path = _check_writable(settings, name)
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", errors="replace")
+    try:
+        _write_atomic(path, text)
+    except OSError as e:
+        why = e.strerror or type(e).__name__
+        raise PresetWriteError(("name",), f"cannot write the preset {name!r} in "
+                                          f"{str(settings.preset_dir)[:200]}: {why}") from None
+    return path
+
+
+def save_preset(engine: Engine, name: str, header: str | None = None) -> Path:
     """Write the current parameters of every estimator (and the primary) as a preset in
-    the user's folder (atomically)."""
-    path = _check_writable(engine.settings, name)
+    the user's folder (:func:`write_preset`). The magnetometer calibration in force
+    comes from ``engine.preset_parts``. ``header``: the file's comment (a calibration
+    puts its report there)."""
+    _check_writable(engine.settings, name)      # refused before anything is gathered
     sections = engine.core.preset_sections()
     for part in engine.preset_parts:      # e.g. the magnetometer calibration in force
         sections.update(part())
-    _write_atomic(path, dump_toml(sections, header=f"orientlab preset {name!r}, saved from the dashboard"))
-    return path
+    if header is None:
+        header = f"orientlab preset {name!r}, saved from the dashboard"
+    return write_preset(engine.settings, name, dump_toml(sections, header=header))
 
 
 def save_preset_text(settings, name: str, text: str | bytes) -> Path:
     """Keep an uploaded preset (already validated) in the user's folder under ``name``."""
-    path = _check_writable(settings, name)
-    if isinstance(text, bytes):
-        text = text.decode("utf-8", errors="replace")
-    _write_atomic(path, text)
-    return path
+    return write_preset(settings, name, text)

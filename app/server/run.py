@@ -9,10 +9,10 @@ import sys
 
 import uvicorn
 
-from ..config import ConfigError
-from .app import create_app
-from .limits import guarded_protocol, install_log_limits
-from .settings import Settings
+from app.config import ConfigError
+from app.server.app import create_app
+from app.server.limits import guarded_protocol, install_log_limits
+from app.server.settings import Settings
 
 
 def make_server(settings: Settings, log_level: str = "warning") -> uvicorn.Server:
@@ -94,7 +94,7 @@ def serve(args) -> int:
 
     The ports are checked before and again after the filters are compiled (numba,
     :func:`app.warmup.prepare`: it says so when that takes more than a moment)."""
-    from ..warmup import prepare
+    from app.warmup import prepare
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("orientlab").setLevel(logging.INFO)

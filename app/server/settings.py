@@ -23,7 +23,8 @@ class Settings:
     """Everything ``orientlab serve`` can be told (see ``orientlab serve --help``).
 
     ``source`` is ``"demo"`` (the built-in simulated phone), ``"none"`` (wait for a
-    phone) or the path of a Sensor Fusion app log replayed at real-time speed in a loop.
+    phone), ``"phyphox:http://PHONE:PORT"`` (poll a phyphox phone's remote access) or the
+    path of a Sensor Fusion app log replayed at real-time speed in a loop.
     """
     host: str = "0.0.0.0"            # HTTP page and API
     port: int = 8000
@@ -41,6 +42,7 @@ class Settings:
     token: str | None = None         # the presenter's token; None: a random one at start
     # resources
     max_body_bytes: int = 1 << 20    # a longer HTTP request body is answered 413
+    max_push_bytes: int = 16 << 20   # likewise for a phone's push (a long batch of a fast phone)
     max_connections: int = 200       # HTTP connections at once; more are closed at once
     header_timeout_s: float = 10.0   # a request's headers must arrive within this
     keep_alive_s: int = 5            # an idle HTTP connection is closed after this
@@ -60,6 +62,11 @@ class Settings:
     ws_hz: float = 10.0              # WS /ws/state messages (each holds every estimate since the last)
     history_s: float = 20.0
     verbose: bool = True             # print the start-up banner
+
+    @property
+    def phyphox_url(self) -> str | None:
+        """The phone polled with ``--source phyphox:URL``, else None."""
+        return self.source[len("phyphox:"):] if self.source.startswith("phyphox:") else None
 
     @property
     def viewer_bind(self) -> str:

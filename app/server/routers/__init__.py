@@ -2,7 +2,7 @@
 
 from fastapi import HTTPException, Request
 
-from ..engine import Engine, PatchError
+from app.server.engine import Engine, PatchError
 
 
 async def get_engine(request: Request) -> Engine:

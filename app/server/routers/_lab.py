@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import HTTPException, Request
 
-from ..lab import LabError, LabTools
+from app.server.lab import LabError, LabTools
 
 
 async def get_lab(request: Request) -> LabTools:

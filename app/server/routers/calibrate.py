@@ -18,10 +18,11 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends
 
-from ...live.changes import Change, PatchError
-from ..access import require_presenter
-from ..lab import LabError, LabTools
-from ._lab import get_lab, lab_error
+from app.live.changes import Change, PatchError
+from app.server.access import require_presenter
+from app.server.lab import LabError, LabTools
+from app.server.presets import check_save
+from app.server.routers._lab import get_lab, lab_error
 
 router = APIRouter(prefix="/api", tags=["calibration"])
 APPLY_TIMEOUT_S = 5.0
@@ -36,6 +37,21 @@ def _obj(body: Any, allowed: set[str]) -> dict:
     if unknown:
         raise lab_error(LabError(sorted(unknown)[0], f"unknown key (known: {', '.join(sorted(allowed))})"))
     return body
+
+
+def _save_refused(e: PatchError):
+    """``save_as`` refused by the one preset save path (:func:`app.server.presets.save_preset`):
+    422 for the name (its rules, a shipped name, the cap), 507 when the preset folder
+    refused the write; the reason either way, never a 500."""
+    return lab_error(LabError("save_as", e.reason, getattr(e, "status", 422)))
+
+
+def _check_save_as(lab: LabTools, b: dict) -> None:
+    if b.get("save_as"):
+        try:
+            check_save(lab.settings, b["save_as"])
+        except PatchError as e:
+            raise _save_refused(e) from None
 
 
 async def post_change(engine, change: Change) -> dict:
@@ -83,13 +99,14 @@ async def apply_calibration(body: Any = Body(None), lab: LabTools = Depends(get_
         raise lab_error(e) from None
     except PatchError as e:
         raise lab_error(LabError(".".join(map(str, e.loc)), e.reason)) from None
+    _check_save_as(lab, b)    # a refused preset name applies nothing
     view = await post_change(lab.engine, change)
     out = {"applied": params, "params": view}
     if b.get("save_as"):
         try:
             out["preset"] = str(lab.save_calibration_preset(b["save_as"]))
         except PatchError as e:
-            raise lab_error(LabError("save_as", e.reason)) from None
+            raise _save_refused(e) from None
     return out
 
 
@@ -114,6 +131,7 @@ async def magcal_apply(body: Any = Body(None), lab: LabTools = Depends(get_lab))
     """Correct every MAG sample with the fit (``{"clear": true}``: stop correcting);
     ``save_as`` also writes a preset holding it (``[magcal]``)."""
     b = _obj(body, {"clear", "save_as"})
+    _check_save_as(lab, b)    # a refused preset name applies nothing
     try:
         out = lab.magcal_apply(bool(b.get("clear", False)))
         if b.get("save_as"):
@@ -122,4 +140,4 @@ async def magcal_apply(body: Any = Body(None), lab: LabTools = Depends(get_lab))
     except LabError as e:
         raise lab_error(e) from None
     except PatchError as e:
-        raise lab_error(LabError("save_as", e.reason)) from None
+        raise _save_refused(e) from None

@@ -9,10 +9,10 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends
 
-from ..access import require_presenter
-from ..lab import LabError, LabTools
-from ._lab import get_lab, lab_error
-from .calibrate import post_change
+from app.server.access import require_presenter
+from app.server.lab import LabError, LabTools
+from app.server.routers._lab import get_lab, lab_error
+from app.server.routers.calibrate import post_change
 
 router = APIRouter(prefix="/api/estimators", tags=["estimators"])
 

@@ -2,9 +2,9 @@
 
 from fastapi import APIRouter, Depends, Request
 
-from ..engine import Engine
-from ..models import Health, Info
-from . import get_engine
+from app.server.engine import Engine
+from app.server.models import Health, Info
+from app.server.routers import get_engine
 
 router = APIRouter(prefix="/api", tags=["health"])
 
@@ -19,9 +19,12 @@ async def health(request: Request, engine: Engine = Depends(get_engine)) -> Heal
 
 @router.get("/info", response_model=Info)
 async def info(request: Request, engine: Engine = Depends(get_engine)) -> Info:
-    """Ports and the PC's LAN address (for the landing page)."""
+    """The viewer's port; for the presenter also the phone port and the PC's LAN address
+    (for the landing page)."""
     st = request.app.state
     presenter = st.access.is_presenter(request)
-    return Info(viewer_port=st.viewer.get_port(), phone_port=st.phone.port, lan_ip=st.lan_ip,
+    return Info(viewer_port=st.viewer.get_port(),
+                phone_port=st.phone.port if presenter else None,
+                lan_ip=st.connect.host(request) if presenter else None,
                 source=engine.core.source_kind(), presenter=presenter,
                 viewer_token=st.access.token if presenter and not st.access.open else None)

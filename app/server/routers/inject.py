@@ -1,7 +1,7 @@
 """Disturbance injection: ``POST /api/inject {"kind": "magnet", "strength_uT", "direction",
 "seconds", "frame"?}`` or ``{"kind": "shake", "amplitude_ms2", "seconds", "frequency_hz"?}``
 adds a virtual magnet or shake to the stream on show (phone, demo or replay); ``GET
-/api/inject`` lists the active ones and the marks (see :mod:`app.inject`)."""
+/api/inject`` lists the active ones and the marks (see :mod:`app.toolkit.inject`)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends
 
-from ..access import require_presenter
-from ..lab import LabError, LabTools
-from ._lab import get_lab, lab_error
+from app.server.access import require_presenter
+from app.server.lab import LabError, LabTools
+from app.server.routers._lab import get_lab, lab_error
 
 router = APIRouter(prefix="/api", tags=["disturbances"])
 

@@ -3,14 +3,14 @@
 import asyncio
 from typing import Any
 
-from fastapi import APIRouter, Body, Depends, Request
+from fastapi import APIRouter, Body, Depends, HTTPException, Request
 
-from ..access import require_presenter
-from ..engine import Change, Engine, PatchError
-from ..models import PATCH_DOC, PATCH_EXAMPLES, Params, PresetRequest
-from ..presets import (MAX_PRESET_BYTES, list_presets, load_preset, load_preset_path,
-                       load_preset_text, save_preset, save_preset_text)
-from . import get_engine, unprocessable
+from app.server.access import require_presenter
+from app.server.engine import Change, Engine, PatchError
+from app.server.models import PATCH_DOC, PATCH_EXAMPLES, Params, PresetRequest
+from app.server.presets import (MAX_PRESET_BYTES, PresetWriteError, list_presets, load_preset,
+                                load_preset_path, load_preset_text, save_preset, save_preset_text)
+from app.server.routers import get_engine, unprocessable
 
 router = APIRouter(prefix="/api", tags=["parameters"])
 APPLY_TIMEOUT_S = 5.0
@@ -23,6 +23,15 @@ async def _apply(engine: Engine, change: Change) -> dict:
         return await asyncio.wait_for(done, APPLY_TIMEOUT_S)
     except PatchError as e:
         raise unprocessable(e) from None
+
+
+def refused(e: PatchError) -> HTTPException:
+    """A refused change or preset: 422 naming the field; 507 (with the reason) when the
+    preset folder refused the write (:class:`PresetWriteError`)."""
+    exc = unprocessable(e)
+    if isinstance(e, PresetWriteError):
+        exc.status_code = e.status
+    return exc
 
 
 @router.get("/params", response_model=Params)
@@ -81,10 +90,8 @@ async def preset_save(req: PresetRequest, engine: Engine = Depends(get_engine)) 
     """Save the current parameters as a preset (in the user's preset folder)."""
     try:
         path = save_preset(engine, req.name)
-    except PatchError as e:
-        raise unprocessable(e) from None
-    except OSError as e:
-        raise unprocessable(PatchError(("name",), f"cannot write the preset: {e.strerror}")) from None
+    except PatchError as e:     # a refused name (422) or the folder refused the write (507)
+        raise refused(e) from None
     return {"saved": str(path)}
 
 
@@ -102,8 +109,6 @@ async def preset_upload(request: Request, name: str | None = None,
         change = load_preset_text(engine, text)
         if name is not None:
             save_preset_text(engine.settings, name, text)
-    except PatchError as e:
-        raise unprocessable(e) from None
-    except OSError as e:
-        raise unprocessable(PatchError(("name",), f"cannot write the preset: {e.strerror}")) from None
+    except PatchError as e:     # a refused name (422) or the folder refused the write (507)
+        raise refused(e) from None
     return await _apply(engine, change)

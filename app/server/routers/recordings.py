@@ -5,7 +5,7 @@ path, seconds, samples, segments, error}``; ``GET /api/recordings`` lists the fo
 (``--recordings DIR``: our recordings and any app log dropped in it) with the recorder's
 state; ``GET /api/recordings/{name}/log`` downloads the log (the app's format);
 ``POST /api/recordings/{name}/rerun`` ``{"patch"?: {estimator: {param: value}}}`` re-runs
-it through every estimator (:mod:`app.whatif`).
+it through every estimator (:mod:`app.toolkit.whatif`).
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from typing import Any
 from fastapi import APIRouter, Body, Depends
 from fastapi.responses import FileResponse
 
-from ..access import require_presenter
-from ..lab import LabError, LabTools
-from ._lab import get_lab, lab_error
+from app.server.access import require_presenter
+from app.server.lab import LabError, LabTools
+from app.server.routers._lab import get_lab, lab_error
 
 router = APIRouter(prefix="/api/recordings", tags=["recordings"])
 

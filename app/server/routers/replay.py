@@ -9,10 +9,10 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Request
 
-from ..access import require_presenter
-from ..lab import LabError, LabTools
-from ..sources import ReplayError
-from ._lab import get_lab, lab_error
+from app.server.access import require_presenter
+from app.server.lab import LabError, LabTools
+from app.sources.runners import ReplayError
+from app.server.routers._lab import get_lab, lab_error
 
 router = APIRouter(prefix="/api", tags=["replay"])
 KEYS = {"paused", "speed", "seek_s", "loop", "name", "stop"}

@@ -5,11 +5,11 @@ import contextlib
 
 from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
 
-from ..access import require_presenter, websocket_origin_ok
+from app.server.access import require_presenter, websocket_origin_ok
 
-from ..engine import Engine
-from ..models import State
-from . import get_engine
+from app.server.engine import Engine
+from app.server.models import State
+from app.server.routers import get_engine
 
 router = APIRouter(tags=["state"])
 WS_SEND_TIMEOUT_S = 10.0   # a client that takes longer to accept one message is closed

@@ -1,0 +1,654 @@
+"""The page's "Lab" tab: record, calibrate, magnetometer calibration, replay, what-if,
+variants and disturbances (the same operations as the API, on :class:`LabTools`).
+
+The heading plot (every estimator's heading over the last 30 s, the injected disturbance
+beside it) is what a viewer would pay most for: viser resends a chart whole, and the
+server cannot know whether a browser shows the Lab tab (the tab choice stays in the
+browser). So it is sent only while it has something to show (:meth:`LabGui.monitor_live`:
+a variant on the bench, a disturbance in its window, or "Live heading plot" ticked),
+at most :data:`MONITOR_DRAW_HZ` times a second with :data:`MONITOR_POINTS` rows; at
+the default view it sends nothing.
+
+viser runs the callbacks on its own threads: each one hands its work to the server's
+event loop (``run_coroutine_threadsafe``), where :class:`LabTools` lives; a refused
+request comes back as a notification in the tab that clicked. :func:`run_lab_gui`
+refreshes the read-outs and plots a few times a second.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from app.quaternion import q2euler_many
+from app.server.lab import LabError, LabTools
+from app.server.gui.plots import send_data
+from app.server.gui.scene import set_wxyz
+
+log = logging.getLogger("orientlab.gui_lab")
+
+COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
+AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
+MONITOR_S = 30.0
+MONITOR_HZ = 50.0
+MONITOR_DRAW_HZ = 2.0     # the heading plot's refreshes per second, while live
+MONITOR_POINTS = 300      # rows sent per refresh (about the chart's width in pixels)
+VARIANT_SLOTS = 3
+
+
+class Monitor:
+    """Heading of every estimator over the last :data:`MONITOR_S` s, with the injected
+    disturbance's size beside it (fed from the core's record hook)."""
+
+    def __init__(self, lab: LabTools):
+        self.lab = lab
+        self.t: list[float] = []
+        self.yaw: dict[str, list[float]] = {}
+        self._last_t = -math.inf
+        self._session = None
+        lab.core.record_listeners.append(self._on_records)
+
+    def _on_records(self, session, rec) -> None:
+        if session is not self._session:    # a new stream (a new clock): start afresh
+            self._session = session
+            self.t.clear()
+            self.yaw.clear()
+            self._last_t = -math.inf
+        if not len(rec):
+            return
+        keep = rec.t >= self._last_t + 1.0 / MONITOR_HZ
+        if not keep.any():
+            return
+        idx = np.flatnonzero(keep)
+        # at most MONITOR_HZ rows: thin out within the chunk
+        sel, last = [], self._last_t
+        for i in idx.tolist():
+            if rec.t[i] >= last + 1.0 / MONITOR_HZ:
+                sel.append(i)
+                last = rec.t[i]
+        self._last_t = last
+        n0 = len(self.t)
+        self.t.extend(rec.t[sel].tolist())
+        # every instance's rows in one compiled call (the same conversion row by row)
+        names = list(rec.q)
+        if names:
+            qs = np.stack([rec.q[n][sel] for n in names])          # (instances, rows, 4)
+            yaw = np.degrees(q2euler_many(qs.reshape(-1, 4))[:, 0]).reshape(len(names), -1)
+            for name, y in zip(names, yaw.tolist()):
+                self.yaw.setdefault(name, [math.nan] * n0).extend(y)
+        for name, col in self.yaw.items():
+            if len(col) < len(self.t):
+                col.extend([math.nan] * (len(self.t) - len(col)))
+        cut = 0
+        while cut < len(self.t) and self.t[cut] < self.t[-1] - MONITOR_S:
+            cut += 1
+        if cut:
+            del self.t[:cut]
+            for col in self.yaw.values():
+                del col[:cut]
+
+    def injected(self, t: np.ndarray) -> np.ndarray:
+        """Size of the injected disturbance at times ``t`` (µT or m/s²), from the marks."""
+        out = np.zeros_like(t)
+        starts = {}
+        for m in self.lab.marks:
+            if m["event"] == "start":
+                starts[m["id"]] = m
+            elif m["event"] == "end" and m["id"] in starts:
+                s = starts.pop(m["id"])
+                mag = self._size(m["id"])
+                out[(t >= s["t"]) & (t <= m["t"])] += mag
+        for i, s in starts.items():
+            out[t >= s["t"]] += self._size(i)
+        return out
+
+    def _size(self, ident: int) -> float:
+        for a in self.lab.injector.history:
+            if a.id == ident:
+                return a.d.magnitude
+        return 0.0
+
+
+GHOST_COLORS = ((220, 40, 40), (140, 70, 200), (30, 160, 200), (200, 160, 20), (90, 90, 90))
+
+
+class VariantGhosts:
+    """Each variant drawn as its own translucent phone with its name, beside the primary
+    (the scene's own ghosts are the phone's estimate and the truth). Follows the bench:
+    a variant added or removed appears or goes at the next scene refresh."""
+
+    def __init__(self, server, lab: LabTools):
+        self.server = server
+        self.lab = lab
+        self.frames: dict[str, Any] = {}
+        lab.engine.listeners.append(self.draw)
+
+    def draw(self, _snapshot=None) -> None:
+        b = self.lab.core.bench
+        variants = [n for n in b.names if b.base_of(n) != n]
+        for name in list(self.frames):
+            if name not in variants:
+                self.frames.pop(name).remove()
+        sc = self.server.scene
+        for i, name in enumerate(variants):
+            f = self.frames.get(name)
+            if f is None:
+                from app.server.gui.scene import _phone_body
+                f = sc.add_frame(f"/variant_{name}", show_axes=False)
+                _phone_body(sc, f"/variant_{name}", GHOST_COLORS[i % len(GHOST_COLORS)], opacity=0.3)
+                sc.add_label(f"/variant_{name}/label", name, position=(0.0, -0.95, 0.0),
+                             anchor="center-center")
+                self.frames[name] = f
+            est = b.estimator(name)
+            if est.initialized:
+                set_wxyz(f, est.q)
+
+
+class LabGui:
+    """Builds the "Lab" tab in ``tabs`` (a viser tab group) of the shared GUI."""
+
+    def __init__(self, gui, tabs, lab: LabTools, loop: asyncio.AbstractEventLoop):
+        self.gui = gui
+        self.lab = lab
+        self.loop = loop
+        self.monitor = Monitor(lab)
+        self.ghosts = VariantGhosts(lab.engine_server, lab) if getattr(lab, "engine_server", None) else None
+        self._rerun_result: dict[str, Any] | None = None
+        self._cal_shown = None
+        self._known_recordings: tuple = ()
+        self._monitor_due = 0.0           # loop time of the heading plot's next refresh
+        self.monitor_sent = 0             # heading plot refreshes sent (tests, benchmarks)
+        with tabs.add_tab("Lab"):
+            self._build()
+
+    # ----------------------------------------------------------------- building
+    def _build(self) -> None:
+        gui = self.gui
+        self.dist_folder = gui.add_folder("Disturb (virtual magnet, shake)", expand_by_default=True)
+        with self.dist_folder:
+            self.mag_strength = gui.add_slider("Magnet [µT]", 5.0, 200.0, 5.0, 50.0,
+                                               hint="strength of the magnet's field at the phone")
+            self.mag_seconds = gui.add_slider("Magnet for [s]", 1.0, 30.0, 1.0, 5.0)
+            self.mag_frame = gui.add_dropdown("Magnet fixed in", ("world", "sensor"),
+                                              initial_value="world",
+                                              hint="world: on the desk (turns with the phone in its "
+                                                   "readings); sensor: stuck on the phone")
+            self.mag_dir = gui.add_dropdown("Direction", ("east", "north", "up", "down", "x", "y", "z"),
+                                            initial_value="east")
+            b = gui.add_button("Bring a magnet", color="red",
+                               hint="POST /api/inject {kind: magnet}")
+            b.on_click(lambda ev: self._do(ev, lambda: self.lab.inject({
+                "kind": "magnet", "strength_uT": float(self.mag_strength.value),
+                "seconds": float(self.mag_seconds.value), "frame": self.mag_frame.value,
+                "direction": self.mag_dir.value}), "Magnet"))
+            self.shake_amp = gui.add_slider("Shake [m/s²]", 1.0, 30.0, 1.0, 8.0)
+            self.shake_seconds = gui.add_slider("Shake for [s]", 1.0, 30.0, 1.0, 3.0)
+            s = gui.add_button("Shake", color="orange", hint="POST /api/inject {kind: shake}")
+            s.on_click(lambda ev: self._do(ev, lambda: self.lab.inject({
+                "kind": "shake", "amplitude_ms2": float(self.shake_amp.value),
+                "seconds": float(self.shake_seconds.value)}), "Shake"))
+            nr = gui.add_button("Add the primary without rejection",
+                                hint="a variant of the primary with every gate off, beside it")
+            nr.on_click(lambda ev: self._add_variant(ev, "no-rejection"))
+            self.inject_md = gui.add_markdown("")
+            self.monitor_follow = gui.add_checkbox(
+                "Live heading plot", False,
+                hint="Keep the heading plot below following the stream. Without it the plot "
+                     "follows only while a variant runs or a disturbance is in its 30 s "
+                     "window (each viewer pays for every refresh of a chart).")
+            # fixed series (the page's uPlot keeps the count it was made with): the
+            # builtins, VARIANT_SLOTS variants in the order they were added, the disturbance
+            self._mon_builtins = [n for n in self.lab.core.bench.names]
+            self.p_monitor = self._plot("Heading [deg] of each estimator; injected size (grey)",
+                                        self._mon_builtins + [f"variant {i + 1}" for i in range(VARIANT_SLOTS)]
+                                        + ["disturbance"], height=220, x_range=(-MONITOR_S, 0.0))
+        with gui.add_folder("Record", expand_by_default=False):
+            self.rec_name = gui.add_text("Recording name", "", hint="empty: orientlab_<date>")
+            rb = gui.add_button("Record", color="red")
+            rb.on_click(lambda ev: self._do(ev, lambda: self.lab.start_recording(
+                self.rec_name.value.strip() or None), "Recording"))
+            sb = gui.add_button("Stop recording")
+            sb.on_click(lambda ev: self._do(ev, self.lab.stop_recording, "Recording stopped"))
+            self.rec_md = gui.add_markdown("")
+        with gui.add_folder("Calibrate (keep the phone still)", expand_by_default=False):
+            self.cal_seconds = gui.add_slider("Seconds", 2.0, 60.0, 1.0, 10.0)
+            cb = gui.add_button("Start calibration", hint="POST /api/calibrate {seconds}")
+            cb.on_click(self._start_calibration)
+            self.cal_bar = gui.add_progress_bar(0.0, visible=False)
+            self.cal_md = gui.add_markdown("")
+            self.cal_sensor = gui.add_dropdown("Show sensor", ("acc", "gyr", "mag"), initial_value="acc")
+            self.cal_sensor.on_update(lambda ev: self._call(self._draw_calibration, True))
+            self.p_hist = [self._plot(f"{a} histogram and fitted Gaussian", ["count", "Gaussian"],
+                                      height=140, x_label="value") for a in "xyz"]
+            self.p_cal_t = self._plot("samples over time", ["x", "y", "z"], height=140)
+            ab = gui.add_button("Apply to the estimators",
+                                hint="noise levels, gyroscope bias, g0, m0 (formula 7)")
+            ab.on_click(lambda ev: self._call(self._apply_calibration, ev))
+            self.cal_preset = gui.add_text("Preset name", "calibrated")
+            spb = gui.add_button("Save as preset")
+            spb.on_click(lambda ev: self._do(ev, self._save_calibration_preset, "Preset saved"))
+        with gui.add_folder("Magnetometer calibration", expand_by_default=False):
+            gui.add_markdown("Turn the phone slowly in all directions while it collects.")
+            self.mc_seconds = gui.add_slider("Seconds", 5.0, 120.0, 5.0, 30.0)
+            mb = gui.add_button("Start collecting", hint="POST /api/magcal {seconds}")
+            mb.on_click(lambda ev: self._do(ev, lambda: self.lab.magcal_start(
+                float(self.mc_seconds.value)), "Turn the phone"))
+            self.mc_bar = gui.add_progress_bar(0.0)
+            self.mc_md = gui.add_markdown("")
+            mab = gui.add_button("Apply the fit")
+            mab.on_click(lambda ev: self._do(ev, lambda: self.lab.magcal_apply(False), "Applied"))
+            mcb = gui.add_button("Clear (no correction)")
+            mcb.on_click(lambda ev: self._do(ev, lambda: self.lab.magcal_apply(True), "Cleared"))
+        with gui.add_folder("Replay", expand_by_default=False):
+            self.rp_name = gui.add_dropdown("Recording", ("(none)",))
+            pb = gui.add_button("Replay it")
+            pb.on_click(lambda ev: self._replay(ev, {"name": self.rp_name.value}))
+            self.rp_pause = gui.add_button("Pause / play")
+            self.rp_pause.on_click(lambda ev: self._replay(
+                ev, {"paused": not (self.lab.replay.paused if self.lab.replay else False)}))
+            self.rp_speed = gui.add_slider("Speed [x]", 0.1, 10.0, 0.1, 1.0)
+            self.rp_speed.on_update(lambda ev: ev.client is not None and self._replay(
+                ev, {"speed": float(self.rp_speed.value)}))
+            self.rp_seek = gui.add_slider("Seek [s]", 0.0, 1.0, 0.1, 0.0,
+                                          hint="every estimator restarts cleanly at a seek")
+            self.rp_seek.on_update(lambda ev: ev.client is not None and self._replay(
+                ev, {"seek_s": float(self.rp_seek.value)}))
+            self.rp_loop = gui.add_checkbox("Loop", True)
+            self.rp_loop.on_update(lambda ev: ev.client is not None and self._replay(
+                ev, {"loop": bool(self.rp_loop.value)}))
+            db = gui.add_button("Back to the demo")
+            db.on_click(lambda ev: self._replay(ev, {"stop": True}))
+            self.rp_md = gui.add_markdown("")
+        with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
+            self.wi_name = gui.add_dropdown("Recording ", ("(none)",))
+            self.wi_est = gui.add_dropdown("Estimator", tuple(self.lab.core.bench.names),
+                                           initial_value=self.lab.core.bench.primary)
+            self.wi_patch = gui.add_text("Change (JSON)", '{"mag_norm_gate_rel": 0}',
+                                         hint="parameters of that estimator, e.g. {\"acc_std\": 0.3}")
+            wb = gui.add_button("Re-run before/after")
+            wb.on_click(self._rerun)
+            self.wi_md = gui.add_markdown("")
+            self.p_wi_err = self._plot("error [deg] before (solid) vs after (dashed)",
+                                       ["before", "after"], height=170)
+            self.p_wi_yaw = self._plot("yaw [deg] before vs after", ["before", "after"], height=170)
+        with gui.add_folder("Variants", expand_by_default=False):
+            v1 = gui.add_button("Add lab-approx (2k beside 2j)",
+                                hint="exercise 9: the approximate time update beside the exact one")
+            v1.on_click(lambda ev: self._add_variant(ev, "lab-approx"))
+            self.var_remove = gui.add_dropdown("Variant", ("(none)",))
+            rm = gui.add_button("Remove variant")
+            rm.on_click(self._remove_variant)
+            self.var_md = gui.add_markdown("")
+
+    def _plot(self, title: str, labels: list[str], height: int = 160, x_label: str = "t [s]",
+              x_range: tuple[float, float] | None = None):
+        series = ({"label": x_label},) + tuple(
+            {"label": lab, "stroke": COLORS[i % len(COLORS)], "width": 1.5} for i, lab in enumerate(labels))
+        z = (np.zeros(2),) * len(series)
+        xs = {"time": False} if x_range is None else {"time": False, "auto": False, "range": list(x_range)}
+        return self.gui.add_uplot(data=z, series=series, title=title,
+                                  scales={"x": xs}, height=height, aspect=2.0)
+
+    # ----------------------------------------------------------------- callbacks
+    def _call(self, fn: Callable, *args) -> None:
+        """Run ``fn(*args)`` on the event loop (from viser's thread)."""
+        self.loop.call_soon_threadsafe(lambda: self._guard(fn, *args))
+
+    def _guard(self, fn, *args) -> None:
+        try:
+            r = fn(*args)
+            if asyncio.iscoroutine(r):
+                asyncio.ensure_future(r)
+        except Exception:
+            log.exception("lab GUI action failed")
+
+    def _notify(self, ev, title: str, body: str, color: str = "red") -> None:
+        client = getattr(ev, "client", None)
+        if client is not None:
+            try:
+                client.add_notification(title, body[:400], color=color, auto_close_seconds=6.0)
+            except Exception:
+                log.exception("notification failed")
+        else:
+            log.info("%s: %s", title, body)
+
+    def _save_calibration_preset(self) -> str:
+        """The calibration's preset, through the one preset save path; a refusal (a
+        shipped name, the cap, a folder that refuses the write) as a LabError."""
+        from app.live.changes import PatchError
+        try:
+            return str(self.lab.save_calibration_preset(self.cal_preset.value.strip()))
+        except PatchError as e:
+            raise LabError("save_as", e.reason, getattr(e, "status", 422)) from None
+
+    def _do(self, ev, fn: Callable, title: str) -> None:
+        """Run a synchronous LabTools call on the loop; notify its outcome."""
+        def run():
+            try:
+                out = fn()
+            except LabError as e:
+                self._notify(ev, f"{title}: refused", f"{e.field}: {e.reason}")
+                return
+            text = out.get("text") or out.get("name") or "" if isinstance(out, dict) else str(out)
+            self._notify(ev, title, str(text), color="green")
+            self.refresh()
+        self._call(run)
+
+    def _replay(self, ev, body: dict) -> None:
+        from app.sources.runners import ReplayError
+        state = self.lab.app_state
+
+        def run():
+            try:
+                if body.get("stop"):
+                    self.lab.stop_replay(state)
+                    return
+                if "name" in body:
+                    self.lab.start_replay(state, body["name"])
+                    if self.lab.replay is not None:
+                        self.rp_seek.max = max(0.1, round(self.lab.replay.duration_s, 1))
+                    return
+                if self.lab.replay is None:
+                    raise LabError("name", "nothing is replayed: pick a recording and press Replay it")
+                self.lab.replay.set(**body)
+            except (LabError, ReplayError) as e:
+                self._notify(ev, "Replay", f"{e.field}: {e.reason}")
+        self._call(run)
+
+    def _add_variant(self, ev, preset: str) -> None:
+        async def run():
+            try:
+                if preset == "no-rejection":
+                    name, base, params = self.lab.no_rejection()
+                else:
+                    name, base, params = "lab-approx", "lab", {"time_update": "approx"}
+                change = self.lab.variant_change(name, base, params)
+            except LabError as e:
+                self._notify(ev, "Variant", f"{e.field}: {e.reason}")
+                return
+            await self._post(ev, change, f"{name} added")
+        self._call(run)
+
+    def _remove_variant(self, ev) -> None:
+        async def run():
+            try:
+                change = self.lab.remove_change(self.var_remove.value)
+            except LabError as e:
+                self._notify(ev, "Variant", e.reason)
+                return
+            await self._post(ev, change, f"{self.var_remove.value} removed")
+        self._call(run)
+
+    async def _post(self, ev, change, ok_text: str) -> None:
+        done = self.loop.create_future()
+        self.lab.engine.post(change, done)
+        try:
+            await asyncio.wait_for(done, 5.0)
+            self._notify(ev, "Done", ok_text, color="green")
+        except Exception as e:
+            self._notify(ev, "Refused", str(e))
+
+    def _start_calibration(self, ev) -> None:
+        async def run():
+            try:
+                await self.lab.calibrate(float(self.cal_seconds.value))
+                self._notify(ev, "Calibration", "done: see the statistics", color="green")
+                self._draw_calibration(True)
+            except LabError as e:
+                self._notify(ev, "Calibration", e.reason)
+        self._call(run)
+
+    async def _apply_calibration(self, ev) -> None:
+        from app.live.changes import PatchError
+        try:
+            params = self.lab.calibration_change()
+            change = self.lab.core.validate({"estimators": params})
+        except (LabError, PatchError) as e:
+            self._notify(ev, "Not applied", str(e))
+            return
+        await self._post(ev, change, "calibration applied: " + ", ".join(
+            f"{n}: {', '.join(p)}" for n, p in params.items()))
+
+    def _rerun(self, ev) -> None:
+        async def run():
+            try:
+                patch_text = self.wi_patch.value.strip()
+                changes = json.loads(patch_text) if patch_text else {}
+                if not isinstance(changes, dict):
+                    raise LabError("patch", "a JSON object of parameter changes")
+            except json.JSONDecodeError as e:
+                self._notify(ev, "What-if", f"the change is not JSON: {e}")
+                return
+            except LabError as e:
+                self._notify(ev, "What-if", e.reason)
+                return
+            self.wi_md.content = "re-running..."
+            try:
+                out = await self.lab.rerun(self.wi_name.value,
+                                           {self.wi_est.value: changes} if changes else None)
+            except LabError as e:
+                self.wi_md.content = ""
+                self._notify(ev, "What-if", f"{e.field}: {e.reason}")
+                return
+            self._rerun_result = out
+            self._draw_rerun()
+        self._call(run)
+
+    # ----------------------------------------------------------------- drawing
+    def _draw_rerun(self) -> None:
+        out = self._rerun_result
+        if out is None:
+            return
+        ref = out["reference"] or "none"
+        key = "error_to_truth_deg" if ref == "truth" else "error_to_phone_deg"
+        rows = [f"**{out['name']}**: {out['rows']} rows, {out['duration_s']:.1f} s, re-run in "
+                f"{out['estimate_s']:.2f} s ({(out['realtime_ratio'] or 0):.0f}x real time); error to the {ref}",
+                "", "| estimator | RMS error before | after | mag refused before | after |",
+                "|---|---|---|---|---|"]
+
+        def f(run, k):
+            if run is None or run.get(k) is None:
+                return "-"
+            return f"{run[k]['rms']:.2f}°" if run[k].get("rms") is not None else "-"
+
+        def r(run):
+            if run is None or run["rejected"]["mag"] is None:
+                return "-"
+            return f"{100 * run['rejected']['mag']:.1f} %"
+        for name, e in out["estimators"].items():
+            rows.append(f"| {name} | {f(e['before'], key)} | {f(e['after'], key)} | "
+                        f"{r(e['before'])} | {r(e['after'])} |")
+        self.wi_md.content = "\n".join(rows)
+        e = out["estimators"].get(self.wi_est.value)
+        t = np.array(out["t"], dtype=float)
+        if e is None or e["before"] is None:
+            return
+        after = e["after"] or e["before"]
+
+        def arr(x):
+            return np.array([np.nan if v is None else v for v in (x or [])], dtype=float) \
+                if x is not None else np.full(len(t), np.nan)
+        for plot, key in ((self.p_wi_err, "error_deg"), (self.p_wi_yaw, "yaw_deg")):
+            a, b2 = arr(e["before"]["series"][key]), arr(after["series"][key])
+            ok = np.isfinite(a) & np.isfinite(b2)   # uPlot's autoscale fails on NaN: drop them
+            plot.data = (t[ok], a[ok], b2[ok]) if ok.any() else (np.zeros(2),) * 3
+
+    def _draw_calibration(self, force: bool = False) -> None:
+        res = self.lab.last_calibration
+        if res is None or (res is self._cal_shown and not force):
+            return
+        self._cal_shown = res
+        name = self.cal_sensor.value
+        s = res["sensors"].get(name)
+        lines = [f"{res['n_rows']} rows over {res['duration_s']:.1f} s; "
+                 + ("stationary" if res["stationary"] else "**not stationary**: " + "; ".join(res["warnings"]))]
+        for sn, ss in res["sensors"].items():
+            mean = ", ".join(f"{v:.4g}" for v in ss["mean"])
+            std = ", ".join(f"{v:.3g}" for v in ss["std"])
+            drift = ", ".join(f"{v:.3g}" for v in ss["drift_per_min"])
+            normal = ", ".join("yes" if v else ("no" if v is not None else "n/a")
+                               for v in ss["normality"]["normal_5pct"])
+            lines.append(f"- **{ss['title']}** [{ss['unit']}]: mean ({mean}), σ ({std}), "
+                         f"drift/min ({drift}), normal at 5 %: {normal}")
+        if res.get("m0"):
+            lines.append(f"- g0 = {res['g0']}, m0 (formula 7) = ({', '.join(f'{v:.2f}' for v in res['m0'])}) µT")
+        self.cal_md.content = "\n".join(lines)
+        if s is None:
+            return
+        for i, h in enumerate(s["histograms"]):
+            c = np.array(h["centres"], float)
+            self.p_hist[i].data = (c, np.array(h["counts"], float),
+                                   np.array([np.nan if v is None else v for v in h["fit"]], float))
+        ser = (res.get("series") or {}).get(name)
+        if ser:
+            self.p_cal_t.data = tuple(np.array([np.nan if v is None else v for v in ser[k]], float)
+                                      for k in ("t", "x", "y", "z"))
+
+    def refresh(self) -> None:
+        """Read-outs and plots (on the event loop)."""
+        lab = self.lab
+        lab.tick()
+        # recordings
+        st = lab.recording_status()
+        if st["recording"]:
+            seg = st["segments"][-1] if st["segments"] else {}
+            self.rec_md.content = (f"**recording** `{seg.get('name', st['name'])}`: "
+                                   f"{st['seconds']:.1f} s, {st['samples']} samples")
+        else:
+            last = st["last"]
+            self.rec_md.content = "not recording" + (
+                "" if last is None else f"; last: `{last['name']}` {last['seconds']:.1f} s, "
+                f"{last['samples']} samples" + (f" -- **{last['error']}**" if last.get("error") else ""))
+        names = tuple(r["name"] for r in lab.recordings()) or ("(none)",)
+        if names != self._known_recordings:
+            self._known_recordings = names
+            for dd in (self.rp_name, self.wi_name):
+                v = dd.value
+                dd.options = names
+                if v in names:
+                    dd.value = v
+        # calibration countdown
+        cap = lab.capture
+        if cap is not None and cap.result is None and cap.error is None:
+            self.cal_bar.visible = True
+            self.cal_bar.value = 100.0 * min(1.0, cap.elapsed / cap.seconds)
+            self.cal_md.content = f"keep the phone still: {cap.remaining:.1f} s left"
+        else:
+            self.cal_bar.visible = False
+            if cap is not None and cap.error:
+                self.cal_md.content = f"**calibration failed**: {cap.error}"
+            self._draw_calibration()
+        # magnetometer calibration
+        ms = lab.magcal_status()
+        c = ms.get("capture")
+        if c is not None:
+            self.mc_bar.value = 100.0 * c["coverage"]
+            res = ms.get("result")
+            txt = [f"coverage {100 * c['coverage']:.0f} % of directions, {c['samples']} samples, "
+                   f"{c['remaining_s']:.0f} s left" + (f" -- **{c['error']}**" if c.get("error") else "")]
+            if res:
+                txt.append(f"fit ({res['model']}): offset ({', '.join(f'{v:.1f}' for v in res['offset_uT'])}) µT, "
+                           f"field {res['field_uT']:.1f} µT; residual {res['residual_before_uT']:.2f} -> "
+                           f"{res['residual_after_uT']:.2f} µT")
+            txt.append("applied: " + ("none" if ms["applied"] is None else "yes"))
+            self.mc_md.content = "\n\n".join(txt)
+        # replay
+        rs = lab.replay_status()
+        if rs["replaying"]:
+            dur = max(0.1, round(rs["duration_s"], 1))
+            if self.rp_seek.max != dur:     # a replay started by the API or --source too
+                self.rp_seek.max = dur
+            self.rp_md.content = (f"`{rs['name']}` {rs['position_s']:.1f} / {rs['duration_s']:.1f} s, "
+                                  f"{rs['speed']:g}x" + (", **paused**" if rs["paused"] else "")
+                                  + (", loop" if rs["loop"] else ""))
+        else:
+            self.rp_md.content = "not replaying"
+        # variants
+        b = lab.core.bench
+        variants = tuple(n for n in b.names if b.base_of(n) != n) or ("(none)",)
+        if tuple(self.var_remove.options) != variants:
+            self.var_remove.options = variants
+        self.var_md.content = self._readouts()
+        if tuple(self.wi_est.options) != tuple(b.names):
+            self.wi_est.options = tuple(b.names)
+        # disturbances and the monitor
+        act = lab.injector.active
+        self.inject_md.content = ("active: " + "; ".join(a.d.describe() for a in act)) if act \
+            else "no disturbance active"
+        self._draw_monitor()
+
+    def _readouts(self) -> str:
+        """Every estimator's Euler angles, error to the phone and its last magnetometer
+        decision: the variants' read-outs beside the builtins'."""
+        from app.quaternion import angle_between
+        b = self.lab.core.bench
+        phone = b.phone_q
+        rows = ["| estimator | yaw pitch roll [deg] | to phone | magnetometer |", "|---|---|---|---|"]
+        for n in b.names:
+            if b.base_of(n) == "phone":
+                continue
+            est = b.estimator(n)
+            e = np.degrees(q2euler_many(est.q[None, :])[0])
+            err = "-" if phone is None else f"{math.degrees(angle_between(phone, est.q)):.1f}°"
+            f = b.instances[n].flags("mag")
+            dec = "-" if f is None else f.mag.label
+            tag = "" if b.base_of(n) == n else f" ({b.base_of(n)} variant)"
+            rows.append(f"| `{n}`{tag} | {e[0]:.1f} {e[1]:.1f} {e[2]:.1f} | {err} | {dec} |")
+        return "\n".join(rows)
+
+    def monitor_live(self) -> bool:
+        """Whether the heading plot follows the stream: "Live heading plot" ticked, a
+        variant on the bench, a disturbance active or one in the plot's window."""
+        if self.monitor_follow.value or self.lab.injector.active:
+            return True
+        b = self.lab.core.bench
+        if any(b.base_of(n) != n for n in b.names):
+            return True
+        m = self.monitor
+        return bool(m.t) and any(mk["t"] >= m.t[-1] - MONITOR_S for mk in self.lab.marks)
+
+    def _draw_monitor(self) -> None:
+        m = self.monitor
+        if len(m.t) < 2 or not self.monitor_live():
+            return
+        now = self.loop.time()
+        if now < self._monitor_due:
+            return
+        self._monitor_due = now + 1.0 / MONITOR_DRAW_HZ
+        keep = np.unique(np.linspace(0, len(m.t) - 1, min(len(m.t), MONITOR_POINTS)).astype(np.int64))
+        t = np.array(m.t)[keep]
+        b = self.lab.core.bench
+        variants = [n for n in b.names if b.base_of(n) != n][:VARIANT_SLOTS]
+        cols = []
+        for n in self._mon_builtins + variants + [None] * (VARIANT_SLOTS - len(variants)):
+            y = m.yaw.get(n) if n is not None else None
+            cols.append(np.array(y, float)[keep] if y is not None and len(y) == len(m.t)
+                        else np.full(len(t), np.nan))
+        labels = self._mon_builtins + [variants[i] if i < len(variants) else f"variant {i + 1}"
+                                       for i in range(VARIANT_SLOTS)]
+        current = [s["label"] for s in self.p_monitor.series][1:-1]
+        if current != labels:   # same number of series: only the names change
+            n_b = len(self._mon_builtins)
+            self.p_monitor.series = ({"label": "t [s]"},) + tuple(
+                {"label": lab, "stroke": COLORS[i % len(COLORS)], "width": 1.5,
+                 "show": i < n_b + len(variants)}
+                for i, lab in enumerate(labels)) + (
+                {"label": "disturbance", "stroke": "#999", "width": 1, "dash": [4, 4]},)
+        # rows where an estimator had no value yet are gaps (null, never NaN: plots.py)
+        send_data(self.p_monitor, (t - t[-1], *cols, m.injected(t)))
+        self.monitor_sent += 1
+
+
+async def run_lab_gui(g: LabGui, hz: float = 2.0) -> None:
+    """Refresh the Lab tab ``hz`` times a second."""
+    while True:
+        try:
+            g.refresh()
+        except Exception:
+            log.exception("lab GUI refresh failed")
+        await asyncio.sleep(1.0 / hz)

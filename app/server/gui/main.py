@@ -1,0 +1,663 @@
+"""The viser GUI: live controls, read-outs and plots.
+
+Layout (at 1600x900 the 3D view, four plots and the tuning controls are visible at
+once): the plots in their own panel docked left of the 3D view; in the control panel
+the stream line (source, seconds since the stream started, primary), the indicators
+(standstill, acc / mag disturbed with the gate and its value), the sensor switches,
+then tabs: Tuning (one folder per estimator, the primary's first and open), Read-outs,
+View, Presets (and Lab).
+
+Controls are built from the estimators' parameter metadata (:mod:`app.server.gui.controls`):
+every parameter of every estimator, in its user unit, with a hover text that says what
+it is, its unit and what raising it does.
+
+A control never touches the filter: its callback (on viser's threads) builds the same
+PATCH body the HTTP API takes, validates it (:meth:`Engine.validate_patch`) and posts
+it; the engine applies it before the next sample and then calls :meth:`Gui.sync`,
+which sets every control from the estimators' parameters (the one source of truth).
+Callbacks fired by that synchronisation are recognised and ignored, so nothing loops.
+
+The indicators are computed once per refresh from one snapshot and drawn both as the
+pills and as the 3D label (:meth:`Scene.set_indicators`): they show the same text.
+A rejection lights its pill for at least :data:`HOLD_S` (a shake refuses some samples
+and accepts others: a pill that followed each sample would flicker unseen).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import html
+import logging
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from app.estimators import AVERAGED_IN, Reason, is_rejected
+from app.params import describe, fields_of
+from app.quaternion import q2euler_many
+from app.server.gui.controls import Control, build_control, show_value
+from app.live.bench import SENSORS
+from app.server.engine import Engine, PatchError
+from app.server.gui.plots import EULER_COLORS, Plot, angle_deg, during, ends, unwrap_deg
+from app.server.presets import (NAME_RE, list_presets, load_preset, load_preset_path, load_preset_text,
+                      save_preset, save_preset_text, shipped_names)
+from app.server.gui.scene import Indicators, Scene, describe_rejection
+
+log = logging.getLogger("orientlab.gui")
+
+SENSOR_SWITCHES = (("use_gyr", "Gyroscope"), ("use_acc", "Accelerometer"), ("use_mag", "Magnetometer"))
+NIS_FLOOR = 1e-3         # the NIS plot's lowest value (a log axis labels 1e-4 as "0")
+MAX_POINTS = 300          # per plot: 15 points/s over 20 s is smooth enough
+HOLD_S = 1.0              # a rejection keeps its indicator lit this long
+PLOT_HEIGHT = 140
+PLOT_PANEL_PX = 400       # the plots' panel, docked left of the 3D view
+BIAS_ESTIMATORS = ("lab",)  # estimators given the bias by "Calibrate gyro bias"
+
+
+class Gui:
+    """Builds the GUI on the shared ``server.gui`` (every browser sees the same)."""
+
+    def __init__(self, server, engine: Engine, scene: Scene, settings):
+        self.server = server
+        self.engine = engine
+        self.scene = scene
+        self.settings = settings
+        self._sync_thread: int | None = None
+        self.controls: list[Control] = []
+        self.folders: dict[str, object] = {}
+        self._hold: dict[str, tuple[str, float, float]] = {}  # sensor -> (text, lit until, since)
+        self._rej_seen: dict[str, int] = {s: 0 for s in SENSORS}
+        self._rej_primary = engine.core.bench.primary
+        self.indicators_now = Indicators()
+        gui = server.gui
+        gui.configure_theme(show_share_button=False, control_width="large",
+                            brand_color=(30, 90, 170), titlebar_content=None)
+        self.status = gui.add_html("", order=0)
+        self.indicators = gui.add_html("", order=1)
+        with gui.add_folder("Sensors and estimator", order=2):
+            self.switches = {}
+            for key, label in SENSOR_SWITCHES:
+                h = gui.add_checkbox(label, self._common_value(key),
+                                     hint=f"Use the {label.lower()} in every estimator (off: "
+                                          f"the filters run without it, as in the lab's exercise). "
+                                          f"API name: {key}.")
+                h.on_update(self._make_switch_cb(key, h))
+                self.switches[key] = h
+            self.primary = gui.add_dropdown(
+                "Primary estimator", engine.core.bench.names, initial_value=engine.core.bench.primary,
+                hint="The estimator drawn as the phone, plotted and shown in the read-outs; "
+                     "every estimator runs on every sample.")
+            self.primary.on_update(lambda ev: self._submit({"primary": self.primary.value}, ev))
+            reset = gui.add_button("Reset filters", hint="Forget the orientation and align again "
+                                                         "from the next samples.")
+            reset.on_click(lambda ev: self._submit({"reset": True}, ev))
+            self.resume = gui.add_button("Resume demo", visible=settings.source != "none",
+                                         hint="Restart the demo / log replay after a phone has left.")
+            self.resume.on_click(lambda ev: engine.resume_background())
+        # The plots live in their own panel, docked left of the 3D view: always on show
+        # beside the tuning controls, and never in a hidden tab (a uPlot chart laid out
+        # at zero width keeps a broken x window in viser's client and stays blank).
+        self.plot_panel = None
+        # (kind, start_s, end_s) of the disturbances injected into a stream (the lab's
+        # LabTools.injected_spans, set in the lifespan): drawn over |acc| and |mag|
+        self.injections: Callable[[Any], list[tuple[str, float, float]]] | None = None
+        if hasattr(gui, "add_panel"):
+            self.plot_panel = gui.add_panel()
+            with self.plot_panel.add_tab("Plots"):
+                self._build_plots(gui)
+            self.plot_panel.dock_left()
+            self.plot_panel.set_width(PLOT_PANEL_PX)
+        tabs = self.tabs = gui.add_tab_group(order=3)   # the Lab tab joins it (gui_lab)
+        if self.plot_panel is None:                     # an older viser: plots in a tab
+            with tabs.add_tab("Plots"):
+                self._build_plots(gui)
+        with tabs.add_tab("Tuning"):
+            gui.add_markdown("Every change applies from the next sample. Hover a control "
+                             "for what it does. The primary estimator comes first.")
+            self.bias_folder, self._bias_for = None, None   # lab's bias tool (_build_bias)
+            self._build_bias(gui)
+            for name in engine.core.bench.names:
+                est = engine.core.bench.estimator(name)
+                folder = gui.add_folder(f"{name}: {type(est).title or type(est).__name__}",
+                                        expand_by_default=(name == engine.core.bench.primary),
+                                        order=self._folder_order(name))
+                self.folders[name] = folder
+                with folder:
+                    self._build_controls(gui, name, type(est.params))
+        with tabs.add_tab("Read-outs"):
+            self.readouts = gui.add_html("")
+        with tabs.add_tab("View"):
+            for what, label, on in (("own", "Phone's own estimate (orange)", True),
+                                    ("truth", "Ground truth (green, demo)", True),
+                                    ("cones", "Uncertainty cones (2σ)", True),
+                                    ("arrows", "Gravity and field arrows", True)):
+                h = gui.add_checkbox(label, on)
+                h.on_update(lambda ev, w=what, hh=h: scene.show(w, hh.value))
+        with tabs.add_tab("Presets"):
+            self.preset_name = gui.add_text("Preset name", "my-preset")
+            load = gui.add_button("Load preset")
+            save = gui.add_button("Save preset")
+            self.preset_msg = gui.add_markdown(self._preset_list_md())
+            load.on_click(self._on_load)
+            save.on_click(self._on_save)
+            # a preset file on this PC (e.g. from `orientlab calibrate`), or uploaded
+            self.preset_file = gui.add_text("Preset file", "", hint="path of a .toml preset on "
+                                            "this PC, e.g. written by orientlab calibrate")
+            gui.add_button("Load file").on_click(self._on_load_path)
+            gui.add_upload_button("Upload preset (.toml)", mime_type=".toml",
+                                  hint="load a preset file from this browser's computer; it "
+                                       "is also kept in the preset list").on_upload(self._on_upload)
+        engine.param_listeners.append(self.sync)
+
+    # ------------------------------------------------------------------ controls
+    def _common_value(self, key: str):
+        # viser's threads call this too: one schema of the bench, never the live one (a
+        # variant removed meanwhile, the primary with it, cannot be half seen)
+        schema = self.engine.core.bench.schema
+        return getattr(schema.params_of(schema.primary), key)
+
+    def _folder_order(self, name: str) -> float:
+        names = self.engine.core.bench.names
+        return 10.0 if name == self.engine.core.bench.primary else 11.0 + names.index(name)
+
+    def _build_controls(self, gui, est_name: str, params_cls) -> None:
+        fmeta = fields_of(params_cls)
+        current = self.engine.core.bench.params_of(est_name)
+        for row in describe(params_cls):
+            name = row["name"]
+            if name in dict(SENSOR_SWITCHES):
+                continue          # the common switches above set every estimator
+            c = build_control(gui, est_name, row, getattr(current, name), fmeta[name].metadata)
+            if c is None:
+                continue
+            c.handle.on_update(self._make_param_cb(c))
+            self.controls.append(c)
+
+    def _build_bias(self, gui) -> None:
+        """Give ``lab`` (which does not estimate it) the gyroscope bias: the mean rate of
+        the last N s, when the phone lay still then."""
+        have = [n for n in BIAS_ESTIMATORS if n in self.engine.core.bench.instances]
+        if not have:
+            return
+        # just before lab's own folder: the primary's controls stay first (see sync())
+        self._bias_for = have[0]
+        self.bias_folder = gui.add_folder("Gyroscope bias for lab",
+                                          order=self._folder_order(have[0]) - 0.5)
+        with self.bias_folder:
+            self.bias_seconds = gui.add_number(
+                "Rest window [s]", 3.0, min=0.5, max=20.0, step=0.5,
+                hint="How many of the last seconds of gyroscope samples to average. The phone "
+                     "must lie still for that long (it checks).")
+            self.bias_button = gui.add_button(
+                "Calibrate gyro bias (last N s at rest)",
+                hint="Average the gyroscope over the rest window and give it to lab as gyr_bias "
+                     "(subtracted from every sample). Refused if the phone moved.")
+            self.bias_button.on_click(self._on_calibrate_bias)
+
+    def calibrate_bias(self, seconds: float) -> tuple[np.ndarray | None, str]:
+        """The mean gyroscope rate (rad/s) of the last ``seconds`` s of the stream, or None
+        and why not (too few samples, or the phone moved)."""
+        g = self.engine.core.history.gyr.window(seconds, 100_000)
+        ok = np.all(np.isfinite(g.data), axis=1)
+        t, w = g["t"][ok], g["w"][ok]
+        if t.shape[0] < 10 or t[-1] - t[0] < 0.5 * seconds:
+            return None, f"not enough gyroscope samples in the last {seconds:g} s"
+        sd = np.degrees(w.std(axis=0)).max()
+        if sd > 1.0:
+            return None, (f"the phone moved during the last {seconds:g} s (σ {sd:.2f} deg/s "
+                          "on one axis): let it lie still and try again")
+        return w.mean(axis=0), ""
+
+    def _on_calibrate_bias(self, ev) -> None:
+        seconds = float(self.bias_seconds.value)
+        bias, why = self.calibrate_bias(seconds)
+        if bias is None:
+            self._notify(ev, "Bias not set", why)
+            return
+        names = [n for n in BIAS_ESTIMATORS if n in self.engine.core.bench.instances]
+        self._submit({"estimators": {n: {"gyr_bias": bias.tolist()} for n in names}}, ev)
+        d = np.degrees(bias)
+        self._notify(ev, "Gyroscope bias set", f"{', '.join(names)}: gyr_bias = "
+                     f"({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) deg/s", color="green")
+
+    def _ignored(self) -> bool:
+        """True for callbacks fired by :meth:`sync` itself (same thread, during sync)."""
+        return self._sync_thread == threading.get_ident()
+
+    def _make_switch_cb(self, key: str, handle) -> Callable:
+        def cb(ev):
+            if self._ignored() or handle.value == self._common_value(key):
+                return
+            self._submit({key: bool(handle.value)}, ev)
+        return cb
+
+    def _make_param_cb(self, c: Control) -> Callable:
+        def cb(ev):
+            if self._ignored():
+                return
+            try:
+                value = c.from_gui(c.handle.value)
+            except (TypeError, ValueError):
+                self.engine.loop.call_soon_threadsafe(self.sync)
+                return
+            info = self.engine.core.bench.schema.instances.get(c.estimator)
+            if info is None:        # its variant was removed meanwhile (controls going too)
+                return
+            if c.same(value, getattr(info.params, c.name)):
+                return
+            self._submit({"estimators": {c.estimator: {c.name: value}}}, ev)
+        return cb
+
+    def _submit(self, body: dict, ev=None) -> None:
+        """Validate and post a change (the same body PATCH /api/params takes). Runs on
+        viser's threads: validation reads one schema of the bench (thread-safe); the
+        filter task refuses the change if its estimator went meanwhile (a variant
+        removed), and that refusal comes back here as a notice."""
+        try:
+            change = self.engine.core.validate(body)
+        except PatchError as e:
+            self._notify(ev, "Refused", str(e))
+            self.engine.loop.call_soon_threadsafe(self.sync)
+            return
+        loop = self.engine.loop
+
+        def post() -> None:     # on the loop: the future belongs to it
+            done = loop.create_future()
+            done.add_done_callback(lambda f: self._after_apply(f, ev))
+            self.engine.post(change, done)
+        loop.call_soon_threadsafe(post)
+
+    def _after_apply(self, done, ev) -> None:
+        """A posted change's outcome (on the loop): a refusal is shown, the controls
+        set back to the parameters in force."""
+        if done.cancelled() or done.exception() is None:
+            return
+        e = done.exception()
+        self._notify(ev, "Refused", str(e) if isinstance(e, PatchError) else repr(e))
+        self.sync()
+
+    def _notify(self, ev, title: str, body: str, color: str = "red") -> None:
+        client = getattr(ev, "client", None)
+        if client is not None:
+            client.add_notification(title, body, color=color, auto_close_seconds=6.0)
+        else:
+            log.warning("%s: %s", title, body)
+
+    def _on_load(self, ev) -> None:
+        try:
+            change = load_preset(self.engine, self.preset_name.value.strip())
+        except PatchError as e:
+            self._notify(ev, "Preset not loaded", e.reason)
+            return
+        self.engine.post(change)
+        self._notify(ev, "Preset loaded", self.preset_name.value, color="green")
+
+    def _on_load_path(self, ev) -> None:
+        try:
+            change = load_preset_path(self.engine, self.preset_file.value)
+        except PatchError as e:
+            self._notify(ev, "Preset not loaded", e.reason)
+            return
+        self.engine.post(change)
+        self._notify(ev, "Preset loaded", self.preset_file.value[-80:], color="green")
+
+    def _on_upload(self, ev) -> None:
+        f = ev.target.value
+        stem = Path(f.name).stem
+        try:
+            change = load_preset_text(self.engine, f.content, source=f.name[:80])
+            if NAME_RE.fullmatch(stem) and stem not in shipped_names():
+                save_preset_text(self.settings, stem, f.content)
+                self.preset_msg.content = self._preset_list_md()
+        except (PatchError, OSError) as e:
+            self._notify(ev, "Preset not loaded", str(e)[:300])
+            return
+        self.engine.post(change)
+        self._notify(ev, "Preset loaded", f.name[:80], color="green")
+
+    def _on_save(self, ev) -> None:
+        try:
+            path = save_preset(self.engine, self.preset_name.value.strip())
+        except (PatchError, OSError) as e:
+            self._notify(ev, "Preset not saved", str(e))
+            return
+        self.preset_msg.content = self._preset_list_md()
+        self._notify(ev, "Preset saved", str(path), color="green")
+
+    def _preset_list_md(self) -> str:
+        return "Presets: " + ", ".join(f"`{n}`" for n in list_presets(self.settings))
+
+    def sync(self) -> None:
+        """Set every control from the estimators' parameters (after a change)."""
+        self._sync_thread = threading.get_ident()
+        try:
+            for key, h in self.switches.items():
+                v = self._common_value(key)
+                if h.value != v:
+                    h.value = v
+            bench = self.engine.core.bench
+            if self.primary.value != bench.primary:
+                self.primary.value = bench.primary
+            for name, folder in self.folders.items():
+                order = self._folder_order(name)
+                if folder.order != order:
+                    folder.order = order
+                    if name == bench.primary:
+                        folder.expand_by_default = True
+            if self.bias_folder is not None:
+                order = self._folder_order(self._bias_for) - 0.5
+                if self.bias_folder.order != order:
+                    self.bias_folder.order = order
+            for c in self.controls:
+                value = getattr(bench.params_of(c.estimator), c.name)
+                if not c.gui_same(value):
+                    show_value(c, value)
+        finally:
+            self._sync_thread = None
+
+    # ------------------------------------------------------------------ plots
+    def _build_plots(self, gui) -> None:
+        kw = dict(height=PLOT_HEIGHT, span_s=self.settings.history_s)
+        self.p_euler = Plot(gui, "euler", "Euler angles [deg] (solid: estimate, dashed: phone's own)",
+                            [(n, c, False) for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)]
+                            + [(f"phone {n}", c, True)
+                               for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)], **kw)
+        self.p_err = Plot(gui, "error", "Error angle [deg]", [("to phone's own", "#ff7f0e", False),
+                                                               ("to truth", "#17becf", False)],
+                          **kw)
+        self.p_acc = Plot(gui, "acc", "|acc| [m/s²] and its gate band; red: shake injected",
+                          [("|acc|", "#1f77b4", False), ("band lo", "#7f7f7f", True, True),
+                           ("band hi", "#7f7f7f", True, True),
+                           ("shake injected", "#d62728", False, False, 4)], **kw)
+        self.p_mag = Plot(gui, "mag", "|mag| and L_k [µT] and its gate band; red: magnet injected",
+                          [("|mag|", "#9467bd", False), ("L_k", "#e377c2", False),
+                           ("band lo", "#7f7f7f", True, True), ("band hi", "#7f7f7f", True, True),
+                           ("magnet injected", "#d62728", False, False, 4)],
+                          **kw)
+        self.p_nis = Plot(gui, "nis", "NIS (log scale) and its gates",
+                          [("acc NIS", "#1f77b4", False, True), ("mag NIS", "#9467bd", False, True),
+                           ("acc gate", "#1f77b4", True, True), ("mag gate", "#9467bd", True, True)],
+                          **kw,
+                          y_scale={"distr": 3, "log": 10})
+        self.plot_note = gui.add_markdown("")
+        self.plots = (self.p_euler, self.p_err, self.p_acc, self.p_mag, self.p_nis)
+        self._note = ""
+
+    def stream_t0(self) -> float | None:
+        """The phone-clock time (s) of the stream's first motion sample."""
+        return self.engine.core.t_first
+
+    def plot_steps(self) -> Iterator[None]:
+        """Update the plots one by one, yielding after each (the caller may give the
+        event loop a turn in between). They show the last ``history_s`` seconds, at most
+        :data:`MAX_POINTS` points each, read once at the start (copies: the filter may
+        run in between): O(MAX_POINTS) work, whatever the sample rate. The x axis is
+        seconds since the stream started. A plot with nothing to show in this stream
+        (no reference for the error, no magnetometer, no NIS) shows empty axes and the
+        note under the plots says why."""
+        core = self.engine.core
+        primary = core.bench.primary
+        hist, span = core.history, self.settings.history_s
+        pose = hist.pose.window(span, MAX_POINTS)
+        if len(pose) < 2:
+            return
+        acc = hist.acc.window(span, MAX_POINTS)
+        mag = hist.mag.window(span, MAX_POINTS)
+        session = core.session
+        truth = session.truth if session is not None else None
+        diag = core.bench.estimator(primary).diagnostics()
+        t0 = self.stream_t0()
+        if t0 is None:
+            t0 = pose["t"][0]
+        notes = []
+
+        def const(x, v):     # a gate's line: its two ends (the series spans the gaps)
+            return ends(x, v)
+
+        injected = [] if self.injections is None or session is None else self.injections(session)
+
+        def spans(kind):     # when a disturbance of this kind was injected (stream s)
+            return [(a, b) for k, a, b in injected if k == kind]
+
+        x = pose["t"] - t0
+        q_ours, q_phone = pose["q"], pose["phone_q"]
+        has_p = np.isfinite(q_phone[:, 0])
+        ours = np.degrees(q2euler_many(q_ours))
+        phone = np.full_like(ours, np.nan)
+        if np.any(has_p):
+            phone[has_p] = np.degrees(q2euler_many(q_phone[has_p]))
+        # yaw and roll (±180°) unwrapped over the window: no comb, no vertical strokes
+        for a in (ours, phone):
+            a[:, [0, 2]] = unwrap_deg(a[:, [0, 2]])
+        self.p_euler.update(x, *ours.T, *phone.T)
+        self.p_euler.show(self.p_euler.has_data)
+        if not self.p_euler.has_data:
+            notes.append(f"Euler angles: {primary} has no estimate yet"
+                         + (" (it needs the phone's Orientation sensor, ORI)"
+                            if core.bench.base_of(primary) == "phone" else ""))
+        yield
+        err_p = np.full(x.shape, np.nan)
+        if np.any(has_p):
+            err_p[has_p] = angle_deg(q_ours[has_p], q_phone[has_p])
+        err_t = np.full(x.shape, np.nan) if truth is None else \
+            angle_deg(q_ours, truth(pose["t"] * 1000.0))
+        x_pose = x
+        self.p_err.update(x, err_p, err_t)
+        self.p_err.show(self.p_err.has_data)
+        if not self.p_err.has_data:
+            notes.append("error angle: no reference in this stream (the phone's Orientation "
+                         "sensor, ORI, or the demo's truth)")
+        yield
+        if len(acc) > 1:
+            band = diag.acc_band or (None, None)
+            x = acc["t"] - t0
+            self.p_acc.update(x, acc["norm"], const(x, band[0]), const(x, band[1]),
+                              during(acc["t"], acc["norm"], spans("shake")))
+        else:                              # empty axes, not the last stream's lines
+            self.p_acc.update(x_pose, *(const(x_pose, None) for _ in range(4)))
+        self.p_acc.show(len(acc) > 1)
+        if len(acc) <= 1:
+            notes.append("|acc|: no accelerometer samples")
+        yield
+        if len(mag) > 1:
+            band = diag.mag_band or (None, None)
+            x = mag["t"] - t0
+            self.p_mag.update(x, mag["norm"], mag["L_k"], const(x, band[0]), const(x, band[1]),
+                              during(mag["t"], mag["norm"], spans("magnet")))
+        else:
+            self.p_mag.update(x_pose, *(const(x_pose, None) for _ in range(5)))
+        self.p_mag.show(len(mag) > 1)
+        if len(mag) <= 1:
+            notes.append("|mag|: no magnetometer samples in this stream")
+        yield
+        acc, mag = acc.tail(MAX_POINTS // 2), mag.tail(MAX_POINTS // 2)
+        has_nis = False
+        if len(acc) + len(mag) > 1:
+            # acc and mag NIS on one time axis: each series null (a gap, spanned) at the
+            # other's times
+            x = np.concatenate([acc["t"], mag["t"]])
+            order = np.argsort(x, kind="stable")
+            nis_a = np.concatenate([acc["nis"], np.full(len(mag), np.nan)])[order]
+            nis_m = np.concatenate([np.full(len(acc), np.nan), mag["nis"]])[order]
+            x = x[order] - t0
+            ga, gm = diag.acc_nis_gate, diag.mag_nis_gate
+            # NIS is positive; a zero (exact fit) cannot sit on a log scale, and below
+            # NIS_FLOOR (a fit as good) the chart's tick labels round to "0"
+            for nis in (nis_a, nis_m):
+                nis[nis <= 0] = np.nan
+                np.maximum(nis, NIS_FLOOR, out=nis, where=np.isfinite(nis))
+            self.p_nis.update(x, nis_a, nis_m, const(x, ga or None), const(x, gm or None))
+            has_nis = bool(np.isfinite(nis_a).any() or np.isfinite(nis_m).any())
+        else:
+            self.p_nis.update(x_pose, *(const(x_pose, None) for _ in range(4)))
+        self.p_nis.show(has_nis)
+        if not has_nis:
+            notes.append(f"NIS: {primary} makes no Kalman update to test")
+        note = ("*Empty charts:* " + "; ".join(notes) + ".") if notes else ""
+        if note != self._note:
+            self.plot_note.content = note
+            self._note = note
+
+    def refresh_plots(self) -> None:
+        """Update every plot at once (see :meth:`plot_steps`)."""
+        for _ in self.plot_steps():
+            pass
+
+    # ------------------------------------------------------------------ read-outs
+    def indications(self) -> Indicators:
+        """Standstill and the disturbances of the primary, from one snapshot; a rejection
+        stays lit for :data:`HOLD_S` with the gate and value of the last refused sample."""
+        eng = self.engine
+        snap = eng.core.snapshot()
+        now = time.monotonic()
+        primary = snap.primary
+        inst = eng.core.bench.instances[primary]
+        if primary != self._rej_primary:
+            self._rej_primary = primary
+            self._hold.clear()
+            self._rej_seen = {s: 0 for s in SENSORS}
+        out = {}
+        for sensor, flags in (("acc", snap.acc_flags), ("mag", snap.mag_flags)):
+            n_rej = inst.rejections(sensor)
+            seen = self._rej_seen[sensor]
+            if n_rej < seen:              # the counts were reset (a new stream)
+                self._hold.pop(sensor, None)
+                seen = 0
+            text = None
+            if flags is not None and flags.rejected(sensor):
+                text = describe_rejection(sensor, flags)
+            elif n_rej > seen:            # refused since the last look, accepted again now
+                last = inst.rejected_flags(sensor)
+                text = describe_rejection(sensor, last) if last is not None else "refused by a gate"
+            held = self._hold.get(sensor)
+            if text is not None:
+                if held is not None and held[1] > now and now - held[2] < HOLD_S:
+                    # lit: keep the words for a while (the 3D label is drawn a frame or
+                    # two after the pill; a value changing at 10 Hz would differ)
+                    self._hold[sensor] = (held[0], now + HOLD_S, held[2])
+                else:
+                    self._hold[sensor] = (text, now + HOLD_S, now)
+            self._rej_seen[sensor] = n_rej
+            held = self._hold.get(sensor)
+            out[sensor] = held[0] if held is not None and held[1] > now else None
+        return Indicators(rest=snap.rest, acc=out["acc"], mag=out["mag"],
+                          aligning=not snap.initialized and snap.t is not None,
+                          waiting_for="waiting for the phone's ORI" if primary == "phone"
+                          else "aligning…")
+
+    def refresh_text(self, readouts: bool = True) -> None:
+        """The indicators (pills and the 3D label); with ``readouts`` also the status
+        line and the read-outs (from the API's state: the costlier part)."""
+        ind = self.indications()
+        self.indicators_now = ind
+        self.indicators.content = _indicators_html(ind)
+        self.scene.set_indicators(ind)
+        if not readouts:
+            return
+        eng = self.engine
+        st = eng.state()
+        src = html.escape(st["status"])
+        t0 = self.stream_t0()
+        t = "–" if st["t"] is None or t0 is None else f"{st['t'] - t0:.1f} s"
+        self.status.content = (
+            f"<div style='font-size:0.92em;line-height:1.35'><b>Source:</b> {src}<br>"
+            f"<b>Stream time:</b> {t} &nbsp; <b>Primary:</b> {html.escape(st['primary'])}"
+            f"{_error_text(st)}</div>")
+        self.readouts.content = _readouts_html(st)
+
+    def refresh(self) -> None:
+        self.refresh_text()
+        self.refresh_plots()
+
+
+def _error_text(st: dict) -> str:
+    parts = []
+    if st["error_to_truth_deg"] is not None:
+        parts.append(f"to truth {st['error_to_truth_deg']:.1f}°")
+    if st["error_to_phone_deg"] is not None:
+        parts.append(f"to phone's own {st['error_to_phone_deg']:.1f}°")
+    return ("<br><b>Error:</b> " + ", ".join(parts)) if parts else ""
+
+
+def _pill(on: bool, text: str, color: str) -> str:
+    bg = color if on else "#e6e6e6"
+    fg = "#fff" if on else "#777"
+    return (f"<span style='display:inline-block;margin:2px 4px 2px 0;padding:2px 8px;"
+            f"border-radius:10px;background:{bg};color:{fg};font-size:0.9em'>{html.escape(text)}</span>")
+
+
+def _indicators_html(ind: Indicators) -> str:
+    parts = [_pill(ind.rest, "standstill", "#2ca02c")]
+    for sensor in ("acc", "mag"):
+        text = getattr(ind, sensor)
+        title = f"{sensor} disturbed"
+        parts.append(_pill(text is not None, f"{title}: {text}" if text else title, "#d62728"))
+    if ind.aligning:
+        parts.append(_pill(True, ind.waiting_for, "#ff7f0e"))
+    return "<div>" + "".join(parts) + "</div>"
+
+
+def _deg3(v) -> str:
+    return " ".join(f"{x:7.1f}°" for x in v) if v else "–"
+
+
+def _readouts_html(st: dict) -> str:
+    rates = ", ".join(f"{k} {v:.0f} Hz" for k, v in sorted(st["rates_hz"].items()) if v)
+    c = st["counts"]
+    upd = c["updates"].get(st["primary"], {})
+
+    def used(sensor):
+        d = {Reason[k.upper()]: v for k, v in upd.get(sensor, {}).items()}
+        # a flagged sample that still enters the estimate (AVERAGED_IN) is counted apart
+        kept = sum(v for r, v in d.items() if r in AVERAGED_IN)
+        rej = sum(v for r, v in d.items() if is_rejected(r) and r not in AVERAGED_IN)
+        return f"{d.get(Reason.USED, 0)} used, " + (f"{kept} accelerating (averaged in), " if kept else "") \
+            + f"{rej} rejected"
+
+    err = st["error_to_phone_deg"]
+    err_t = st["error_to_truth_deg"]
+    bias = (st["estimators"].get(st["primary"]) or {}).get("gyr_bias")
+    rows = [
+        ("Euler yaw pitch roll", f"<code>{_deg3(st['euler_deg'])}</code>"),
+        ("phone's own", f"<code>{_deg3(st['phone_euler_deg'])}</code>"),
+        ("error to phone", "–" if err is None else f"{err:.2f}°"),
+        ("error to truth", "–" if err_t is None else f"{err_t:.2f}°"),
+        ("gyro bias used", "–" if bias is None else
+         "<code>" + " ".join(f"{math.degrees(b):.2f}" for b in bias) + "</code> deg/s"),
+        ("rates", rates or "–"),
+        ("acc updates", used("acc")),
+        ("mag updates", used("mag")),
+        ("lines", f"{c.get('lines', 0)} ({c.get('malformed', 0)} malformed, "
+                  f"{c.get('late', 0)} late)"),
+    ]
+    body = "".join(f"<tr><td style='color:#666;padding-right:8px'>{k}</td><td>{v}</td></tr>"
+                   for k, v in rows)
+    return f"<table style='font-size:0.9em'>{body}</table>"
+
+
+async def run_gui(gui: Gui, hz: float, plot_hz: float | None = None) -> None:
+    """Refresh the indicators ``hz`` times a second, and the status line, read-outs and
+    plots ``plot_hz`` times (each plot is resent whole to every viewer: the plots cost a
+    viewer most), giving the event loop a turn between the read-outs and each plot: the
+    filter task (and its latency) never waits for a whole refresh."""
+    loop = asyncio.get_running_loop()
+    period = 1.0 / hz
+    plot_period = period if plot_hz is None else 1.0 / plot_hz
+    due = plot_due = loop.time()
+    while True:
+        try:
+            slow = loop.time() >= plot_due - 0.5 * period
+            gui.refresh_text(readouts=slow)
+            if slow:
+                plot_due = max(plot_due + plot_period, loop.time())
+                await asyncio.sleep(0)
+                for _ in gui.plot_steps():
+                    await asyncio.sleep(0)
+        except Exception:
+            log.exception("GUI refresh failed")
+        due = max(due + period, loop.time())      # a steady hz, no catching up after a stall
+        await asyncio.sleep(due - loop.time())

@@ -1,0 +1,225 @@
+"""The phones that reach the dashboard over HTTP: Sensor Logger's and phyphox's pushes on
+the dashboard's own port, and phyphox's remote access polled from here.
+
+Each app's wire format is decoded by its source module (:mod:`app.sources.sensorlogger`,
+:mod:`app.sources.phyphox`); this module only wires them to the engine through the
+shared phone slot (:class:`~app.sources.slot.PhoneSlot`, the same the TCP receiver uses):
+
+- a request is refused before it is decoded when another phone holds the slot (Sensor
+  Logger gets a 499 with the reason, which the app shows; phyphox an error status, which
+  it shows as a network error);
+- a phone takes the slot with its first valid sample; its samples go to the engine as
+  every source's do (``engine.feed``); the handler parses, enqueues and answers, it never
+  filters on the request path;
+- a push stream that has sent nothing for ``push_end_s`` seconds has ended (the app
+  stopped recording): its held messages are released and its stream is closed;
+- a malformed request is answered 400 with the reason and counted per app.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.sources.phyphox import PhyphoxError, PhyphoxPoller, PhyphoxPushStream
+from app.sources.sensorlogger import SensorLoggerError, SensorLoggerStream
+from app.sources.slot import APPS, PhoneSlot
+
+log = logging.getLogger("orientlab.phones")
+
+PUSH_END_S = 5.0        # a push stream silent this long has ended
+TICK_S = 0.2            # how often held messages and silent streams are looked at
+#: reorder windows (s): a push delivers in batches; phyphox's POSTs overlap and may swap
+WINDOW_S = {"sensorlogger": 0.05, "phyphox": 0.3, "phyphox-poll": 0.1}
+
+
+@dataclass
+class Stream:
+    """One HTTP phone's stream: its decoder and the engine's session."""
+    app: str
+    key: str
+    decoder: Any
+    session: Any = None
+    last_rx: float = 0.0
+
+
+@dataclass
+class Reply:
+    status: int
+    text: str = ""
+
+
+@dataclass
+class AppCounts:
+    requests: int = 0
+    refused: int = 0
+    bad: Counter = field(default_factory=Counter)
+
+    def as_dict(self) -> dict:
+        return {"requests": self.requests, "refused": self.refused, "bad": dict(self.bad),
+                "bad_total": int(sum(self.bad.values()))}
+
+
+class HttpPhones:
+    """See the module doc. One per dashboard, built in the lifespan."""
+
+    def __init__(self, engine, settings, slot: PhoneSlot):
+        self.engine = engine
+        self.settings = settings
+        self.slot = slot
+        self.streams: dict[tuple[str, str], Stream] = {}    # (app, key) -> decoder state
+        self.counts = {app: AppCounts() for app in ("sensorlogger", "phyphox", "phyphox-poll")}
+        self.poller: PhyphoxPoller | None = None
+        self.poll_task: asyncio.Task | None = None
+        self.conventions: dict[str, str] = {}     # Sensor Logger: the presenter's choice
+
+    # ------------------------------------------------------------------ pushes
+    def push(self, app: str, body: bytes, client: str) -> Reply:
+        """One POST of a push app (``sensorlogger`` or ``phyphox``) from ``client``."""
+        c = self.counts[app]
+        c.requests += 1
+        now = time.time()
+        why = self.slot.refusal(app, client)
+        if why is not None:
+            c.refused += 1
+            self.slot.refused += 1
+            self.slot.last_refusal = why
+            self.engine.core.totals.count_refused()
+            return Reply(499 if app == "sensorlogger" else 409, why)
+        st = self.streams.get((app, client))
+        if st is None:
+            st = Stream(app, client, self._decoder(app))
+            self.streams[(app, client)] = st
+        try:
+            batch = st.decoder.decode(body, now)
+        except (SensorLoggerError, PhyphoxError) as e:
+            c.bad[e.reason] += 1
+            if st.session is not None:
+                st.session.count_malformed(e.reason)
+            return Reply(400, str(e)[:200])
+        st.last_rx = time.monotonic()
+        ended = getattr(batch, "ended", None)
+        if ended and st.session is not None and st.session.open:   # the old recording's tail
+            self.engine.feed(st.session, ended, time.perf_counter())
+        self._deliver(st, batch.samples, batch.new_session)
+        return Reply(200, "")
+
+    def _decoder(self, app: str):
+        if app == "sensorlogger":
+            d = SensorLoggerStream()
+            conv = self.conventions.get("sensorlogger")
+            if conv:
+                d.set_convention(conv)
+            return d
+        return PhyphoxPushStream()
+
+    def _deliver(self, st: Stream, samples: list, new_session: bool = False) -> None:
+        """Samples of a stream to the engine: the slot is taken with the first valid
+        one; a new recording of the app starts a new stream."""
+        if not samples and st.session is None:
+            return
+        if not self.slot.holds(st.key):
+            label = f"{st.key} ({APPS[st.app]})"
+            if self.slot.take(st.app, st.key, label, lambda why, s=st: self._end(s, why)) is not None:
+                return              # taken meanwhile by another phone
+            new_session = True
+        if new_session or st.session is None or not st.session.open:
+            if st.session is not None and st.session.open:
+                self.engine.close_session(st.session, "the phone started a new recording")
+            self.engine.pause_background()
+            st.session = self.engine.open_session(
+                "phone", f"{st.key} ({APPS[st.app]})", app=st.app, window_s=WINDOW_S[st.app])
+        if samples:
+            self.engine.feed(st.session, samples, time.perf_counter())
+            self.slot.touch(st.key)
+
+    def _end(self, st: Stream, reason: str) -> None:
+        """End a stream: what its decoder holds goes in first, then the session closes."""
+        if st.session is not None and st.session.open:
+            rest = st.decoder.flush() if hasattr(st.decoder, "flush") else []
+            if rest:
+                self.engine.feed(st.session, rest, time.perf_counter())
+            self.engine.close_session(st.session, reason)
+        self.slot.leave(st.key)
+        self.streams.pop((st.app, st.key), None)
+        if st.app == "phyphox-poll" and self.poller is not None and reason.startswith("released"):
+            self.stop_poll()
+
+    def tick(self) -> None:
+        """Release messages held for a missing one that timed out; end silent streams."""
+        now_wall, now = time.time(), time.monotonic()
+        for st in list(self.streams.values()):
+            if st.app == "phyphox-poll":
+                continue
+            due = getattr(st.decoder, "due", None)
+            if due is not None and st.session is not None and st.session.open:
+                rest = due(now_wall)
+                if rest:
+                    self.engine.feed(st.session, rest, time.perf_counter())
+            if now - st.last_rx > PUSH_END_S:
+                self._end(st, f"no data for {PUSH_END_S:g} s: the phone stopped streaming")
+
+    async def run(self) -> None:
+        """The periodic :meth:`tick` (a task of the lifespan)."""
+        while True:
+            await asyncio.sleep(TICK_S)
+            try:
+                self.tick()
+            except Exception:   # never let the task die
+                log.exception("phone tick failed")
+
+    # ------------------------------------------------------------------ phyphox polled
+    def start_poll(self, url: str) -> None:
+        """Poll a phyphox phone's remote access at ``url`` (ValueError for a bad URL)."""
+        self.stop_poll()
+        key = url
+
+        def on_samples(samples, new_session=False):
+            st = self.streams.get(("phyphox-poll", key))
+            if st is None:
+                st = self.streams[("phyphox-poll", key)] = Stream("phyphox-poll", key, self.poller)
+            if self.slot.refusal("phyphox-poll", key) is not None:
+                return          # another phone holds the slot: the poller's status says so
+            st.last_rx = time.monotonic()
+            self._deliver(st, samples, new_session)
+
+        self.poller = PhyphoxPoller(url, on_samples)
+        self.poll_task = asyncio.get_running_loop().create_task(self.poller.run(), name="phyphox-poll")
+
+    def stop_poll(self) -> None:
+        if self.poller is not None:
+            self.poller.stop()
+        if self.poll_task is not None:
+            self.poll_task.cancel()
+        st = next((s for (a, _), s in self.streams.items() if a == "phyphox-poll"), None)
+        self.poller, self.poll_task = None, None
+        if st is not None:
+            self._end(st, "remote access stopped by the presenter")
+
+    # ------------------------------------------------------------------ presenter
+    def set_convention(self, value: str) -> None:
+        """Sensor Logger's sign convention, for the stream now and the next ones."""
+        SensorLoggerStream().set_convention(value)       # validates (ValueError)
+        self.conventions["sensorlogger"] = value
+        for (app, _), st in self.streams.items():
+            if app == "sensorlogger":
+                st.decoder.set_convention(value)
+
+    def status(self) -> dict:
+        out: dict[str, Any] = {"counts": {a: c.as_dict() for a, c in self.counts.items()},
+                               "streams": []}
+        for (app, key), st in self.streams.items():
+            try:
+                dec = st.decoder.status()
+            except Exception:      # a status must never fail the page
+                dec = {}
+            out["streams"].append({"app": app, "app_name": APPS[app], "holder": self.slot.holds(key),
+                                   "streaming": st.session is not None and st.session.open,
+                                   **dec})
+        out["poll"] = None if self.poller is None else self.poller.status()
+        out["sensorlogger_convention"] = self.conventions.get("sensorlogger", "auto")
+        return out

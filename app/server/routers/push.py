@@ -1,0 +1,62 @@
+"""The phone apps that push over HTTP, on the dashboard's own port (no token: a phone has
+none; the phone slot decides who streams).
+
+- ``POST /sensorlogger``: Sensor Logger's HTTP push (the URL typed into the app);
+- ``POST /phyphox``: the pushes of orientlab's phyphox experiment;
+- ``GET /phyphox/orientlab.phyphox``: that experiment, with this PC's LAN address baked
+  in (phyphox loads it from the QR code on the Connect tab).
+
+Each answers at once: parse, enqueue, reply (200; 400 with the reason for a malformed
+body; 413 over the body cap; Sensor Logger 499 with the reason, which the app shows,
+when another phone holds the slot; phyphox 409, which it shows as a network error).
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import PlainTextResponse, Response
+
+from app.server.access import phone_push
+from app.sources.phyphox import experiment_xml
+
+router = APIRouter(tags=["phones"], dependencies=[Depends(phone_push)])
+
+
+async def _push(request: Request, app: str) -> PlainTextResponse:
+    body = await request.body()
+    client = request.client.host if request.client else "?"
+    reply = request.app.state.http_phones.push(app, body, client)
+    return PlainTextResponse(reply.text, status_code=reply.status)
+
+
+@router.post("/sensorlogger")
+async def sensorlogger_push(request: Request) -> PlainTextResponse:
+    """Sensor Logger's HTTP push: one JSON message (``messageId``, ``sessionId``,
+    ``deviceId``, ``payload`` of readings)."""
+    return await _push(request, "sensorlogger")
+
+
+@router.post("/phyphox")
+async def phyphox_push(request: Request) -> PlainTextResponse:
+    """The pushes of orientlab's phyphox experiment (one JSON object of buffers)."""
+    return await _push(request, "phyphox")
+
+
+@router.get("/privacy", include_in_schema=False)
+async def privacy() -> PlainTextResponse:
+    """The data policy phyphox shows before a pushing experiment may run."""
+    return PlainTextResponse(
+        "orientlab: while you measure, this experiment sends your phone's accelerometer, "
+        "gyroscope, magnetometer and attitude readings, their times and the phone's model "
+        "name to the orientlab dashboard on this network (the lab PC), nowhere else. They "
+        "are shown live and kept only if the presenter records the session.\n")
+
+
+@router.get("/phyphox/orientlab.phyphox")
+async def phyphox_experiment(request: Request) -> Response:
+    """orientlab's phyphox experiment: accelerometer (with g), gyroscope, magnetometer and
+    attitude at the fastest rate, pushed to this PC every 0.1 s while measuring."""
+    base = request.app.state.connect.base_url(request)
+    xml = experiment_xml(f"{base}/phyphox")
+    return Response(xml, media_type="application/xml",
+                    headers={"Content-Disposition": 'attachment; filename="orientlab.phyphox"'})

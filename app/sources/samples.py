@@ -1,0 +1,73 @@
+"""The one input boundary: the typed sample every source yields.
+
+Every way data comes in (the Sensor Fusion app's TCP lines, Sensor Logger's and phyphox's
+HTTP pushes, phyphox's remote access, the simulator, a replayed log) turns its wire format
+into :class:`Sample` objects: the sensor (``tag``), the phone's own sample time and the
+values in orientlab's frames and SI units (specific force in m/s², rad/s, µT; ORI the
+phone's own orientation, scalar-first, sensor to world ENU). The ordering, the live core,
+the recorder and the lab toolkit see samples, never a wire format.
+
+What is physically impossible is defined here once (:data:`VALUE_LIMITS`), for every
+source and every file reader.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+# tags whose values are vectors the estimators use
+MOTION_TAGS = ("ACC", "GYR", "MAG", "ORI")
+
+G0 = 9.81
+# Physically impossible readings, one definition for the live stream and every file
+# reader (app.sources.readers): a vector whose norm is above its limit is no reading of a phone
+# (a phone gyro saturates near 35 rad/s, an accelerometer near 16 g, a magnetometer near
+# 5 mT only next to a magnet touching it; the Earth's field is 25-65 µT). Such a line is
+# refused and counted (reason "impossible"), like a line that does not parse.
+VALUE_LIMITS: dict[str, float] = {
+    "GYR": 100.0,          # rad/s
+    "ACC": 20.0 * G0,      # m/s² (20 g)
+    "MAG": 2000.0,         # µT (2 mT)
+}
+VALUE_LIMITS["RAWGYR"] = VALUE_LIMITS["GYR"]
+VALUE_LIMITS["RAWMAG"] = VALUE_LIMITS["MAG"]
+# A time stamp beyond this many ms (about 3,000 years) is no clock reading.
+MAX_TIME_MS = 1e14
+
+
+def impossible(tag: str, values) -> bool:
+    """True if the first three values of ``tag`` (a 3-vector sensor) have a norm above
+    :data:`VALUE_LIMITS` (NaN is *not* impossible: it is a missing value)."""
+    lim = VALUE_LIMITS.get(tag)
+    if lim is None:
+        return False
+    x, y, z = values[0], values[1], values[2]
+    if abs(x) > lim or abs(y) > lim or abs(z) > lim:   # also +-inf; no overflow below
+        return True
+    return x * x + y * y + z * z > lim * lim
+
+
+def impossible_rows(tag: str, v):
+    """Vectorised :func:`impossible` for an (N, 3) array (bool (N,)); NaN rows False."""
+    import numpy as np
+    lim = VALUE_LIMITS[tag]
+    v = np.asarray(v, dtype=float)
+    with np.errstate(invalid="ignore", over="ignore"):
+        big = (np.abs(v) > lim).any(axis=1)
+        return big | (np.einsum("ij,ij->i", np.where(big[:, None], 0.0, v),
+                                np.where(big[:, None], 0.0, v)) > lim * lim)
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One reading: ``tag`` (ACC, GYR, MAG, ORI, ... as in the Sensor Fusion app's
+    format), ``time_ms`` the phone's own sample time in milliseconds (int, or float for a
+    source with sub-millisecond stamps), ``values`` in SI units and orientlab's frames
+    (floats; str fields for text tags)."""
+    time_ms: int | float    # the phone's own clock (per tag), never the arrival time
+    tag: str
+    values: tuple           # floats for numeric tags, str for text tags
+
+    @property
+    def t(self) -> float:
+        return self.time_ms / 1000.0

@@ -1,0 +1,142 @@
+"""The phone slot: one phone at a time, across every app, with the presenter in charge.
+
+A classroom has thirty phones and one projector. Whichever app a phone uses (the Sensor
+Fusion app over TCP, Sensor Logger or phyphox pushing over HTTP, phyphox polled), it must
+hold the slot to be shown:
+
+- a phone **takes** the slot with its first valid sample while the slot is free;
+- a second phone (of any app) is **refused** while the holder has sent a valid sample
+  within ``idle_s`` seconds; the refusal is a sentence its app can show (Sensor Logger
+  shows the text of a 499 reply; phyphox shows a network error; the TCP app is closed);
+- a holder silent for ``idle_s`` seconds may be **taken over** by the next phone;
+- the presenter may **lock** the slot (no new phone at all) and **release** the holder:
+  its stream ends at once and the same phone is kept out for ``release_s`` seconds, so a
+  stray client that trickles one sample every two seconds cannot hold the projector.
+
+Pure: no I/O, no asyncio; the clock is injectable. Each holder brings an ``on_release``
+callback (close the TCP connection, end the push stream) that the slot calls when the
+holder is released or taken over.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+#: the apps that can hold the slot, with the words shown for them
+APPS = {"sensorfusion": "Sensor Fusion app", "sensorlogger": "Sensor Logger",
+        "phyphox": "phyphox", "phyphox-poll": "phyphox (remote access)"}
+
+
+@dataclass
+class Holder:
+    app: str                    # a key of APPS
+    key: str                    # who it is: a TCP peer, a device id, a phone URL
+    label: str                  # shown on the page
+    since: float
+    last_valid: float
+    on_release: Callable[[str], None] | None = field(default=None, repr=False)
+
+
+class PhoneSlot:
+    """See the module doc. ``clock``: monotonic seconds (tests give their own)."""
+
+    def __init__(self, idle_s: float = 3.0, release_s: float = 30.0,
+                 clock: Callable[[], float] = time.monotonic):
+        self.idle_s = float(idle_s)
+        self.release_s = float(release_s)
+        self.clock = clock
+        self.locked = False
+        self.holder: Holder | None = None
+        self.refused = 0                # requests refused (busy, locked or released)
+        self.released = 0               # holders released by the presenter
+        self.last_refusal = ""
+        self._banned: dict[str, float] = {}    # key -> until (monotonic)
+
+    # ------------------------------------------------------------------ queries
+    def busy(self) -> bool:
+        """A holder that has sent a valid sample within ``idle_s``."""
+        h = self.holder
+        return h is not None and self.clock() - h.last_valid < self.idle_s
+
+    def holds(self, key: str) -> bool:
+        return self.holder is not None and self.holder.key == key
+
+    def refusal(self, app: str, key: str) -> str | None:
+        """Why a phone (``app``, ``key``) may not take the slot now, in words its user
+        can read; None if it may (free, silent holder, or it is the holder)."""
+        if self.holds(key):
+            return None
+        now = self.clock()
+        until = self._banned.get(key)
+        if until is not None:
+            if now < until:
+                return ("orientlab: the presenter released this phone; it may stream again "
+                        f"in {until - now:.0f} s")
+            del self._banned[key]
+        if self.locked:
+            return "orientlab: the presenter has locked the phone slot; no new phone is accepted"
+        if self.busy():
+            return (f"orientlab: another phone ({APPS.get(self.holder.app, self.holder.app)}) "
+                    "is streaming; try again when it stops")
+        return None
+
+    # ------------------------------------------------------------------ changes
+    def take(self, app: str, key: str, label: str,
+             on_release: Callable[[str], None] | None = None) -> str | None:
+        """Take the slot (a silent holder is released first, taken over). Returns the
+        refusal (nothing changed) or None. Taking it again as the holder only refreshes."""
+        why = self.refusal(app, key)
+        if why is not None:
+            self.refused += 1
+            self.last_refusal = why
+            return why
+        now = self.clock()
+        if self.holds(key):
+            self.holder.last_valid = now
+            return None
+        if self.holder is not None:
+            self._drop(f"silent for {self.idle_s:g} s, taken over by {label}")
+        self.holder = Holder(app, key, label, now, now, on_release)
+        return None
+
+    def touch(self, key: str) -> None:
+        """The holder sent a valid sample."""
+        if self.holds(key):
+            self.holder.last_valid = self.clock()
+
+    def leave(self, key: str) -> None:
+        """The holder's stream ended by itself (EOF, stream stopped): the slot is free."""
+        if self.holds(key):
+            self.holder = None
+
+    def release(self, reason: str = "released by the presenter") -> str | None:
+        """The presenter frees the slot: the holder's stream ends and the same phone is
+        kept out for ``release_s`` seconds. Returns the released holder's label."""
+        h = self.holder
+        if h is None:
+            return None
+        self._banned[h.key] = self.clock() + self.release_s
+        self.released += 1
+        self._drop(reason)
+        return h.label
+
+    def _drop(self, reason: str) -> None:
+        h, self.holder = self.holder, None
+        if h is not None and h.on_release is not None:
+            try:
+                h.on_release(reason)
+            except Exception:   # a holder's bug must not keep the slot taken
+                pass
+
+    def status(self) -> dict:
+        h = self.holder
+        now = self.clock()
+        return {"locked": self.locked,
+                "holder": None if h is None else {
+                    "app": h.app, "app_name": APPS.get(h.app, h.app), "label": h.label,
+                    "for_s": round(now - h.since, 1),
+                    "silent_s": round(now - h.last_valid, 1)},
+                "busy": self.busy(), "refused": self.refused, "released": self.released,
+                "last_refusal": self.last_refusal or None}

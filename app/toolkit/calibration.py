@@ -1,0 +1,422 @@
+"""Statistics of a stationary recording (lab manual, exercise 2) and the preset they give.
+
+Lay the phone still (any pose), record a few seconds, then :func:`calibrate` gives per
+sensor the mean, full covariance, standard deviations, a normality test per axis
+(D'Agostino-Pearson K², in numpy), the trend (drift per minute from a linear fit) and a
+histogram per axis. From them it derives
+
+- ``g0``: the gravity vector in world coordinates, ``(0, 0, |mean acc|)``;
+- the gyroscope bias: the mean gyroscope reading;
+- ``m0``: the nominal field of formula (7), ``(0, sqrt(mx²+my²), mz)``, computed *after
+  levelling* the mean field with the accelerometer (the rotation that takes the mean
+  acc to +z), so the phone need not lie flat.
+
+A recording that does not look stationary (gyroscope or accelerometer spread too large,
+turning, |acc| far from 9.81) gets warnings. :func:`format_report` renders the result as
+text; :func:`to_preset` writes it as a TOML preset for ``--config`` (tables ``[lab]``
+and ``[robust]``, the statistics as comments).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app import quaternion as qm
+from app.params import dump_toml
+
+# sensor -> (unit, unit of its covariance)
+UNITS = {"acc": ("m/s²", "(m/s²)²"), "gyr": ("rad/s", "(rad/s)²"), "mag": ("µT", "µT²")}
+TITLES = {"acc": "accelerometer", "gyr": "gyroscope", "mag": "magnetometer"}
+AXES = "xyz"
+STANDARD_GRAVITY = 9.81
+
+
+@dataclass(frozen=True)
+class StationaryLimits:
+    """Above these, a recording is not taken for stationary (a warning, not an error)."""
+    gyr_std: float = 0.05       # rad/s, per axis (~2.9 deg/s)
+    gyr_mean: float = 0.2       # rad/s, |mean rate| (slow steady turning)
+    acc_std: float = 0.5        # m/s², per axis
+    acc_norm_tol: float = 1.5   # m/s², | |mean acc| - 9.81 |
+    min_samples: int = 20       # fewer samples: statistics unreliable
+
+
+@dataclass
+class SensorStats:
+    """Statistics of one sensor over the rows where it has a finite sample."""
+    name: str
+    unit: str
+    n: int
+    mean: np.ndarray            # (3,)
+    cov: np.ndarray             # (3, 3), ddof = 1
+    std: np.ndarray             # (3,)
+    skew: np.ndarray            # (3,)
+    kurtosis: np.ndarray        # (3,) excess kurtosis
+    normal_k2: np.ndarray       # (3,) D'Agostino-Pearson K²
+    normal_p: np.ndarray        # (3,) its p-value (χ², 2 dof)
+    trend_per_min: np.ndarray   # (3,) slope of a linear fit, unit per minute
+    hist_counts: list           # per axis, counts (int array)
+    hist_edges: list            # per axis, bin edges
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Per axis, True where normality is not rejected at the 5 % level."""
+        return self.normal_p >= 0.05
+
+
+@dataclass
+class CalibrationStats:
+    """Everything :func:`calibrate` found (SI units)."""
+    n_rows: int
+    duration: float                           # s
+    sensors: dict[str, SensorStats]
+    g0: np.ndarray | None = None              # (3,) world, m/s²
+    gyr_bias: np.ndarray | None = None        # (3,) rad/s
+    m0: np.ndarray | None = None              # (3,) world, µT
+    tilt_deg: float | None = None             # angle of the pose from lying flat
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def stationary(self) -> bool:
+        return not self.warnings
+
+
+# ---------------------------------------------------------------- tests and moments
+
+def normality_test(x: np.ndarray) -> tuple[float, float, float, float]:
+    """D'Agostino-Pearson omnibus test of one sample (as ``scipy.stats.normaltest``):
+    ``(K², p, skewness, excess kurtosis)``. NaN for fewer than 8 values or no spread."""
+    x = np.asarray(x, dtype=float)
+    n = x.size
+    d = x - x.mean() if n else x
+    m2 = float(np.mean(d * d)) if n else 0.0
+    if n < 8 or m2 <= 0.0 or not math.isfinite(m2):
+        return math.nan, math.nan, math.nan, math.nan
+    g1 = float(np.mean(d ** 3)) / m2 ** 1.5
+    b2 = float(np.mean(d ** 4)) / m2 ** 2
+    # skewness test (D'Agostino 1970)
+    y = g1 * math.sqrt((n + 1) * (n + 3) / (6.0 * (n - 2)))
+    beta2 = (3.0 * (n * n + 27 * n - 70) * (n + 1) * (n + 3)
+             / ((n - 2.0) * (n + 5) * (n + 7) * (n + 9)))
+    w2 = -1.0 + math.sqrt(2.0 * (beta2 - 1.0))
+    delta = 1.0 / math.sqrt(0.5 * math.log(w2))
+    alpha = math.sqrt(2.0 / (w2 - 1.0))
+    y = y if y != 0.0 else 1.0
+    z_s = delta * math.log(y / alpha + math.sqrt((y / alpha) ** 2 + 1.0))
+    # kurtosis test (Anscombe & Glynn 1983)
+    e = 3.0 * (n - 1) / (n + 1)
+    var_b2 = 24.0 * n * (n - 2) * (n - 3) / ((n + 1) ** 2 * (n + 3) * (n + 5))
+    xk = (b2 - e) / math.sqrt(var_b2)
+    sqrt_beta1 = (6.0 * (n * n - 5 * n + 2) / ((n + 7) * (n + 9))
+                  * math.sqrt(6.0 * (n + 3) * (n + 5) / (n * (n - 2) * (n - 3))))
+    a = 6.0 + 8.0 / sqrt_beta1 * (2.0 / sqrt_beta1 + math.sqrt(1.0 + 4.0 / sqrt_beta1 ** 2))
+    denom = 1.0 + xk * math.sqrt(2.0 / (a - 4.0))
+    if denom == 0.0:
+        return math.nan, math.nan, g1, b2 - 3.0
+    term2 = math.copysign(abs((1.0 - 2.0 / a) / abs(denom)) ** (1.0 / 3.0), denom)
+    z_k = (1.0 - 2.0 / (9.0 * a) - term2) / math.sqrt(2.0 / (9.0 * a))
+    k2 = z_s * z_s + z_k * z_k
+    return k2, math.exp(-0.5 * k2), g1, b2 - 3.0
+
+
+def _hist_bins(n: int) -> int:
+    return int(min(50, max(10, round(math.sqrt(max(n, 1))))))
+
+
+def sensor_stats(name: str, t: np.ndarray, x: np.ndarray) -> SensorStats | None:
+    """Statistics of sensor ``name`` over the rows of ``x`` (N, 3) that are all finite;
+    None when fewer than two such rows."""
+    ok = np.all(np.isfinite(x), axis=1) & np.isfinite(t)
+    v, tt = x[ok], t[ok]
+    n = int(v.shape[0])
+    if n < 2:
+        return None
+    mean = v.mean(axis=0)
+    cov = np.cov(v, rowvar=False, ddof=1)
+    tests = [normality_test(v[:, i]) for i in range(3)]
+    tm = (tt - tt.mean()) / 60.0
+    denom = float(np.dot(tm, tm))
+    trend = (tm @ (v - mean)) / denom if denom > 0 else np.zeros(3)
+    bins = _hist_bins(n)
+    hists = [np.histogram(v[:, i], bins=bins) for i in range(3)]
+    return SensorStats(name=name, unit=UNITS[name][0], n=n, mean=mean, cov=cov,
+                       std=np.sqrt(np.diag(cov)),
+                       skew=np.array([r[2] for r in tests]),
+                       kurtosis=np.array([r[3] for r in tests]),
+                       normal_k2=np.array([r[0] for r in tests]),
+                       normal_p=np.array([r[1] for r in tests]),
+                       trend_per_min=np.asarray(trend, dtype=float),
+                       hist_counts=[h[0] for h in hists], hist_edges=[h[1] for h in hists])
+
+
+def level_field(acc_mean: np.ndarray, mag_mean: np.ndarray) -> np.ndarray:
+    """Formula (7) after levelling: rotate the mean field by the tilt that maps the mean
+    specific force to +z, then ``m0 = (0, sqrt(mx²+my²), mz)`` (µT, world)."""
+    q = qm.q_from_acc_mag(np.asarray(acc_mean, float), np.zeros(3), False)
+    m = qm.Q(q) @ np.asarray(mag_mean, float)   # heading arbitrary, vertical exact
+    return qm.field_reference(m)
+
+
+def calibrate(t, gyr=None, acc=None, mag=None,
+              limits: StationaryLimits = StationaryLimits()) -> CalibrationStats:
+    """Statistics of a stationary recording: arrays ``t`` (N,) s and (N, 3) per sensor
+    (NaN rows: no sample). A :class:`app.sources.readers.Recording` can be passed as
+    ``calibrate(rec.t, rec.gyr, rec.acc, rec.mag)``."""
+    t = np.asarray(t, dtype=float)
+    n = t.shape[0]
+    sensors: dict[str, SensorStats] = {}
+    for name, x in (("acc", acc), ("gyr", gyr), ("mag", mag)):
+        if x is None:
+            continue
+        s = sensor_stats(name, t, np.asarray(x, dtype=float).reshape(n, 3))
+        if s is not None:
+            sensors[name] = s
+    finite_t = t[np.isfinite(t)]
+    duration = float(finite_t.max() - finite_t.min()) if finite_t.size else 0.0
+    out = CalibrationStats(n_rows=n, duration=duration, sensors=sensors)
+    a, g, m = sensors.get("acc"), sensors.get("gyr"), sensors.get("mag")
+    if a is not None:
+        norm = float(np.linalg.norm(a.mean))
+        out.g0 = np.array([0.0, 0.0, norm])
+        out.tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, a.mean[2] / norm))))
+        if m is not None:
+            out.m0 = level_field(a.mean, m.mean)
+    if g is not None:
+        out.gyr_bias = g.mean.copy()
+    out.warnings = _stationarity_warnings(out, limits)
+    return out
+
+
+def _stationarity_warnings(st: CalibrationStats, lim: StationaryLimits) -> list[str]:
+    w = []
+    if not st.sensors:
+        w.append("no accelerometer, gyroscope or magnetometer samples")
+    for s in st.sensors.values():
+        if s.n < lim.min_samples:
+            w.append(f"{TITLES[s.name]}: only {s.n} samples, statistics unreliable")
+    g, a = st.sensors.get("gyr"), st.sensors.get("acc")
+    if g is not None:
+        if np.max(g.std) > lim.gyr_std:
+            w.append(f"gyroscope spread {np.max(g.std):.3g} rad/s > {lim.gyr_std:g}: "
+                     "the phone moved")
+        if np.linalg.norm(g.mean) > lim.gyr_mean:
+            w.append(f"gyroscope mean |{np.linalg.norm(g.mean):.3g}| rad/s > {lim.gyr_mean:g}: "
+                     "the phone was turning")
+    if a is not None:
+        if np.max(a.std) > lim.acc_std:
+            w.append(f"accelerometer spread {np.max(a.std):.3g} m/s² > {lim.acc_std:g}: "
+                     "the phone moved")
+        norm = float(np.linalg.norm(a.mean))
+        if abs(norm - STANDARD_GRAVITY) > lim.acc_norm_tol:
+            w.append(f"|mean acc| = {norm:.3g} m/s², far from {STANDARD_GRAVITY}: "
+                     "accelerating or miscalibrated")
+    return w
+
+
+# ---------------------------------------------------------------- report
+
+_BARS = " ▁▂▃▄▅▆▇█"
+
+
+def _spark(counts: np.ndarray) -> str:
+    top = max(int(np.max(counts)), 1)
+    return "".join(_BARS[int(round(c / top * (len(_BARS) - 1)))] for c in counts)
+
+
+def _row(label: str, values, fmt: str = "{:>12.5g}") -> str:
+    return f"  {label:<16}" + "".join(fmt.format(v) for v in values)
+
+
+def format_report(st: CalibrationStats) -> str:
+    """A readable text report: one table per sensor (units given), the derived values
+    and any warning."""
+    lines = [f"Stationary recording: {st.n_rows} rows over {st.duration:.2f} s"]
+    for name in ("acc", "gyr", "mag"):
+        s = st.sensors.get(name)
+        lines.append("")
+        if s is None:
+            lines.append(f"{TITLES[name]}: no samples")
+            continue
+        unit, cunit = UNITS[name]
+        rate = (s.n - 1) / st.duration if st.duration > 0 else math.nan
+        lines.append(f"{TITLES[name]} ({unit}): {s.n} samples, ~{rate:.0f} Hz")
+        lines.append(f"  {'':<16}" + "".join(f"{a:>12}" for a in AXES))
+        lines.append(_row(f"mean [{unit}]", s.mean))
+        lines.append(_row(f"std [{unit}]", s.std))
+        lines.append(_row(f"trend [{unit}/min]", s.trend_per_min))
+        lines.append(_row("skewness", s.skew))
+        lines.append(_row("excess kurtosis", s.kurtosis))
+        lines.append(_row("normality p", s.normal_p))
+        lines.append(f"  {'normal (5 %)':<16}" + "".join(
+            f"{('n/a' if math.isnan(p) else ('yes' if p >= 0.05 else 'no')):>12}"
+            for p in s.normal_p))
+        lines.append(f"  covariance [{cunit}]:")
+        for r in s.cov:
+            lines.append("  " + " " * 16 + "".join(f"{v:>12.4g}" for v in r))
+        lines.append(f"  histograms ({len(s.hist_counts[0])} bins, min..max):")
+        for i, a in enumerate(AXES):
+            e = s.hist_edges[i]
+            lines.append(f"    {a}  {e[0]:>10.5g} |{_spark(s.hist_counts[i])}| {e[-1]:<10.5g}")
+    lines.append("")
+    lines.append("derived:")
+    if st.g0 is not None:
+        lines.append(f"  g0        = [{', '.join(f'{v:.5g}' for v in st.g0)}] m/s² "
+                     f"(|mean acc|; pose tilted {st.tilt_deg:.1f}° from lying flat)")
+    if st.gyr_bias is not None:
+        lines.append(f"  gyr_bias  = [{', '.join(f'{v:.4g}' for v in st.gyr_bias)}] rad/s "
+                     f"({', '.join(f'{math.degrees(v):.3g}' for v in st.gyr_bias)} deg/s)")
+    if st.m0 is not None:
+        lines.append(f"  m0        = [{', '.join(f'{v:.4g}' for v in st.m0)}] µT "
+                     f"(|m0| = {np.linalg.norm(st.m0):.4g} µT, "
+                     f"dip {math.degrees(math.atan2(-st.m0[2], st.m0[1])):.1f}°)")
+    lines.append("")
+    if st.warnings:
+        lines.append("WARNING: this recording does not look stationary:")
+        lines.extend(f"  - {w}" for w in st.warnings)
+    else:
+        lines.append("stationary: yes")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------- preset
+
+def _clamped(params_cls, key: str, value):
+    """``value`` fitted into the range of ``params_cls.key`` (None if no such key)."""
+    fmap = {f.name: f for f in dataclasses.fields(params_cls)}
+    if key not in fmap:
+        return None
+    meta = fmap[key].metadata
+    lo, hi = meta.get("lo"), meta.get("hi")
+
+    def fit(v: float) -> float:
+        v = float(v)
+        if lo is not None:
+            v = max(lo, v)
+        if hi is not None:
+            v = min(hi, v)
+        return v
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [fit(v) for v in np.asarray(value, dtype=float).reshape(-1)]
+    return fit(value)
+
+
+def _positive_definite(c: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(c)) and np.all(np.linalg.eigvalsh(0.5 * (c + c.T)) > 0))
+
+
+def preset_values(st: CalibrationStats) -> dict[str, dict]:
+    """The parameters a preset gets from the statistics: ``{"lab": {...}, "robust": {...}}``
+    (only keys the estimators' parameter sets have; values fitted into their ranges)."""
+    from app.estimators import estimator_class
+
+    wanted: dict[str, object] = {}
+    for name in ("gyr", "acc", "mag"):
+        s = st.sensors.get(name)
+        if s is None:
+            continue
+        wanted[f"{name}_std"] = float(np.sqrt(np.mean(np.diag(s.cov))))
+        cov = 0.5 * (s.cov + s.cov.T)
+        if _positive_definite(cov):
+            wanted[f"{name}_cov"] = cov.reshape(-1)
+    if st.gyr_bias is not None:
+        wanted["gyr_bias"] = st.gyr_bias
+    if st.g0 is not None:
+        wanted["g0"] = st.g0
+    if st.m0 is not None:
+        wanted["m0"] = st.m0
+    out: dict[str, dict] = {}
+    for est, keys in (("lab", list(wanted)), ("robust", ["gyr_bias"])):
+        try:
+            cls = estimator_class(est).Params
+        except ImportError:  # that estimator is not installed
+            continue
+        sec = {}
+        for k in keys:
+            if k in wanted:
+                v = _clamped(cls, k, wanted[k])
+                if v is not None:
+                    sec[k] = v
+        out[est] = sec
+    return out
+
+
+def to_preset(st: CalibrationStats) -> str:
+    """A TOML preset (for ``--config``) with ``[lab]`` and ``[robust]`` tables; the
+    report is kept above them as comments."""
+    header = ("orientlab preset from a stationary recording (orientlab calibrate)\n\n"
+              + format_report(st).rstrip("\n"))
+    return dump_toml(preset_values(st), header=header)
+
+
+# ---------------------------------------------------------------- JSON (the page and the API)
+
+def _jnum(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _jlist(a) -> list:
+    return [_jlist(v) if isinstance(v, (list, np.ndarray)) and np.ndim(v) > 0 else _jnum(v)
+            for v in (a.tolist() if isinstance(a, np.ndarray) else a)]
+
+
+def sensor_json(s: SensorStats) -> dict:
+    """One sensor's statistics as plain JSON (NaN as null), with per axis the histogram
+    and the Gaussian of the same mean and σ scaled to the counts (``fit``: expected
+    count per bin, ``n · width · N(centre; mean, σ²)``)."""
+    hist = []
+    for i, a in enumerate(AXES):
+        e = np.asarray(s.hist_edges[i], dtype=float)
+        c = np.asarray(s.hist_counts[i], dtype=float)
+        centres = 0.5 * (e[:-1] + e[1:])
+        width = float(e[1] - e[0]) if e.size > 1 else 0.0
+        sd = float(s.std[i])
+        if sd > 0 and math.isfinite(sd):
+            fit = s.n * width * np.exp(-0.5 * ((centres - s.mean[i]) / sd) ** 2) / (sd * math.sqrt(2 * math.pi))
+        else:
+            fit = np.full_like(centres, np.nan)
+        hist.append({"axis": a, "edges": _jlist(e), "centres": _jlist(centres),
+                     "counts": [int(v) for v in c], "fit": _jlist(fit)})
+    return {"name": s.name, "title": TITLES[s.name], "unit": s.unit, "n": s.n,
+            "mean": _jlist(s.mean), "cov": _jlist(s.cov), "std": _jlist(s.std),
+            "skew": _jlist(s.skew), "kurtosis": _jlist(s.kurtosis),
+            "normality": {"k2": _jlist(s.normal_k2), "p": _jlist(s.normal_p),
+                          "normal_5pct": [bool(p >= 0.05) if math.isfinite(p) else None
+                                          for p in s.normal_p.tolist()]},
+            "drift_per_min": _jlist(s.trend_per_min), "histograms": hist}
+
+
+def to_json(st: CalibrationStats, t=None, series: dict | None = None,
+            max_points: int = 500) -> dict:
+    """Everything :func:`calibrate` found, as JSON for ``POST /api/calibrate`` and the
+    page: per sensor :func:`sensor_json`, the derived ``g0``, ``gyr_bias``, ``m0``, the
+    warnings, the preset values (``apply``: what one click sets) and, given the samples
+    (``t`` and ``series = {"acc": (N, 3), ...}``), decimated time plots."""
+    out = {"n_rows": st.n_rows, "duration_s": _jnum(st.duration), "stationary": st.stationary,
+           "warnings": list(st.warnings),
+           "sensors": {k: sensor_json(v) for k, v in st.sensors.items()},
+           "g0": None if st.g0 is None else _jlist(st.g0),
+           "gyr_bias": None if st.gyr_bias is None else _jlist(st.gyr_bias),
+           "m0": None if st.m0 is None else _jlist(st.m0),
+           "tilt_deg": None if st.tilt_deg is None else _jnum(st.tilt_deg),
+           "apply": {k: {p: (_jlist(v) if isinstance(v, (list, np.ndarray)) else _jnum(v))
+                         for p, v in sec.items()} for k, sec in preset_values(st).items()},
+           "report": format_report(st)}
+    if t is not None and series:
+        t = np.asarray(t, dtype=float)
+        plots = {}
+        for name, x in series.items():
+            x = np.asarray(x, dtype=float).reshape(-1, 3)
+            ok = np.all(np.isfinite(x), axis=1) & np.isfinite(t)
+            tt, xx = t[ok], x[ok]
+            if tt.size == 0:
+                continue
+            idx = np.linspace(0, tt.size - 1, min(tt.size, max_points)).astype(np.int64)
+            plots[name] = {"t": _jlist(tt[idx] - tt[0]), "x": _jlist(xx[idx, 0]),
+                           "y": _jlist(xx[idx, 1]), "z": _jlist(xx[idx, 2])}
+        out["series"] = plots
+    return out

@@ -1,0 +1,322 @@
+"""Virtual disturbances added to a stream's lines: a magnet near the phone, a shake.
+
+A teacher showing how a filter rejects disturbances needs them on demand. The
+:class:`Injector` rewrites the stream's lines before anything else reads them (the
+parser, the estimators, the plots and the recorder all see the disturbed stream, as
+they would see a real magnet), for the live phone, the demo or a replay alike.
+
+**Magnet** (``strength_uT``, ``direction``, ``seconds``, ``frame``): a magnet brought
+near the phone adds its own field to the Earth's. A magnet lying on the desk while the
+phone turns above it adds a field fixed in the *world* (``frame="world"``, the default):
+its reading in the sensor frame turns with the phone, ``Q(q)ᵀ b``, with ``q`` the phone's
+orientation (the truth in the demo, else the phone's own estimate ORI, else the primary
+estimate: whatever the server hands in). A magnet stuck on the phone or its case moves
+with it: fixed in the *sensor* frame (``frame="sensor"``). A dipole's field falls with the
+cube of the distance, so a hand bringing it near gives a smooth rise rather than a
+step: ``ramp_s`` ramps the field in and out with a raised cosine (default 0: a magnet
+put down at its spot at once; 0.5 s is a hand bringing it near, harder for a filter,
+since the first microtesla turn the heading before the field strength shows them). It is
+added to MAG (and to the raw reading of RAWMAG, its bias left as is). The default
+direction, east, is at right angles to the horizontal field, where it turns the apparent
+heading most.
+
+**Shake** (``amplitude_ms2``, ``seconds``, ``frequency_hz`` 3 Hz, ``direction``): a hand
+shaking the phone back and forth adds a linear acceleration ``A sin(2π f t)`` to the
+accelerometer (specific force) without turning it: the orientation is unchanged, so an
+estimator that trusts the accelerometer as gravity tilts. ``frame`` as above (default
+``sensor``: shaken along the phone's own x axis).
+
+Each disturbance starts at the next line of the sensor it affects (each tag may run on
+its own clock, so its window is measured on that tag's clock) and lasts ``seconds`` of
+stream time. Its start and end are marked in the stream itself by ``TXT`` lines
+(``<time_ms>\\tTXT\\torientlab: magnet ... start``), so a recording holds the marks at their
+place; :meth:`Injector.feed` also returns them for the plots.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from app.sources.samples import Sample
+from app.sources.sensorfusion import MalformedLine, decode_lines, format_line, parse_line
+from app.quaternion import Q
+
+KINDS = ("magnet", "shake")
+FRAMES = ("world", "sensor")
+MAX_SECONDS = 600.0
+DIRECTIONS = {"east": (1.0, 0.0, 0.0), "west": (-1.0, 0.0, 0.0), "north": (0.0, 1.0, 0.0),
+              "south": (0.0, -1.0, 0.0), "up": (0.0, 0.0, 1.0), "down": (0.0, 0.0, -1.0),
+              "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0),
+              "-y": (0.0, -1.0, 0.0), "z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
+
+
+class InjectError(ValueError):
+    """A refused request; ``field`` names the offending key."""
+
+    def __init__(self, field_name: str, reason: str):
+        super().__init__(f"{field_name}: {reason}")
+        self.field = field_name
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    kind: str                       # "magnet" or "shake"
+    magnitude: float                # µT (magnet) or m/s² (shake)
+    seconds: float
+    direction: tuple[float, float, float]
+    frame: str
+    ramp_s: float = 0.5
+    frequency_hz: float = 3.0
+
+    @property
+    def tag(self) -> str:
+        return "MAG" if self.kind == "magnet" else "ACC"
+
+    @property
+    def unit(self) -> str:
+        return "uT" if self.kind == "magnet" else "m/s2"
+
+    def describe(self) -> str:
+        d = ",".join(f"{v:.3g}" for v in self.direction)
+        extra = f" {self.frequency_hz:g} Hz" if self.kind == "shake" else ""
+        return (f"{self.kind} {self.magnitude:g} {self.unit}{extra} along [{d}] ({self.frame} "
+                f"frame) for {self.seconds:g} s")
+
+    def as_dict(self) -> dict[str, Any]:
+        key = "strength_uT" if self.kind == "magnet" else "amplitude_ms2"
+        out = {"kind": self.kind, key: self.magnitude, "seconds": self.seconds,
+               "direction": list(self.direction), "frame": self.frame, "ramp_s": self.ramp_s}
+        if self.kind == "shake":
+            out["frequency_hz"] = self.frequency_hz
+        return out
+
+    def envelope(self, s: float) -> float:
+        """0..1 at ``s`` seconds after the start (raised-cosine ramps at both ends)."""
+        if s < 0.0 or s > self.seconds:
+            return 0.0
+        r = min(self.ramp_s, self.seconds / 2.0)
+        if r <= 0.0:
+            return 1.0
+        edge = min(s, self.seconds - s)
+        if edge >= r:
+            return 1.0
+        return 0.5 - 0.5 * math.cos(math.pi * edge / r)
+
+    def vector(self, s: float) -> np.ndarray:
+        """The added vector at ``s`` s after the start, in ``frame`` (µT or m/s²)."""
+        a = self.magnitude * self.envelope(s)
+        if self.kind == "shake":
+            a *= math.sin(2.0 * math.pi * self.frequency_hz * s)
+        return a * np.asarray(self.direction, dtype=float)
+
+
+def _number(body: dict, key: str, lo: float, hi: float, default=None) -> float:
+    v = body.get(key, default)
+    if v is None:
+        raise InjectError(key, "required")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        raise InjectError(key, f"must be a finite number, got {v!r}")
+    v = float(v)
+    if not lo <= v <= hi:
+        raise InjectError(key, f"must be in [{lo:g}, {hi:g}], got {v:g}")
+    return v
+
+
+def parse_request(body: dict[str, Any]) -> Disturbance:
+    """``{"kind": "magnet", "strength_uT", "direction", "seconds", "frame"?, "ramp_s"?}`` or
+    ``{"kind": "shake", "amplitude_ms2", "seconds", "frequency_hz"?, "direction"?,
+    "frame"?}`` validated; InjectError names the first bad key."""
+    if not isinstance(body, dict):
+        raise InjectError("body", "expected a JSON object")
+    kind = body.get("kind")
+    if kind not in KINDS:
+        raise InjectError("kind", f"must be one of {', '.join(KINDS)}, got {kind!r}")
+    allowed = {"kind", "seconds", "direction", "frame", "ramp_s"}
+    allowed |= {"strength_uT"} if kind == "magnet" else {"amplitude_ms2", "frequency_hz"}
+    for k in body:
+        if k not in allowed:
+            raise InjectError(k, f"unknown key for a {kind} (known: {', '.join(sorted(allowed))})")
+    if kind == "magnet":
+        mag = _number(body, "strength_uT", 0.0, 5000.0)
+        frame = body.get("frame", "world")
+        d_default = "east"
+    else:
+        mag = _number(body, "amplitude_ms2", 0.0, 200.0)
+        frame = body.get("frame", "sensor")
+        d_default = "x"
+    if frame not in FRAMES:
+        raise InjectError("frame", f"must be one of {', '.join(FRAMES)}, got {frame!r}")
+    seconds = _number(body, "seconds", 0.05, MAX_SECONDS)
+    ramp = _number(body, "ramp_s", 0.0, 10.0, default=0.0 if kind == "magnet" else 0.2)
+    freq = _number(body, "frequency_hz", 0.1, 25.0, default=3.0) if kind == "shake" else 3.0
+    d = body.get("direction", d_default)
+    if isinstance(d, str):
+        if d.lower() not in DIRECTIONS:
+            raise InjectError("direction", f"a 3-vector or one of {', '.join(DIRECTIONS)}, got {d!r}")
+        vec = np.array(DIRECTIONS[d.lower()])
+    else:
+        try:
+            vec = np.asarray(d, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise InjectError("direction", f"a 3-vector or a name, got {d!r}") from None
+        if vec.size != 3 or not np.all(np.isfinite(vec)) or np.linalg.norm(vec) < 1e-9:
+            raise InjectError("direction", f"a non-zero finite 3-vector, got {d!r}")
+    vec = vec / np.linalg.norm(vec)
+    return Disturbance(kind=kind, magnitude=mag, seconds=seconds,
+                       direction=tuple(float(v) for v in vec), frame=frame, ramp_s=ramp,
+                       frequency_hz=freq)
+
+
+@dataclass
+class Active:
+    d: Disturbance
+    id: int
+    start_ms: int | None = None         # on the clock of d.tag, set by its first line
+    requested_wall: float = 0.0
+    ended: bool = False
+    frame_used: str = ""                # "sensor" when world was asked but no orientation known
+    lines: int = 0
+
+    def info(self) -> dict[str, Any]:
+        return {"id": self.id, **self.d.as_dict(), "start_ms": self.start_ms,
+                "ended": self.ended, "frame_used": self.frame_used or None, "lines": self.lines}
+
+
+class Injector:
+    """Applies requested disturbances to lines of the app's format.
+
+    ``orientation()`` returns the phone's current orientation (sensor to world, [w,x,y,z])
+    or None; it is asked for world-frame disturbances only. Pure apart from that call.
+    """
+
+    def __init__(self, orientation: Callable[[], np.ndarray | None] | None = None):
+        self.orientation = orientation or (lambda: None)
+        self.active: list[Active] = []
+        self.history: list[Active] = []
+        self._next_id = 1
+
+    def start(self, d: Disturbance, wall: float = 0.0) -> Active:
+        a = Active(d=d, id=self._next_id, requested_wall=wall)
+        self._next_id += 1
+        self.active.append(a)
+        self.history.append(a)
+        del self.history[:-50]
+        return a
+
+    def clear(self) -> None:
+        """Stop every disturbance now (a new stream: its clock is another)."""
+        for a in self.active:
+            a.ended = True
+        self.active = []
+
+    @property
+    def busy(self) -> bool:
+        return bool(self.active)
+
+    def feed(self, samples: list[Sample]) -> tuple[list[Sample], list[dict[str, Any]]]:
+        """The samples with the disturbances added, and the marks made (start/end:
+        ``{"event", "id", "kind", "time_ms", "text"}``); marks are also TXT samples in
+        the returned stream."""
+        if not self.active:
+            return samples, []
+        tags = {a.d.tag for a in self.active}
+        tags |= {"RAW" + t for t in tags}
+        out: list[Sample] = []
+        marks: list[dict[str, Any]] = []
+        for s in samples:
+            if s.tag not in tags:
+                out.append(s)
+                continue
+            base_tag = s.tag[3:] if s.tag.startswith("RAW") else s.tag
+            added = np.zeros(3)
+            touched = False
+            for a in list(self.active):
+                if a.d.tag != base_tag:
+                    continue
+                if a.start_ms is None:
+                    if s.tag != base_tag:       # start on the calibrated tag's clock
+                        continue
+                    a.start_ms = s.time_ms
+                    m = self._mark(a, "start", s.time_ms)
+                    marks.append(m)
+                    out.append(m["sample"])
+                sec = (s.time_ms - a.start_ms) / 1000.0
+                if sec > a.d.seconds:
+                    if s.tag == base_tag:
+                        a.ended = True
+                        self.active.remove(a)
+                        m = self._mark(a, "end", s.time_ms)
+                        marks.append(m)
+                        out.append(m["sample"])
+                    continue
+                if sec < 0.0:
+                    continue
+                v = a.d.vector(sec)
+                if a.d.frame == "world":
+                    q = self.orientation()
+                    if q is not None and np.all(np.isfinite(q)):
+                        v = Q(np.asarray(q, dtype=float)).T @ v
+                        a.frame_used = a.frame_used or "world"
+                    else:
+                        a.frame_used = "sensor"
+                else:
+                    a.frame_used = "sensor"
+                added += v
+                a.lines += 1
+                touched = True
+            if not touched:
+                out.append(s)
+                continue
+            vals = list(s.values)
+            for i in range(3):
+                vals[i] = float(vals[i]) + float(added[i])
+            out.append(Sample(s.time_ms, s.tag, tuple(vals)))
+        return out, marks
+
+    def _mark(self, a: Active, event: str, time_ms: int) -> dict[str, Any]:
+        text = f"{a.d.describe()} {event} (id {a.id})"
+        return {"event": event, "id": a.id, "kind": a.d.kind, "time_ms": time_ms,
+                "text": text, "sample": Sample(time_ms, "TXT", (f"orientlab: {text}",))}
+
+    def status(self) -> dict[str, Any]:
+        return {"active": [a.info() for a in self.active],
+                "recent": [a.info() for a in self.history[-10:]]}
+
+
+def inject_at(lines: list[bytes], request: dict[str, Any], at_s: float,
+              orientation: Callable[[], np.ndarray | None] | None = None
+              ) -> tuple[list[bytes], float, float]:
+    """A whole log (``lines``, in order) with the disturbance ``request`` (as
+    ``POST /api/inject`` takes it) started ``at_s`` seconds after its first line: the
+    lines (with the marks) and the disturbance's start and end (the phone's clock, s).
+    For tests and benchmarks of what a disturbance does to a recording."""
+    samples = decode_lines(lines, Counter())
+    t0 = samples[0].time_ms
+    k = next((i for i, s in enumerate(samples) if s.time_ms - t0 >= at_s * 1000.0), len(samples))
+    inj = Injector(orientation)
+    head, _ = inj.feed(samples[:k])
+    inj.start(parse_request(request))
+    tail, marks = inj.feed(samples[k:])
+    ends = [m["time_ms"] / 1000.0 for m in marks]
+    out = [format_line(s.time_ms, s.tag, s.values).encode() for s in head + tail]
+    return out, ends[0], (ends[1] if len(ends) > 1 else math.inf)
+
+
+def marks_in_log(lines: list[bytes]) -> list[dict[str, Any]]:
+    """The orientlab marks (TXT lines) of a log: ``{"time_ms", "text"}``."""
+    out = []
+    for ln in lines:
+        if b"\tTXT\torientlab:" not in ln:
+            continue
+        try:
+            s = parse_line(ln)
+        except MalformedLine:
+            continue
+        out.append({"time_ms": s.time_ms, "text": " ".join(s.values)[len("orientlab: "):]})
+    return out

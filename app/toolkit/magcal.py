@@ -1,0 +1,224 @@
+"""Magnetometer calibration: hard and soft iron from the phone turned in all directions.
+
+A magnetometer on a phone reads ``m_raw = A m + b``: ``b`` (µT) is the *hard-iron*
+offset (magnetised parts of the phone, moving with it) and ``A`` the *soft-iron*
+distortion (iron that bends the field, plus unequal axis gains). Turned in every
+direction in a uniform field, the true ``m`` sweeps a sphere of radius |m|, so the raw
+readings lie on an ellipsoid. :func:`fit` fits that ellipsoid to the readings
+(algebraic least squares, numpy only) and returns the correction
+
+    m = W (m_raw - b)
+
+with ``W`` symmetric positive definite, scaled so the corrected field keeps the
+measured strength (the geometric mean of the ellipsoid's radii, µT). Too few directions
+covered for a full ellipsoid: a sphere (hard iron only, ``W = I``) is fitted instead and
+``model`` says so. :func:`coverage` measures how much of the sphere of directions the
+readings cover (the share of 32 evenly spread directions with at least 3 readings near
+them), the number the page shows while the phone is being turned. The residual is the
+spread of |m| around the field strength before and after the correction (µT RMS).
+
+Where it is applied: the live server corrects every MAG sample before the estimators see
+it (:func:`correct_values`); a preset keeps it as ``[magcal]`` ``offset_uT`` and
+``matrix`` (row-major 3x3).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+N_DIRECTIONS = 32
+MIN_PER_DIRECTION = 3
+MIN_SAMPLES = 30
+MIN_COVERAGE_ELLIPSOID = 0.5   # share of directions needed for a full ellipsoid fit
+
+
+class MagCalError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class MagCalibration:
+    offset: np.ndarray          # (3,) µT, hard iron
+    matrix: np.ndarray          # (3, 3) soft iron correction W
+    field_uT: float             # strength of the corrected field
+    model: str                  # "ellipsoid", "sphere" or "identity"
+    n: int = 0
+    coverage: float = 0.0
+    residual_before_uT: float = math.nan
+    residual_after_uT: float = math.nan
+
+    def apply(self, m: np.ndarray) -> np.ndarray:
+        """Corrected readings (N, 3) or (3,)."""
+        m = np.asarray(m, dtype=float)
+        return (m - self.offset) @ self.matrix.T
+
+    def as_dict(self) -> dict[str, Any]:
+        def num(x):
+            return float(x) if math.isfinite(float(x)) else None
+        return {"offset_uT": [float(v) for v in self.offset],
+                "matrix": [[float(v) for v in r] for r in self.matrix],
+                "field_uT": num(self.field_uT), "model": self.model, "n": self.n,
+                "coverage": num(self.coverage),
+                "residual_before_uT": num(self.residual_before_uT),
+                "residual_after_uT": num(self.residual_after_uT)}
+
+    def preset(self) -> dict[str, Any]:
+        """The ``[magcal]`` table of a preset."""
+        return {"offset_uT": [float(v) for v in self.offset],
+                "matrix": [float(v) for v in self.matrix.reshape(-1)]}
+
+
+IDENTITY = MagCalibration(offset=np.zeros(3), matrix=np.eye(3), field_uT=math.nan,
+                          model="identity")
+
+
+def from_preset(table: dict[str, Any]) -> MagCalibration:
+    """A calibration from a preset's ``[magcal]`` table; MagCalError says what is wrong."""
+    if not isinstance(table, dict):
+        raise MagCalError("[magcal] must be a table")
+    unknown = set(table) - {"offset_uT", "matrix"}
+    if unknown:
+        raise MagCalError(f"[magcal] unknown key {sorted(unknown)[0]!r} (known: offset_uT, matrix)")
+    try:
+        b = np.asarray(table.get("offset_uT", [0, 0, 0]), dtype=float).reshape(3)
+        W = np.asarray(table.get("matrix", np.eye(3).reshape(-1).tolist()), dtype=float).reshape(3, 3)
+    except (TypeError, ValueError):
+        raise MagCalError("[magcal] offset_uT has 3 numbers and matrix 9 (row-major)") from None
+    if not (np.all(np.isfinite(b)) and np.all(np.isfinite(W))):
+        raise MagCalError("[magcal] values must be finite")
+    if np.max(np.abs(b)) > 5000:
+        raise MagCalError("[magcal] offset_uT beyond ±5000 µT")
+    Ws = 0.5 * (W + W.T)
+    ev = np.linalg.eigvalsh(Ws)
+    if np.max(np.abs(W - W.T)) > 1e-6 * max(1.0, np.max(np.abs(W))) or ev.min() <= 0.05 or ev.max() > 20:
+        raise MagCalError("[magcal] matrix must be symmetric positive definite with gains in (0.05, 20]")
+    return MagCalibration(offset=b, matrix=Ws, field_uT=math.nan, model="preset")
+
+
+def _directions(n: int = N_DIRECTIONS) -> np.ndarray:
+    """``n`` nearly evenly spread unit vectors (Fibonacci sphere)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(1.0 - z * z)
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * k
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+_DIRS = _directions()
+
+
+def _finite_rows(m: np.ndarray) -> np.ndarray:
+    m = np.asarray(m, dtype=float).reshape(-1, 3)
+    return m[np.all(np.isfinite(m), axis=1)]
+
+
+def coverage(m: np.ndarray, center: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Share of :data:`N_DIRECTIONS` directions (around ``center``, default the middle
+    of the readings' range) with at least :data:`MIN_PER_DIRECTION` readings nearest to
+    them, and the count per direction."""
+    m = _finite_rows(m)
+    if m.shape[0] == 0:
+        return 0.0, np.zeros(N_DIRECTIONS, dtype=int)
+    c = 0.5 * (m.min(axis=0) + m.max(axis=0)) if center is None else np.asarray(center, float)
+    d = m - c
+    nrm = np.linalg.norm(d, axis=1)
+    ok = nrm > 1e-9
+    u = d[ok] / nrm[ok, None]
+    idx = np.argmax(u @ _DIRS.T, axis=1)
+    counts = np.bincount(idx, minlength=N_DIRECTIONS)
+    return float(np.mean(counts >= MIN_PER_DIRECTION)), counts
+
+
+def _residual(m: np.ndarray, radius: float | None = None) -> float:
+    r = np.linalg.norm(m, axis=1)
+    ref = float(np.mean(r)) if radius is None else radius
+    return float(np.sqrt(np.mean((r - ref) ** 2)))
+
+
+def _fit_sphere(m: np.ndarray) -> tuple[np.ndarray, float]:
+    # |x|² = 2 b·x + (R² - |b|²): linear in (b, c)
+    A = np.hstack([2.0 * m, np.ones((m.shape[0], 1))])
+    y = np.sum(m * m, axis=1)
+    sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+    b = sol[:3]
+    r2 = sol[3] + b @ b
+    if not r2 > 0:
+        raise MagCalError("the readings do not fit a sphere")
+    return b, math.sqrt(r2)
+
+
+def _fit_ellipsoid(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Center b and symmetric W with |W (x - b)| ≈ R for the readings, R the geometric
+    mean radius. MagCalError when the quadric is not an ellipsoid."""
+    s = np.max(np.abs(m - m.mean(axis=0)))
+    mu = m.mean(axis=0)
+    x, y, z = ((m - mu) / s).T          # centred and scaled: well-conditioned
+    # a x² + b y² + c z² + 2f yz + 2g xz + 2h xy + 2p x + 2q y + 2r z = 1
+    D = np.stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z], axis=1)
+    sol, *_ = np.linalg.lstsq(D, np.ones(m.shape[0]), rcond=None)
+    a, b_, c, f, g, h, p, q, r = sol
+    M = np.array([[a, h, g], [h, b_, f], [g, f, c]])
+    n = np.array([p, q, r])
+    try:
+        ctr = -np.linalg.solve(M, n)
+    except np.linalg.LinAlgError:
+        raise MagCalError("the readings do not determine an ellipsoid") from None
+    k = 1.0 + ctr @ M @ ctr
+    Mn = M / k
+    ev, V = np.linalg.eigh(0.5 * (Mn + Mn.T))
+    if not np.all(ev > 0):
+        raise MagCalError("the fitted surface is not an ellipsoid (turn the phone in more directions)")
+    radii = 1.0 / np.sqrt(ev)                     # in the scaled units
+    R = float(np.prod(radii) ** (1.0 / 3.0))
+    W = (V * (np.sqrt(ev) * R)) @ V.T             # R * sqrtm(Mn): maps the ellipsoid to radius R
+    return mu + ctr * s, W, R * s
+
+
+def fit(m: np.ndarray, model: str = "auto") -> MagCalibration:
+    """Fit the correction to readings ``m`` (N, 3) µT (NaN rows ignored). ``model``:
+    ``"auto"`` (ellipsoid if the coverage allows, else sphere), ``"ellipsoid"`` or
+    ``"sphere"``. MagCalError when there are too few readings or no fit."""
+    m = _finite_rows(m)
+    if m.shape[0] < MIN_SAMPLES:
+        raise MagCalError(f"only {m.shape[0]} magnetometer readings (at least {MIN_SAMPLES} needed)")
+    if model not in ("auto", "ellipsoid", "sphere"):
+        raise MagCalError(f"model must be auto, ellipsoid or sphere, got {model!r}")
+    b_s, R_s = _fit_sphere(m)
+    cov, _ = coverage(m, b_s)
+    if model == "ellipsoid" or (model == "auto" and cov >= MIN_COVERAGE_ELLIPSOID):
+        try:
+            b, W, R = _fit_ellipsoid(m)
+            kind = "ellipsoid"
+        except MagCalError:
+            if model == "ellipsoid":
+                raise
+            b, W, R, kind = b_s, np.eye(3), R_s, "sphere"
+    else:
+        b, W, R, kind = b_s, np.eye(3), R_s, "sphere"
+    cal = MagCalibration(offset=b, matrix=W, field_uT=R, model=kind, n=int(m.shape[0]),
+                         coverage=coverage(m, b)[0])
+    before = _residual(m)
+    after = _residual(cal.apply(m), R)
+    return MagCalibration(offset=b, matrix=W, field_uT=R, model=kind, n=cal.n,
+                          coverage=cal.coverage, residual_before_uT=before,
+                          residual_after_uT=after)
+
+
+def correct_values(cal: MagCalibration, values: tuple) -> tuple:
+    """A MAG line's values corrected (3 floats)."""
+    v = cal.matrix @ (np.asarray(values[:3], dtype=float) - cal.offset)
+    return tuple(float(x) for x in v) + tuple(values[3:])
+
+
+def correct_samples(cal: MagCalibration | None, samples: list) -> list:
+    """MAG samples with the correction applied (others unchanged). Identity or None: the
+    samples themselves."""
+    if cal is None or cal.model == "identity":
+        return samples
+    from app.sources.samples import Sample
+    return [Sample(s.time_ms, "MAG", correct_values(cal, s.values)) if s.tag == "MAG" else s
+            for s in samples]

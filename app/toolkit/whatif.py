@@ -1,0 +1,260 @@
+"""What-if: re-run a whole recording through every estimator, before and after a
+parameter change, and compare.
+
+:func:`rerun` reads the recording once (:func:`app.sources.readers.read_recording`, as
+``orientlab estimate`` does), then runs each estimator over all its rows with the batch
+path (``Estimator.run``) twice: with the parameters it has now ("before") and with the
+patch applied ("after"; skipped when the patch leaves it unchanged). Per estimator and
+run it returns
+
+- the error to the phone's own estimate (the log's ORI, held between samples), and to
+  the truth when the recording has one (the ``truth`` rows of its estimates file,
+  written by the recorder for the demo): RMS, median, 95th percentile and maximum, in
+  degrees, counted from the estimator's initial alignment on;
+- the share of accelerometer and magnetometer samples refused by a gate (of those
+  present and valid);
+- decimated time series for the page to overlay: error to the phone (or truth), yaw,
+  pitch and roll (degrees, the manual's ``q2euler``).
+
+An estimator is described by a *spec* ``(base, params)``: ``base`` the estimator class
+name (``robust``, ``lab``, ...) and ``params`` its parameter dict, so variants
+(``robust-no-rejection``) re-run like the others. A patch is ``{name: {key: value}}``.
+The ``phone`` estimator is the reference itself (the held ORI): it is scored, not run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.estimators import REJECTIONS, Reason, make_estimator
+from app.estimators.base import F_ACC, F_MAG
+from app.params import ParamError
+from app.quaternion import error_angles, q2euler_many
+from app.sources.readers import Recording, read_recording
+
+MAX_POINTS = 1500
+_REJ = np.array(sorted(int(r) for r in REJECTIONS))
+_NOT_OFFERED = np.array([int(Reason.ABSENT), int(Reason.DISABLED), int(Reason.INVALID),
+                         int(Reason.WAIT), int(Reason.LATE)])
+
+
+class WhatIfError(ValueError):
+    """A refused re-run (bad patch, unknown estimator); ``field`` names what."""
+
+    def __init__(self, field_name: str, reason: str):
+        super().__init__(f"{field_name}: {reason}")
+        self.field = field_name
+        self.reason = reason
+
+
+def hold_ori(rec: Recording) -> np.ndarray | None:
+    """The phone's estimate at every row: the last ORI sample held (NaN before the
+    first), or None when the recording has none."""
+    if rec.ori is None:
+        return None
+    o = np.asarray(rec.ori, dtype=float)
+    ok = np.all(np.isfinite(o), axis=1)
+    if not ok.any():
+        return None
+    idx = np.where(ok, np.arange(len(o)), -1)
+    idx = np.maximum.accumulate(idx)
+    out = np.full_like(o, np.nan)
+    have = idx >= 0
+    q = o[idx[have]]
+    out[have] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out
+
+
+def truth_at(t: np.ndarray, truth: dict[str, np.ndarray] | None) -> np.ndarray | None:
+    """The truth (``{"t", "q"}``) at times ``t`` (the latest truth row at or before)."""
+    if truth is None or len(truth["t"]) == 0:
+        return None
+    tt, qq = np.asarray(truth["t"]), np.asarray(truth["q"])
+    order = np.argsort(tt, kind="stable")
+    tt, qq = tt[order], qq[order]
+    i = np.searchsorted(tt, t, side="right") - 1
+    out = np.full((len(t), 4), np.nan)
+    ok = i >= 0
+    out[ok] = qq[i[ok]]
+    return out
+
+
+def _stats_deg(x: np.ndarray) -> dict[str, float | None]:
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"rms": None, "median": None, "p95": None, "max": None, "n": 0}
+    d = np.degrees(x)
+    return {"rms": float(np.sqrt(np.mean(d * d))), "median": float(np.median(d)),
+            "p95": float(np.percentile(d, 95)), "max": float(d.max()), "n": int(d.size)}
+
+
+def rejected_share(flags: np.ndarray, col: int) -> float | None:
+    """Share of the valid samples offered to a sensor's update that a gate refused."""
+    f = flags[:, col].astype(np.int64)
+    offered = ~np.isin(f, _NOT_OFFERED)
+    n = int(offered.sum())
+    if n == 0:
+        return None
+    return float(np.isin(f[offered], _REJ).sum()) / n
+
+
+def _aligned_from(flags: np.ndarray) -> int:
+    """The first row at which the estimator has aligned (its first INIT or USED update)."""
+    f = flags[:, [F_ACC, F_MAG]].astype(np.int64)
+    hit = np.nonzero(np.any((f == int(Reason.INIT)) | (f == int(Reason.USED)), axis=1))[0]
+    return int(hit[0]) if hit.size else 0
+
+
+def _decimate(n: int, max_points: int) -> np.ndarray:
+    if n <= max_points:
+        return np.arange(n)
+    return np.linspace(0, n - 1, max_points).astype(np.int64)
+
+
+def _one_run(base: str, params: dict[str, Any], rec: Recording, ref: np.ndarray | None,
+             ref_kind: str | None, truth: np.ndarray | None, idx: np.ndarray,
+             phone_ref: np.ndarray | None) -> tuple[dict[str, Any], float]:
+    est = make_estimator(base, params)
+    t0 = time.perf_counter()
+    res = est.run(rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)
+    spent = time.perf_counter() - t0
+    start = _aligned_from(res.flags)
+    out: dict[str, Any] = {
+        "rejected": {"acc": rejected_share(res.flags, F_ACC),
+                     "mag": rejected_share(res.flags, F_MAG)},
+        "seconds_cpu": spent,
+    }
+    err_series = None
+    for key, r in (("error_to_phone_deg", phone_ref), ("error_to_truth_deg", truth)):
+        if r is None:
+            out[key] = None
+            continue
+        ok = np.all(np.isfinite(r), axis=1)
+        ok[:start] = False
+        tot = np.full(len(rec.t), np.nan)
+        head = np.full(len(rec.t), np.nan)
+        if ok.any():
+            a, h, _ = error_angles(res.q[ok], r[ok])
+            tot[ok], head[ok] = a, h
+        out[key] = {**_stats_deg(tot[ok]), "heading": _stats_deg(head[ok])}
+        if (ref_kind == "truth" and key == "error_to_truth_deg") or \
+                (ref_kind == "phone" and key == "error_to_phone_deg"):
+            err_series = tot
+    eul = np.degrees(q2euler_many(res.q[idx]))
+    out["series"] = {"yaw_deg": _clean(eul[:, 0]), "pitch_deg": _clean(eul[:, 1]),
+                     "roll_deg": _clean(eul[:, 2]),
+                     "error_deg": None if err_series is None else _clean(np.degrees(err_series[idx]))}
+    return out, spent
+
+
+def _phone_entry(phone: np.ndarray | None, truth: np.ndarray | None,
+                 idx: np.ndarray) -> dict[str, Any] | None:
+    """The phone's own estimate (held ORI) scored like the others, without a run."""
+    if phone is None:
+        return None
+    ok = np.all(np.isfinite(phone), axis=1)
+    out: dict[str, Any] = {"rejected": {"acc": None, "mag": None}, "seconds_cpu": 0.0,
+                           "error_to_phone_deg": {**_stats_deg(np.zeros(int(ok.sum()))),
+                                                  "heading": _stats_deg(np.zeros(int(ok.sum())))},
+                           "error_to_truth_deg": None}
+    err = None
+    if truth is not None:
+        both = ok & np.all(np.isfinite(truth), axis=1)
+        err = np.full(len(phone), np.nan)
+        head = np.full(len(phone), np.nan)
+        if both.any():
+            a, h, _ = error_angles(phone[both], truth[both])
+            err[both], head[both] = a, h
+        out["error_to_truth_deg"] = {**_stats_deg(err[both]), "heading": _stats_deg(head[both])}
+    q = np.where(ok[:, None], phone, np.array([1.0, 0.0, 0.0, 0.0]))
+    eul = np.degrees(q2euler_many(q[idx]))
+    eul[~ok[idx]] = np.nan
+    out["series"] = {"yaw_deg": _clean(eul[:, 0]), "pitch_deg": _clean(eul[:, 1]),
+                     "roll_deg": _clean(eul[:, 2]),
+                     "error_deg": None if err is None else _clean(np.degrees(err[idx]))}
+    return out
+
+
+def _clean(x: np.ndarray) -> list[float | None]:
+    return [float(v) if math.isfinite(v) else None for v in np.round(x, 4).tolist()]
+
+
+def rerun(source: str | Path | Recording, specs: dict[str, tuple[str, dict[str, Any]]],
+          patch: dict[str, dict[str, Any]] | None = None,
+          truth: dict[str, np.ndarray] | None = None,
+          max_points: int = MAX_POINTS) -> dict[str, Any]:
+    """Re-run a recording (a path or a read :class:`Recording`) through every estimator
+    of ``specs`` (``{name: (base, params)}``), before and after ``patch``
+    (``{name: {key: value}}``); see the module doc for what comes back.
+    WhatIfError for a patch naming an unknown estimator or a refused value (nothing run)."""
+    patch = patch or {}
+    for name, changes in patch.items():
+        if name not in specs:
+            raise WhatIfError(f"patch.{name}", f"no estimator named {name!r} "
+                                               f"(known: {', '.join(specs)})")
+        if not isinstance(changes, dict):
+            raise WhatIfError(f"patch.{name}", "expected an object of parameter changes")
+    after_params: dict[str, dict[str, Any]] = {}
+    for name, (base, params) in specs.items():
+        ch = patch.get(name)
+        if ch:
+            merged = {**params, **ch}
+            try:
+                make_estimator(base, merged)
+            except ParamError as e:
+                raise WhatIfError(f"patch.{name}.{e.field}", e.reason) from None
+            after_params[name] = merged
+    t_read = time.perf_counter()
+    rec = source if isinstance(source, Recording) else read_recording(source)
+    read_s = time.perf_counter() - t_read
+    n = len(rec)
+    phone = hold_ori(rec)
+    tq = truth_at(rec.t, truth) if n else None
+    ref_kind = "truth" if tq is not None else ("phone" if phone is not None else None)
+    idx = _decimate(n, max_points)
+    duration = float(rec.t[-1] - rec.t[0]) if n > 1 else 0.0
+    results: dict[str, Any] = {}
+    cpu = 0.0
+    for name, (base, params) in specs.items():
+        if base == "phone":   # the reference itself: its estimate is the held ORI
+            results[name] = {"base": base, "reference": True, "changed": False,
+                             "before": _phone_entry(phone, tq, idx), "after": None}
+            continue
+        if n == 0:
+            results[name] = {"base": base, "before": None, "after": None, "changed": False}
+            continue
+        before, s1 = _one_run(base, params, rec, None, ref_kind, tq, idx, phone)
+        cpu += s1
+        entry = {"base": base, "before": before, "changed": name in after_params,
+                 "patch": patch.get(name) or {}}
+        if name in after_params:
+            after, s2 = _one_run(base, after_params[name], rec, None, ref_kind, tq, idx, phone)
+            cpu += s2
+            entry["after"] = after
+        else:
+            entry["after"] = None
+        results[name] = entry
+    return {"rows": n, "duration_s": duration, "read_s": read_s, "estimate_s": cpu,
+            "realtime_ratio": (duration / cpu) if cpu > 0 else None,
+            "reference": ref_kind, "has_phone": phone is not None, "has_truth": tq is not None,
+            "t": _clean(rec.t[idx] - (rec.t[0] if n else 0.0)) if n else [],
+            "estimators": results, "counts": _json_counts(rec.counts)}
+
+
+def _json_counts(c: dict) -> dict:
+    out = {}
+    for k, v in c.items():
+        if isinstance(v, dict):
+            out[k] = _json_counts(v)
+        elif isinstance(v, (int, str, bool)) or v is None:
+            out[k] = v
+        elif isinstance(v, float):
+            out[k] = v if math.isfinite(v) else None
+        elif isinstance(v, (list, tuple)):
+            out[k] = [x for x in v if isinstance(x, (int, float, str))]
+    return out

@@ -1,0 +1,152 @@
+"""app.live.bench: every instance steps a chunk in one batch run; the same estimates as
+stepping sample by sample; variants; a step that raises or a state that goes non-finite
+is contained."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.estimators import make_estimator
+from app.estimators.base import Estimator
+from app.estimators.phone import PhoneOrientation
+from app.live.bench import Bench, BenchError
+from app.sources.simulate import simulate
+from app.sources.ordering import SampleOrderer
+
+SENSOR_OF_TAG = {"GYR": "gyr", "ACC": "acc", "MAG": "mag"}
+
+
+def chunks(lines, size=37):
+    o = SampleOrderer(window=0.05)
+    out = [sum((o.push_line(ln) for ln in lines[i:i + size]), []) for i in range(0, len(lines), size)]
+    out.append(o.flush())
+    return [c for c in out if c]
+
+
+@pytest.fixture(scope="module")
+def sim_chunks():
+    return chunks(simulate(("turn_z", "magnet"), seed=2).lines()[:3000])
+
+
+def stepped(name, chs):
+    """The reference: one Estimator.step per sample, as the engine did before."""
+    est = make_estimator(name)
+    qs = []
+    for ch in chs:
+        for s in ch:
+            sensor = SENSOR_OF_TAG.get(s.tag)
+            if sensor is None and s.tag != "ORI":
+                continue
+            kw = {sensor: np.array(s.values)} if sensor else {"ori": np.array(s.values)}
+            est.step(s.time_ms / 1000.0, **kw)
+            qs.append(est.q)
+    return np.array(qs)
+
+
+def test_batch_per_chunk_equals_stepping_per_sample(sim_chunks):
+    bench = Bench()
+    out = {n: [] for n in bench.names}
+    for ch in sim_chunks:
+        rec = bench.step(ch)
+        for n in bench.names:
+            out[n].append(rec.q[n])
+    for n in bench.names:
+        np.testing.assert_allclose(np.concatenate(out[n]), stepped(n, sim_chunks), rtol=0, atol=1e-9)
+
+
+def test_counts_and_last_decisions(sim_chunks):
+    bench = Bench()
+    recs = [bench.step(ch) for ch in sim_chunks]
+    n_acc = sum(int((r.kind == 1).sum()) for r in recs)
+    lab = bench.instances["lab"]
+    assert lab.counts[1].sum() == n_acc
+    assert lab.updates()["acc"]["used"] > 0
+    f = lab.flags("acc")
+    assert f is not None and f.t == recs[-1].t[recs[-1].kind == 1][-1]
+    assert bench.phone_q is not None
+    assert np.isnan(recs[0].phone_q[0]).all() or bench.instances["phone"].estimator.initialized
+
+
+def test_variants_run_beside_the_builtins(sim_chunks):
+    bench = Bench()
+    v = bench.add("lab-approx", "lab", {"time_update": "approx"})
+    assert not v.builtin and bench.params_of("lab-approx").time_update == "approx"
+    assert bench.params_of("lab").time_update == "exact"
+    for ch in sim_chunks:
+        rec = bench.step(ch)
+    assert set(rec.q) == {"robust", "lab", "complementary", "phone", "lab-approx"}
+    assert bench.estimator("lab-approx").initialized
+    with pytest.raises(BenchError):
+        bench.add("lab-approx", "lab")
+    with pytest.raises(BenchError):
+        bench.add("Bad Name", "lab")
+    with pytest.raises(BenchError):
+        bench.add("x", "nope")
+    with pytest.raises(BenchError):
+        bench.remove("lab")
+    bench.set_primary("lab-approx")
+    bench.remove("lab-approx")
+    assert "lab-approx" not in bench.names and bench.primary == "lab"
+
+
+class Raising(PhoneOrientation):
+    """The phone estimator, raising on an ORI sample whose x is 0.5 (a planted bug)."""
+
+    _run_rows = Estimator._run_rows   # the generic loop over _step (the compiled run does not call it)
+
+    def _step(self, t, gyr, acc, mag, ori, flags):
+        if ori is not None and ori[1] == 0.5:
+            raise RuntimeError("planted")
+        super()._step(t, gyr, acc, mag, ori, flags)
+
+
+def ori_chunk(t0, xs):
+    from app.sources.samples import Sample
+    return [Sample(t0 + 10 * i, "ORI", (float(np.sqrt(1 - x * x)), x, 0.0, 0.0)) for i, x in enumerate(xs)]
+
+
+def test_a_step_that_raises_skips_that_sample_only():
+    bench = Bench()
+    inst = bench.add("raiser", "phone", estimator=Raising())
+    rec = bench.step(ori_chunk(1000, [0.1, 0.5, 0.2]))
+    assert inst.step_errors == 1 and "planted" in inst.last_error
+    q = rec.q["raiser"]
+    np.testing.assert_allclose(q[1], q[0])            # the bad sample left the state as it was
+    np.testing.assert_allclose(q[2], rec.q["phone"][2])
+    rec = bench.step(ori_chunk(2000, [0.3]))          # and the next chunk runs in batch again
+    np.testing.assert_allclose(rec.q["raiser"], rec.q["phone"])
+    assert bench.step_errors() == 1
+
+
+class NaNMaker(PhoneOrientation):
+    _run_rows = Estimator._run_rows
+
+    def _step(self, t, gyr, acc, mag, ori, flags):
+        super()._step(t, gyr, acc, mag, ori, flags)
+        if ori is not None and ori[1] == 0.5:
+            self._q = np.full(4, np.nan)
+
+
+def test_a_non_finite_state_is_restored():
+    bench = Bench()
+    inst = bench.add("nan", "phone", estimator=NaNMaker())
+    bench.step(ori_chunk(1000, [0.1]))
+    rec = bench.step(ori_chunk(2000, [0.2, 0.5, 0.3]))
+    assert inst.restored == 1
+    assert np.isfinite(rec.q["nan"]).all() and np.isfinite(inst.estimator.q).all()
+
+
+def test_the_phones_own_estimate_is_nan_until_its_first_valid_ori_then_shown_every_row():
+    from app.sources.samples import Sample
+    bench = Bench()
+    gyr = lambda t: Sample(t, "GYR", (0.01, 0.0, 0.0))      # noqa: E731
+    x = 0.3
+    ori = Sample(1020, "ORI", (float(np.sqrt(1 - x * x)), x, 0.0, 0.0))
+    r1 = bench.step([gyr(1000), gyr(1010)])                # no ORI yet
+    assert np.isnan(r1.phone_q).all()
+    r2 = bench.step([ori, gyr(1030), Sample(1040, "ORI", (0.0, 0.0, 0.0, 0.0))])
+    expected = np.array([np.sqrt(1 - x * x), x, 0.0, 0.0])
+    np.testing.assert_allclose(r2.phone_q, np.tile(expected, (3, 1)))   # a zero ORI is refused
+    r3 = bench.step([gyr(1050)])                           # initialised before the chunk
+    np.testing.assert_allclose(r3.phone_q, [expected])

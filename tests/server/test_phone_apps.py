@@ -1,0 +1,233 @@
+"""Any phone: Sensor Logger and phyphox pushing to a real server (uvicorn on a free
+loopback port) from real HTTP clients, with the phones-tyrex trials converted to each
+app's format (Michel et al., PerCom 2017, CeCILL 2.1); the phone slot shared with the
+Sensor Fusion app's TCP stream; bad input; the experiment file and ``/api/connect``."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import xml.etree.ElementTree as ET
+
+import httpx
+import numpy as np
+import pytest
+
+from harness import Phone, running_server, wait_for
+from app.quaternion import angle_between
+
+TOKEN = "phone-apps-token"
+NEXUS = "Nexus5_Guillaume_NoDist_texting.npz"
+IPHONE = "iPhone5_Guillaume_NoDist_texting.npz"
+
+
+def _trial(shared_dir, name):
+    p = shared_dir / "data" / "phones-tyrex" / name
+    if not p.is_file():
+        pytest.skip(f"{p} not present")
+    return p
+
+
+def _client(srv, local="127.0.0.1", token=None) -> httpx.Client:
+    headers = {"X-Orientlab-Token": token} if token else {}
+    return httpx.Client(base_url=srv.url, timeout=10.0, headers=headers,
+                        transport=httpx.HTTPTransport(local_address=local))
+
+
+def _state(srv):
+    return httpx.get(srv.url + "/api/state", timeout=10.0).json()
+
+
+# ---------------------------------------------------------------- Sensor Logger
+
+@pytest.mark.shared
+@pytest.mark.parametrize("platform", ["android", "ios"])
+def test_sensor_logger_pushes_become_the_stream_on_the_phones_clock(shared_dir, platform):
+    from tyrex_sensorlogger import duplicated, messages_android, messages_ios, swapped
+    path = _trial(shared_dir, NEXUS if platform == "android" else IPHONE)
+    bodies = (messages_android(path, 1.0, seconds=12) if platform == "android"
+              else messages_ios(path, 1.0, standardise=False, seconds=12))
+    bodies = duplicated(swapped(bodies, 3), 6)            # a pair out of order, one twice
+    with running_server(open_access=False, token=TOKEN) as srv, _client(srv) as phone:
+        for b in bodies:
+            r = phone.post("/sensorlogger", content=b, headers={"Content-Type": "application/json"})
+            assert r.status_code == 200, r.text
+        wait_for(lambda: _state(srv)["counts"]["samples"] > 2500, 20, what="samples processed")
+        st = _state(srv)
+        assert st["source"] == "phone" and st["initialized"]
+        assert 1.7e9 < st["t"] < 2.0e9          # the phone's own epoch clock, in seconds
+        v = httpx.get(srv.url + "/api/connect", headers={"X-Orientlab-Token": TOKEN}).json()
+        sl = next(s for s in v["http"]["streams"] if s["app"] == "sensorlogger")
+        assert sl["platform"] == platform
+        assert sl["convention"] == ("android" if platform == "android" else "ios")
+        assert sl["duplicates"] >= 1 and sl["out_of_order"] >= 1
+        assert v["slot"]["holder"]["app"] == "sensorlogger"
+        assert v["stream"]["app"] == "sensorlogger" and v["stream"]["late"] == 0
+        # watchers see no address and no connect details
+        assert httpx.get(srv.url + "/api/connect").status_code == 403
+        assert httpx.get(srv.url + "/api/info").json()["lan_ip"] is None
+
+
+def test_bad_pushes_are_refused_with_the_reason_and_nothing_valid_is_lost():
+    reading = {"name": "gyroscope", "time": 1760000000013001000,
+               "values": {"x": 0.01, "y": 0.0, "z": 0.0}}
+    bad = {"name": "gyroscope", "time": 1760000000014001000,
+           "values": {"x": float("nan"), "y": 0.0, "z": 0.0}}
+    acc = {"name": "totalacceleration", "time": 1760000000013501000,
+           "values": {"x": 0.0, "y": 0.0, "z": 9.81}}
+    with running_server(max_push_bytes=200_000) as srv, _client(srv) as phone:
+        assert phone.post("/sensorlogger", content=b"{not json").status_code == 400
+        r = phone.post("/sensorlogger", content=b'{"payload": 3}')
+        assert r.status_code == 400 and "payload" in r.text
+        r = phone.post("/sensorlogger", content=b"x" * 300_000)
+        assert r.status_code == 413
+        body = {"messageId": 1, "sessionId": "s", "deviceId": "d",
+                "payload": [reading, bad, acc, {"name": "light", "time": 1, "values": {"lux": 3}}]}
+        body = json.dumps(body).replace("NaN", "NaN")
+        assert phone.post("/sensorlogger", content=body.encode()).status_code == 200
+        v = srv.app.state.connect.view(None)
+        assert v["http"]["counts"]["sensorlogger"]["bad"] == {"bad_json": 1, "bad_shape": 1} or \
+            sum(v["http"]["counts"]["sensorlogger"]["bad"].values()) == 2
+        sl = v["http"]["streams"][0]
+        assert sum(sl["invalid"].values()) >= 1          # the NaN reading, counted
+        wait_for(lambda: srv.engine.core.session is not None
+                 and sum(srv.engine.core.session.orderer.counters.tags.values()) >= 2,
+                 10, what="the valid readings of the batch")
+
+
+# ---------------------------------------------------------------- one phone at a time
+
+def test_one_phone_at_a_time_across_apps_and_the_presenter_releases_it():
+    """A Sensor Fusion phone streams over TCP: a Sensor Logger phone is refused with a
+    499 whose text the app shows; a stray TCP client trickling a sample every 2 s holds
+    the slot until the presenter releases it; then the other phone gets in."""
+    msg = {"messageId": 1, "sessionId": "a", "deviceId": "b",
+           "payload": [{"name": "gyroscope", "time": 1760000000013001000,
+                        "values": {"x": 0.0, "y": 0.0, "z": 0.0}}]}
+    with running_server(open_access=False, token=TOKEN) as srv, \
+            _client(srv, "127.0.0.2") as other, _client(srv, token=TOKEN) as presenter:
+        with Phone(srv.phone_port) as stray:
+            t0 = 0
+            stray.send_lines([f"{t0}\tACC\t0\t0\t9.81"])
+            wait_for(lambda: srv.app.state.slot.holder is not None, 10, what="TCP phone holds the slot")
+            for k in range(3):                       # trickles: still the holder
+                time.sleep(1.0)
+                stray.send_lines([f"{t0 + 1000 * (k + 1)}\tACC\t0\t0\t9.81"])
+                r = other.post("/sensorlogger", content=json.dumps(msg).encode())
+                assert r.status_code == 499 and "another phone" in r.text
+            assert presenter.post("/api/phone", json={"locked": True}).json()["slot"]["locked"]
+            r = presenter.post("/api/phone", json={"release": True})
+            assert r.status_code == 200 and r.json()["slot"]["holder"] is None
+            assert stray.closed_by_server(5.0)
+            r = other.post("/sensorlogger", content=json.dumps(msg).encode())
+            assert r.status_code == 499 and "locked" in r.text
+            presenter.post("/api/phone", json={"locked": False})
+            r = other.post("/sensorlogger", content=json.dumps(msg).encode())
+            assert r.status_code == 200
+            assert srv.app.state.slot.holder.app == "sensorlogger"
+        # a watcher can neither release nor lock
+        assert httpx.post(srv.url + "/api/phone", json={"release": True}).status_code == 403
+
+
+# ---------------------------------------------------------------- phyphox
+
+@pytest.mark.shared
+def test_phyphox_experiment_points_here_and_its_pushes_stream(shared_dir):
+    from tyrex_phyphox import load_trial, push_bodies
+    path = _trial(shared_dir, IPHONE)
+    with running_server(open_access=False, token=TOKEN) as srv, _client(srv) as phone:
+        r = phone.get("/phyphox/orientlab.phyphox")
+        assert r.status_code == 200
+        root = ET.fromstring(r.text)
+        types = {s.get("type") for s in root.iter("sensor")}
+        assert {"accelerometer", "gyroscope", "magnetic_field", "attitude"} <= types
+        assert all(s.get("rate") == "0" for s in root.iter("sensor"))
+        conn = next(root.iter("connection"))
+        v = httpx.get(srv.url + "/api/connect", headers={"X-Orientlab-Token": TOKEN}).json()
+        assert conn.get("address") == v["phyphox"]["push_url"]
+        assert conn.get("service") == "http/post"
+        trial = load_trial(path, seconds=15.0)
+        for b in push_bodies(trial, 0.1).bodies:
+            assert phone.post("/phyphox", content=b).status_code == 200
+        wait_for(lambda: _state(srv)["counts"]["samples"] > 3000, 20, what="phyphox samples")
+        st = _state(srv)
+        assert st["source"] == "phone" and st["initialized"]
+        # phyphox's attitude is the phone's own estimate, as fed (within 1°)
+        t = st["t"]                 # experiment time (s): the phone's own clock
+        i = int(np.argmin(np.abs(trial.t["ORI"] - t)))
+        assert abs(trial.t["ORI"][i] - t) < 0.05
+        fed = trial.v["ORI"][i].astype(float)
+        assert angle_between(np.array(st["phone_q"]), fed) < math.radians(1.0)
+
+
+@pytest.mark.shared
+def test_phyphox_remote_access_polled_from_the_page_api(shared_dir):
+    """``POST /api/phyphox/poll`` with the address phyphox shows: a custom experiment with
+    its own buffer names and iOS's uneven buffers streams through the server."""
+    from fake_phyphox import FakePhyphox
+    from test_phyphox import _fake_sensors
+    from tyrex_phyphox import load_trial
+    trial = load_trial(_trial(shared_dir, NEXUS), seconds=20.0)
+    with FakePhyphox(_fake_sensors(trial), speed=3.0, ios=True) as fake, \
+            running_server(open_access=False, token=TOKEN) as srv, \
+            _client(srv, token=TOKEN) as presenter:
+        r = presenter.post("/api/phyphox/poll", json={"url": "ftp://nope"})
+        assert r.status_code == 422
+        r = presenter.post("/api/phyphox/poll", json={"url": fake.url})
+        assert r.status_code == 200, r.text
+        wait_for(lambda: _state(srv)["counts"]["samples"] > 1500, 30, what="polled samples")
+        v = presenter.get("/api/connect").json()
+        assert v["http"]["poll"]["state"] == "measuring" and fake.starts >= 1
+        assert v["slot"]["holder"]["app"] == "phyphox-poll"
+        assert fake.max_in_flight == 1
+        assert presenter.post("/api/phyphox/poll", json={"url": None}).status_code == 200
+        assert srv.app.state.slot.holder is None
+
+
+@pytest.mark.browser
+def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
+    """The presenter's Connect tab in a real Chromium: each app's QR code, decoded by
+    zbar from a screenshot, is the address ``/api/connect`` gives; a watcher's page
+    shows no address, port or code."""
+    import shutil
+    import subprocess
+    from harness import CHROMIUM, CHROMIUM_ARGS
+    if CHROMIUM is None or shutil.which("zbarimg") is None:
+        pytest.skip("needs Debian's chromium and zbar-tools (zbarimg)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with running_server(open_access=False, token=TOKEN) as srv, sync_api.sync_playwright() as pw:
+        want = httpx.get(srv.url + "/api/connect", headers={"X-Orientlab-Token": TOKEN}).json()
+        expect = {"sensorlogger": want["sensor_logger"]["url"],
+                  "phyphox": want["phyphox"]["experiment_url"],
+                  "sensorfusion": f'{want["sensorfusion"]["host"]}:{want["sensorfusion"]["port"]}'}
+        ctx = pw.chromium.launch_persistent_context(
+            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True,
+            args=CHROMIUM_ARGS, viewport={"width": 1600, "height": 900})
+        try:
+            page = ctx.new_page()
+            page.goto(f"{srv.url}/?token={TOKEN}")
+            page.locator("#sl-url").filter(has_text="http").wait_for(timeout=30_000)
+            for app, text in expect.items():
+                page.locator(f'.apps [data-app="{app}"]').click()
+                img = page.locator(f'#app-{app} img.qr')
+                img.wait_for(state="visible", timeout=10_000)
+                page.wait_for_function(f'document.querySelector("#app-{app} img.qr").naturalWidth > 0')
+                shot = tmp_path / f"{app}.png"
+                img.screenshot(path=str(shot))
+                out = subprocess.run(["zbarimg", "--raw", "-q", str(shot)], capture_output=True,
+                                     text=True, timeout=30)
+                assert out.stdout.strip() == text, (app, out.stdout, out.stderr)
+            page.locator('.apps [data-app="sensorlogger"]').click()
+            assert want["sensor_logger"]["url"] in page.locator("#app-sensorlogger").inner_text()
+            # a student's page (no token): no addresses, no codes
+            student = ctx.browser.new_context() if ctx.browser else None
+            page2 = (student or ctx).new_page()
+            ctx.clear_cookies()
+            page2.goto(srv.url + "/")
+            page2.locator("#watch-note").wait_for(state="visible", timeout=30_000)
+            assert page2.locator("#presenter-connect").is_hidden()
+            assert want["sensorfusion"]["host"] not in page2.locator("aside").inner_text()
+            assert page2.locator("img.qr[src]").count() == 0
+        finally:
+            ctx.close()

@@ -1,0 +1,114 @@
+"""app/server/gui/scene.py's wake-up of viser's senders from this server's thread."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+from app.server.gui.scene import LoopSafeEvent, _QuietLoop, quiet_wakeups
+from harness import running_server
+
+
+def test_a_loop_safe_event_set_from_another_thread_wakes_its_loop():
+    """viser's loop waits and clears in its thread while ours sets the event as fast as
+    it can: every round is woken, and a set never runs the waiters in our thread."""
+    loop = asyncio.new_event_loop()
+    th = threading.Thread(target=loop.run_forever, daemon=True)
+    th.start()
+    ev = LoopSafeEvent(loop)
+    rounds = 2000
+
+    async def sender():           # viser's window generator, reduced to its wait
+        for _ in range(rounds):
+            await ev.wait()
+            ev.clear()
+
+    done = asyncio.run_coroutine_threadsafe(sender(), loop)
+    deadline = time.monotonic() + 60.0
+    try:
+        while not done.done() and time.monotonic() < deadline:
+            ev.set()              # from this thread: handed to the loop
+        assert done.result(timeout=1.0) is None, "the waiter was not woken every round"
+    finally:
+        loop.call_soon_threadsafe(loop.stop)
+        th.join(5.0)
+    # set in its own loop: at once, as asyncio.Event does
+    loop2 = asyncio.new_event_loop()
+    ev2 = LoopSafeEvent(loop2)
+
+    async def own():
+        ev2.set()
+        return ev2.is_set()
+
+    assert loop2.run_until_complete(own()) is True
+    loop2.close()
+    ev3 = LoopSafeEvent(loop2)    # a closed loop: a set is dropped, no error
+    ev3.set()
+    assert not ev3.is_set()
+
+
+class _CountingEvent(LoopSafeEvent):
+    """A LoopSafeEvent that counts the sets run in its loop (the wake-ups)."""
+    sets_at_home = 0
+
+    def set(self) -> None:
+        if _in_loop():
+            type(self).sets_at_home += 1
+        super().set()
+
+
+def _in_loop() -> bool:
+    try:
+        asyncio.get_running_loop()
+        return True
+    except RuntimeError:
+        return False
+
+
+def test_a_quiet_buffer_delivers_every_message_with_fewer_wakeups():
+    """viser's own message buffer, its senders in their loop, fed from this thread in
+    bursts and pauses: every message arrives (no sender left asleep with a message
+    waiting), while a message queued when the event is already set wakes nobody."""
+    from viser import _messages
+    from viser.infra._async_message_buffer import AsyncMessageBuffer
+
+    loop = asyncio.new_event_loop()
+    th = threading.Thread(target=loop.run_forever, daemon=True)
+    th.start()
+    buf = AsyncMessageBuffer(loop, persistent_messages=True)
+    quiet_wakeups(buf, loop, _CountingEvent)
+    n = 1000
+    got: set[str] = set()
+    all_in = threading.Event()
+
+    async def sender():                     # what viser's client connection does
+        async for window in buf.window_generator(client_id=1):
+            got.update(m.name for m in window)
+            if len(got) == n:
+                all_in.set()
+                return
+
+    fut = asyncio.run_coroutine_threadsafe(sender(), loop)
+    try:
+        for i in range(n):
+            buf.push(_messages.SetOrientationMessage(f"/node{i}", (1.0, 0.0, 0.0, 0.0)))
+            # a pose every ms (a sender sends 60 windows a second), and pauses in which
+            # the sender goes idle and must be woken
+            time.sleep(0.05 if i % 100 == 99 else 0.001)
+        assert all_in.wait(30.0), f"{n - len(got)} messages never sent"
+        # viser alone wakes its loop once per message; here about once per window
+        assert _CountingEvent.sets_at_home < n / 2, _CountingEvent.sets_at_home
+    finally:
+        fut.cancel()
+        loop.call_soon_threadsafe(loop.stop)
+        th.join(5.0)
+
+
+def test_the_servers_viewer_wakes_its_senders_the_loop_safe_way_and_quietly():
+    """The server's viser buffer has both: the loop-safe event, and the loop that skips
+    the wake-up of an event already set (one server start for both checks)."""
+    with running_server() as srv:
+        buf = srv.app.state.viewer._websock_server._broadcast_buffer
+        assert isinstance(buf.message_event, LoopSafeEvent)
+        assert isinstance(buf.event_loop, _QuietLoop) and buf.event_loop._event is buf.message_event

@@ -1,0 +1,350 @@
+"""The lab session toolkit against the real server: uvicorn on a free loopback port, a
+TCP client playing the phone with a real Sensor Fusion log, HTTP calls as a script or
+the page makes them (issue 9)."""
+
+from __future__ import annotations
+
+import math
+import shutil
+import threading
+
+import httpx
+import numpy as np
+import pytest
+
+from app.toolkit.calibration import calibrate
+from app.sources.readers import read_recording
+from app.toolkit.recording import read_estimates, read_events
+from harness import Phone, running_server, wait_for
+
+STILL = "alekodu_activityrecognition/sensorLog_20221024T182616_standstill.txt"
+
+
+def _state(api):
+    return api.get("/api/state").json()
+
+
+def _split_at(lines: list[bytes], seconds: float) -> int:
+    t0 = int(lines[0].split(b"\t")[0])
+    return next(i for i, ln in enumerate(lines) if int(ln.split(b"\t")[0]) - t0 >= seconds * 1000)
+
+
+def _send(phone: Phone, lines: list[bytes]) -> None:
+    phone.send_bytes(b"".join(ln + b"\n" for ln in lines))
+
+
+def _processed(api, n: int, what: str):
+    return wait_for(lambda: (lambda s: s if s["counts"]["samples"] >= n else None)(_state(api)),
+                    timeout=60, what=what)
+
+
+@pytest.fixture
+def still_log(shared_dir):
+    return shared_dir / "data" / "sensorfusion-app" / STILL
+
+
+def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
+    lines = still_log.read_bytes().splitlines()
+    rec_dir = tmp_path / "recordings"
+    with running_server(recordings=rec_dir, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        r = api.post("/api/calibrate", json={"seconds": 4})
+        assert r.status_code == 409 and "no stream" in r.text           # nothing streams yet
+        r = api.post("/api/recordings/start", json={"name": "lesson"})
+        assert r.status_code == 200, r.text
+        assert api.post("/api/recordings/start", json={}).status_code == 409
+        with Phone(s.phone_port) as phone:
+            k = 200
+            _send(phone, lines[:k])
+            wait_for(lambda: _state(api)["source"] == "phone", what="phone session")
+            out = {}
+            th = threading.Thread(target=lambda: out.update(
+                r=api.post("/api/calibrate", json={"seconds": 4.0})))
+            th.start()
+            wait_for(lambda: api.get("/api/calibrate").json()["capture"] is not None, what="capture")
+            _send(phone, lines[k:])
+            th.join(60)
+            cal = out["r"]
+            assert cal.status_code == 200, cal.text
+            cal = cal.json()
+            _processed(api, 8000, "the log processed")
+            # apply (the phone still connected: the change lands in the recording):
+            # noise levels, bias, g0, m0 into the estimators, and a preset
+            r = api.post("/api/calibrate/apply", json={"save_as": "mycal"})
+            assert r.status_code == 200, r.text
+            p = api.get("/api/params").json()["estimators"]
+            np.testing.assert_allclose(p["lab"]["m0"], cal["m0"], atol=1e-9)
+            np.testing.assert_allclose(p["robust"]["gyr_bias"], cal["gyr_bias"], atol=1e-9)
+            assert (tmp_path / "mycal.toml").is_file()
+        wait_for(lambda: _state(api)["source"] == "phone-disconnected", what="disconnect")
+        # the statistics: the same numbers as orientlab calibrate on those 4 s of samples
+        rec = read_recording(still_log)
+        for name in ("acc", "gyr", "mag"):
+            assert cal["sensors"][name]["n"] > 50
+        for name in ("acc", "gyr", "mag"):       # a histogram per axis, its fitted Gaussian
+            s = cal["sensors"][name]
+            assert [h["axis"] for h in s["histograms"]] == ["x", "y", "z"]
+            for i, h in enumerate(s["histograms"]):
+                assert sum(h["counts"]) == s["n"]
+                width = h["edges"][1] - h["edges"][0]
+                # the Gaussian in counts per bin: its sum over the bins about n
+                assert sum(h["fit"]) == pytest.approx(s["n"], rel=0.1)
+                assert h["centres"][int(np.argmax(h["fit"]))] == pytest.approx(
+                    s["mean"][i], abs=width)
+        assert 3.9 <= cal["duration_s"] <= 4.0
+        st = None
+        # the capture began with a sample after the first 200 lines: find its 4 s window
+        best = math.inf
+        for start in np.unique(rec.t[(rec.t - rec.t[0]) < 3.0])[::5]:
+            sel = (rec.t >= start) & (rec.t <= start + 4.0)
+            cand = calibrate(rec.t[sel], rec.gyr[sel], rec.acc[sel], rec.mag[sel])
+            d = abs(cand.sensors["acc"].n - cal["sensors"]["acc"]["n"]) + \
+                float(np.abs(cand.sensors["gyr"].mean - cal["sensors"]["gyr"]["mean"]).sum()) * 1e3
+            if d < best:
+                best, st = d, cand
+        for name in ("acc", "gyr", "mag"):
+            np.testing.assert_allclose(cal["sensors"][name]["mean"], st.sensors[name].mean, atol=2e-3)
+            np.testing.assert_allclose(cal["sensors"][name]["std"], st.sensors[name].std, rtol=0.05)
+        assert cal["m0"][0] == 0.0 and cal["m0"][2] < 0      # formula (7): north and down
+        # the recording: the log is exactly the stream; its segment ended with the phone
+        r = api.post("/api/recordings/stop")
+        assert r.status_code == 200, r.text
+        summary = r.json()
+        assert summary["name"] == "lesson" and summary["samples"] > 5000   # ACC, GYR, MAG
+        assert summary["seconds"] == pytest.approx(rec.t[-1] - rec.t[0], abs=0.5)
+        log = rec_dir / "lesson.txt"
+        body = log.read_bytes()
+        txt = [ln for ln in body.splitlines() if b"\tTXT\t" in ln]
+        assert [ln for ln in body.splitlines() if b"\tTXT\t" not in ln] == lines
+        assert txt and b"parameters changed" in txt[0]               # the apply, marked
+        ev = read_events(rec_dir / "lesson.events.jsonl")
+        kinds = [e["kind"] for e in ev]
+        assert kinds[0] == "start" and "params" in kinds and kinds[-1] == "end"
+        assert "disconnect" in ev[-1]["reason"] or "closed" in ev[-1]["reason"] or ev[-1]["reason"]
+        est = read_estimates(rec_dir / "lesson.estimates.csv")
+        assert {"robust", "lab", "complementary", "phone"} <= set(est)
+        listed = api.get("/api/recordings").json()
+        assert "lesson" in [x["name"] for x in listed["recordings"]]
+        assert api.get("/api/recordings/lesson/log").content == body
+        assert api.get("/api/recordings/nope/log").status_code == 404
+        assert api.get("/api/recordings/..%2Fetc/log").status_code in (404, 422)
+        # what-if: the whole recording re-run, before and after a change
+        r = api.post("/api/recordings/lesson/rerun",
+                     json={"patch": {"lab": {"time_update": "approx"}}})
+        assert r.status_code == 200, r.text
+        w = r.json()
+        assert w["estimators"]["lab"]["changed"] and w["estimators"]["lab"]["after"] is not None
+        assert w["estimators"]["robust"]["after"] is None
+        r = api.post("/api/recordings/lesson/rerun", json={"patch": {"lab": {"acc_std": -1}}})
+        assert r.status_code == 422 and "acc_std" in r.text
+
+
+def test_magnet_injected_into_a_real_stream_primary_rides_it_out(tmp_path, still_log):
+    """The acceptance demonstration: a 50 µT magnet on a real still phone. The primary
+    flags it and its heading moves < 3°; the one-click variant without rejection turns."""
+    lines = still_log.read_bytes().splitlines()
+    rec_dir = tmp_path / "rec"
+    with running_server(recordings=rec_dir, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        r = api.post("/api/estimators", json={"preset": "no-rejection"})
+        assert r.status_code == 200, r.text
+        variant = r.json()["name"]
+        assert variant == "robust-no-rejection"
+        assert api.post("/api/estimators", json={"preset": "no-rejection"}).status_code == 422
+        bad = api.post("/api/inject", json={"kind": "magnet", "strength_uT": -5, "seconds": 5})
+        assert bad.status_code in (409, 422)
+        assert api.post("/api/recordings/start", json={"name": "magnet"}).status_code == 200
+        k = _split_at(lines, 6.0)
+        with Phone(s.phone_port) as phone:
+            _send(phone, lines[:k])
+            _processed(api, k - 200, "first 6 s")
+            st = _state(api)
+            assert variant in st["estimators"]
+            r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 50, "direction": "east",
+                                              "seconds": 5})
+            assert r.status_code == 200, r.text
+            _send(phone, lines[k:])
+            _processed(api, len(lines) - 300, "the rest")
+        summary = api.post("/api/recordings/stop").json()
+        marks = api.get("/api/inject").json()["marks"]
+        assert [m["event"] for m in marks] == ["start", "end"]
+        t_on, t_off = marks[0]["t"], marks[1]["t"]
+        assert t_off - t_on == pytest.approx(5.0, abs=0.05)
+        est = read_estimates(rec_dir / "magnet.estimates.csv")
+        body = (rec_dir / "magnet.txt").read_bytes()
+        assert body.count(b"\tTXT\torientlab: magnet 50 uT") == 2        # marked in the recording
+        assert summary["samples"] > 5000
+
+        # the same log without the magnet, through the batch path: what each estimator
+        # would have shown; the magnet's effect is the heading difference to it
+        from app.estimators import make_estimator
+        from app.quaternion import error_angles
+        from app.toolkit.variants import no_rejection_changes
+        clean = read_recording(still_log)
+        ref = {"robust": make_estimator("robust").run(clean.t, clean.gyr, clean.acc, clean.mag),
+               variant: make_estimator("robust", no_rejection_changes("robust")).run(
+                   clean.t, clean.gyr, clean.acc, clean.mag)}
+
+        def heading_move(name):
+            t, q = est[name]["t"], est[name]["q"]
+            i = np.clip(np.searchsorted(ref[name].t, t), 0, len(ref[name].t) - 1)
+            _, head, _ = error_angles(q, ref[name].q[i])
+            head = np.degrees(head)
+            before = np.median(head[(t > t_on - 1.0) & (t < t_on)])
+            during = head[(t >= t_on) & (t <= t_off + 1.0)]
+            return float(np.abs(during - before).max())
+        moved, moved_nr = heading_move("robust"), heading_move(variant)
+        assert moved < 3.0, (moved, moved_nr)
+        assert moved_nr > 20.0, (moved, moved_nr)
+        counts = _state(api)["counts"]["updates"] if "updates" in _state(api)["counts"] else None
+        if counts is not None:
+            refused = sum(v for k2, v in counts["robust"]["mag"].items() if k2 not in ("used", "absent"))
+            assert refused > 100
+        assert api.delete(f"/api/estimators/{variant}").status_code == 200
+        assert api.delete("/api/estimators/robust").status_code == 409
+        assert variant not in _state(api)["estimators"]
+
+
+def test_replay_a_recording_with_pause_speed_and_seek(tmp_path, still_log):
+    rec_dir = tmp_path / "recordings"
+    rec_dir.mkdir()
+    shutil.copy(still_log, rec_dir / "dropped.txt")                  # an app log dropped in
+    with running_server(recordings=rec_dir, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        assert api.post("/api/replay", json={"speed": 2}).status_code == 409   # nothing replayed
+        assert "dropped" in [x["name"] for x in api.get("/api/recordings").json()["recordings"]]
+        r = api.post("/api/replay", json={"name": "dropped", "speed": 4.0, "loop": False})
+        assert r.status_code == 200, r.text
+        wait_for(lambda: api.get("/api/replay").json()["position_s"] > 2.0, what="replay moving")
+        st = api.post("/api/replay", json={"paused": True}).json()
+        pos = st["position_s"]
+        n = _state(api)["counts"]["samples"]
+        import time
+        time.sleep(0.5)
+        assert api.get("/api/replay").json()["position_s"] == pos
+        assert _state(api)["counts"]["samples"] <= n + 50          # the reorder tail at most
+        r = api.post("/api/replay", json={"seek_s": 10.0, "paused": False})
+        assert r.status_code == 200
+        wait_for(lambda: "from 10.0 s" in _state(api)["status"] or
+                 api.get("/api/replay").json()["position_s"] > 10.0, what="seek")
+        for body, field in [({"speed": 50}, "speed"), ({"seek_s": 1e6}, "seek_s"), ({"paused": "no"}, "paused"),
+                            ({"warp": 1}, "warp")]:
+            r = api.post("/api/replay", json=body)
+            assert r.status_code == 422 and field in r.text, (body, r.text)
+        assert api.post("/api/replay", json={"stop": True}).json()["replaying"] is False
+
+
+def test_changing_routes_need_the_presenter(tmp_path):
+    with running_server(recordings=tmp_path, preset_dir=tmp_path, open_access=False,
+                        token="secret-token") as s, httpx.Client(base_url=s.url, timeout=30.0) as api:
+        for method, path, body in [("post", "/api/recordings/start", {}), ("post", "/api/recordings/stop", None),
+                                   ("post", "/api/calibrate", {"seconds": 5}),
+                                   ("post", "/api/inject", {"kind": "shake", "amplitude_ms2": 5, "seconds": 1}),
+                                   ("post", "/api/estimators", {"preset": "lab-approx"}),
+                                   ("delete", "/api/estimators/lab-approx", None),
+                                   ("post", "/api/replay", {"paused": True}),
+                                   ("post", "/api/magcal", {"seconds": 10})]:
+            kw = {"json": body} if body is not None else {}
+            r = getattr(api, method)(path, **kw)
+            assert r.status_code == 403, (path, r.status_code)
+        assert api.get("/api/recordings").status_code == 200
+        r = api.post("/api/estimators", json={"preset": "lab-approx"},
+                     headers={"X-Orientlab-Token": "secret-token"})
+        assert r.status_code == 200, r.text
+
+
+def _turning_phone(seconds: float, offset, A, field=(0.0, 20.0, -44.0)):
+    """Lines of a phone turned through every direction, its magnetometer with hard and
+    soft iron: raw = A R(t)ᵀ m + b."""
+    from app.quaternion import Q, quat_from_rotvec
+    out = []
+    m = np.array(field)
+    for k in range(int(seconds * 50)):
+        t = k / 50.0
+        ax = np.array([math.sin(0.37 * t), math.cos(0.23 * t), math.sin(0.11 * t + 1.0)])
+        q = quat_from_rotvec(ax / np.linalg.norm(ax) * (1.3 * t))
+        raw = A @ (Q(q).T @ m) + offset
+        ms = 5000 + 20 * k
+        out.append(f"{ms}\tMAG\t{raw[0]:.4f}\t{raw[1]:.4f}\t{raw[2]:.4f}".encode())
+        out.append(f"{ms + 1}\tACC\t0\t0\t9.81".encode())
+    return out
+
+
+def test_magnetometer_calibration_from_the_stream(tmp_path):
+    b = np.array([15.0, -8.0, 25.0])
+    A = np.diag([1.15, 0.9, 1.0])
+    lines = _turning_phone(40.0, b, A)
+    with running_server(recordings=tmp_path, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        with Phone(s.phone_port) as phone:
+            _send(phone, lines[:20])
+            wait_for(lambda: _state(api)["source"] == "phone", what="phone")
+            r = api.post("/api/magcal", json={"seconds": 30})
+            assert r.status_code == 200, r.text
+            _send(phone, lines[20:])
+            res = wait_for(lambda: api.get("/api/magcal").json().get("result"), what="fit")
+        cap = api.get("/api/magcal").json()["capture"]
+        assert cap["coverage"] > 0.8
+        np.testing.assert_allclose(res["offset_uT"], b, atol=0.5)
+        assert res["residual_before_uT"] > 3.0 and res["residual_after_uT"] < 0.5
+        r = api.post("/api/magcal/apply", json={"save_as": "withmag"})
+        assert r.status_code == 200 and r.json()["applied"]["offset_uT"] == res["offset_uT"]
+        text = (tmp_path / "withmag.toml").read_text()
+        assert "[magcal]" in text
+        # from now on every MAG sample is corrected: a raw reading of the offset alone
+        # (zero field) reads ~0 µT (once the first phone's stream, sent faster than it
+        # is processed, has ended: else the second phone is refused as a second one)
+        wait_for(lambda: (lambda st: st["source"] == "phone-disconnected"
+                          and st["counts"]["queued"] == 0)(_state(api)), 60.0,
+                 what="the end of the first phone's stream")
+        with Phone(s.phone_port) as phone:
+            second = []
+            for k in range(0, 3000, 10):
+                second.append(f"{100 + k}\tACC\t0\t0\t9.81".encode())
+                if k % 20 == 0:
+                    second.append(f"{103 + k}\tMAG\t{b[0]}\t{b[1]}\t{b[2]}".encode())
+            _send(phone, second)
+            wait_for(lambda: _state(api)["source"] == "phone" and _state(api)["counts"]["samples"] > 300,
+                     what="second phone")
+        snap = s.engine.core.snapshot()
+        assert np.linalg.norm(snap.mag) < 0.5
+
+
+def test_a_presets_magnetometer_calibration_is_applied_when_it_is_loaded(tmp_path):
+    """A preset holding [magcal] (hard and soft iron) sets it again when loaded by name,
+    by path or uploaded; a preset without one clears it (a preset is the whole tuning);
+    saving keeps the one in force."""
+    b = [15.0, -8.0, 25.0]
+    (tmp_path / "withmag.toml").write_text(
+        "[magcal]\noffset_uT = [15.0, -8.0, 25.0]\nmatrix = [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]\n")
+    with running_server(recordings=tmp_path, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        def applied():
+            a = api.get("/api/magcal").json()["applied"]
+            return None if a is None else a["offset_uT"]
+        assert applied() is None
+        r = api.post("/api/presets/load", json={"name": "withmag"})
+        assert r.status_code == 200, r.text
+        assert applied() == b
+        # every MAG sample is corrected from now on: a raw reading of the offset alone
+        # (zero field) reads ~0 µT
+        with Phone(s.phone_port) as phone:
+            lines = []
+            for k in range(0, 3000, 10):
+                lines.append(f"{100 + k}\tACC\t0\t0\t9.81".encode())
+                if k % 20 == 0:
+                    lines.append(f"{103 + k}\tMAG\t{b[0]}\t{b[1]}\t{b[2]}".encode())
+            _send(phone, lines)
+            wait_for(lambda: _state(api)["source"] == "phone" and _state(api)["counts"]["samples"] > 300,
+                     what="the phone's samples")
+        assert np.linalg.norm(s.engine.core.snapshot().mag) < 0.5
+        r = api.post("/api/presets/save", json={"name": "roundtrip"})
+        assert r.status_code == 200 and "[magcal]" in (tmp_path / "roundtrip.toml").read_text()
+        assert api.post("/api/presets/load", json={"name": "default"}).status_code == 200
+        assert applied() is None
+        assert api.post("/api/presets/load", json={"path": str(tmp_path / "roundtrip.toml")}).status_code == 200
+        assert applied() == b
+        assert api.post("/api/presets/load", json={"name": "default"}).status_code == 200
+        r = api.post("/api/presets/upload", content=(tmp_path / "withmag.toml").read_bytes())
+        assert r.status_code == 200, r.text
+        assert applied() == b

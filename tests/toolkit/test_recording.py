@@ -1,0 +1,109 @@
+"""The recorder (app/toolkit/recording.py): the log is the stream in the app's format, the
+estimates and parameters sit beside it, segments end cleanly, failures are messages."""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from app.cli import main as cli_main
+from app.estimators import make_estimator
+from app.sources.readers import read_recording
+from app.sources.sensorfusion import decode_lines
+from app.toolkit.recording import (Recorder, RecordingError, list_recordings, read_estimates,
+    read_events, recording_files)
+
+LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
+
+
+def _samples(lines):
+    return decode_lines(lines, Counter())
+
+
+def test_the_log_is_the_stream_and_reads_like_the_original(tmp_path, shared_dir):
+    src = shared_dir / "data" / "sensorfusion-app" / LOG
+    lines = src.read_bytes().splitlines()
+    rec = Recorder(tmp_path, "take1")
+    rec.start({"robust": {"gyr_noise": 0.005}}, label="phone")
+    for i in range(0, len(lines), 97):
+        rec.write_samples(_samples(lines[i:i + 97]))
+    r0 = read_recording(src)
+    res = make_estimator("robust").run(r0.t, r0.gyr, r0.acc, r0.mag, r0.ori)
+    tags = ["ACC"] * len(r0)
+    rec.count_samples(r0.t)
+    rec.write_estimates("robust", r0.t, tags, res.q, res.flags)
+    rec.write_estimates("truth", r0.t[:10], "ORI", res.q[:10])
+    rec.note("params", t=float(r0.t[100]), params={"robust": {"gyr_noise": 0.01}},
+             mark=(int(r0.t[100] * 1000), "parameters changed: robust.gyr_noise=0.01"))
+    out = rec.stop()
+    assert out["name"] == "take1" and out["samples"] == len(r0)
+    assert out["seconds"] == pytest.approx(r0.t[-1] - r0.t[0], abs=1e-3)
+    log = tmp_path / "take1.txt"
+    body = log.read_bytes()
+    assert body.startswith(src.read_bytes().replace(b"\r\n", b"\n")[:1000])
+    r1 = read_recording(log)
+    for k in ("t", "gyr", "acc", "mag", "ori"):
+        np.testing.assert_array_equal(getattr(r1, k), getattr(r0, k))
+    # the CLI reads it as any app log
+    assert cli_main(["estimate", str(log), "--out", str(tmp_path / "o.csv"), "-q"]) == 0
+    est = read_estimates(tmp_path / "take1.estimates.csv")
+    np.testing.assert_allclose(est["robust"]["q"], res.q, atol=1e-8)
+    assert len(est["truth"]["t"]) == 10
+    ev = read_events(tmp_path / "take1.events.jsonl")
+    assert [e["kind"] for e in ev] == ["start", "params", "end"]
+    assert ev[0]["params"]["robust"]["gyr_noise"] == 0.005
+    assert ev[1]["params"]["robust"]["gyr_noise"] == 0.01 and ev[1]["t"] == pytest.approx(r0.t[100])
+    listed = {r["name"]: r for r in list_recordings(tmp_path)}
+    assert listed["take1"]["orientlab"] and listed["take1"]["samples"] == len(r0)
+    assert "o" in listed                                        # a CSV dropped in is listed too
+
+
+def test_a_disconnect_ends_the_segment_and_the_next_stream_gets_its_own(tmp_path):
+    rec = Recorder(tmp_path, "lesson")
+    rec.start({}, label="phone A")
+    rec.write_samples(_samples([b"1000\tACC\t0\t0\t9.81", b"1010\tACC\t0\t0\t9.81"]))
+    rec.count_samples(np.array([1.0, 1.01]))
+    rec.end_segment("phone disconnected")
+    assert rec.active and rec.segment is None
+    rec.write_lines([b"5\tACC\t0\t0\t9.81"])                   # between streams: nothing
+    rec.new_segment("phone B")
+    rec.write_samples(_samples([b"20\tACC\t0\t0\t9.8"]))
+    out = rec.stop()
+    assert [s["name"] for s in out["segments"]] == ["lesson", "lesson_2"]
+    assert out["segments"][0]["end_reason"] == "phone disconnected"
+    assert (tmp_path / "lesson.txt").read_bytes() == b"1000\tACC\t0\t0\t9.81\n1010\tACC\t0\t0\t9.81\n"
+    assert (tmp_path / "lesson_2.txt").read_bytes() == b"20\tACC\t0\t0\t9.8\n"
+    assert read_events(tmp_path / "lesson.events.jsonl")[-1]["reason"] == "phone disconnected"
+    assert recording_files(tmp_path, "lesson_2")["events"] is not None
+
+
+def test_an_unwritable_folder_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(RecordingError, match="cannot create the recordings folder"):
+        Recorder(blocker / "recordings", "a").start({})
+    rec = Recorder(tmp_path, "dup")
+    rec.start({})
+    rec.stop()
+    with pytest.raises(RecordingError, match="exists already"):
+        Recorder(tmp_path, "dup").start({})
+    with pytest.raises(RecordingError, match="invalid recording name"):
+        Recorder(tmp_path, "../etc")
+
+
+def test_a_full_disk_stops_the_recording_with_a_message_and_raises_nothing(tmp_path):
+    # the estimates file goes to /dev/full: writes fail with ENOSPC as on a full disk
+    os.symlink("/dev/full", tmp_path / "full.estimates.csv")
+    rec = Recorder(tmp_path, "full", flush_every_s=0.0)
+    rec.start({})
+    for k in range(200):
+        rec.write_samples(_samples([f"{1000 + k}\tACC\t0\t0\t9.81".encode()]))
+        rec.write_estimates("robust", np.array([k * 0.01]), "ACC", np.array([[1.0, 0, 0, 0]]))
+    assert rec.error is not None and "disk is full" in rec.error
+    assert not rec.active
+    out = rec.stop()
+    assert out["error"] == rec.error
+    assert (tmp_path / "full.txt").read_bytes().startswith(b"1000\tACC")
