@@ -30,7 +30,8 @@ class Session:
                  truth: Callable[[np.ndarray], np.ndarray] | None = None, app: str = ""):
         self.kind = kind            # "phone", "demo", "replay"
         self.label = label
-        self.app = app              # the phone app feeding a "phone" stream (sources.APPS)
+        self.app = app              # the phone app feeding a "phone" stream (slot.APPS)
+        self.details: dict[str, Any] = {}   # what its source detected: platform, convention
         self.orderer = SampleOrderer(window=window_s)
         self.truth = truth
         self.lines = 0              # readings received (samples and malformed ones)
@@ -39,6 +40,10 @@ class Session:
         self.closed: float | None = None
         self.close_reason = ""
         self.last_rx = time.monotonic()
+
+    def describe(self) -> dict[str, Any]:
+        """The stream's source for a recording's events: kind, app and what was detected."""
+        return {"kind": self.kind, "label": self.label, "app": self.app or None, **self.details}
 
     @property
     def open(self) -> bool:

@@ -30,7 +30,7 @@ import numpy as np
 from app.toolkit import calibration as calmod
 from app.toolkit import magcal
 from app.toolkit.inject import Disturbance, Injector, parse_request
-from app.params import dump_toml, to_dict
+from app.params import to_dict
 from app.toolkit.recording import (Recorder, RecordingError, list_recordings, read_estimates,
     recording_files)
 from app.toolkit.variants import no_rejection_changes
@@ -182,7 +182,7 @@ class LabTools:
         rec = self.recorder
         if session is not self._rec_session:
             if self._rec_session is not None:
-                rec.new_segment(session.label)
+                rec.new_segment(session.label, session.describe())
             self._rec_session = session
         rec.write_samples(samples)
         self._check_recorder()
@@ -283,7 +283,8 @@ class LabTools:
         try:
             rec = Recorder(self.folder, name)
             s = self.core.session
-            rec.start(self.params_in_force(), label="" if s is None else f"{s.kind} {s.label}")
+            rec.start(self.params_in_force(), label="" if s is None else f"{s.kind} {s.label}",
+                      phone=None if s is None else s.describe())
         except RecordingError as e:
             raise LabError("name" if "name" in str(e) else "folder", str(e),
                            409 if "exists" in str(e) else 422) from None

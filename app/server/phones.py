@@ -45,6 +45,7 @@ class Stream:
     decoder: Any
     session: Any = None
     last_rx: float = 0.0
+    details_at: float = -1e9
 
 
 @dataclass
@@ -134,8 +135,24 @@ class HttpPhones:
             st.session = self.engine.open_session(
                 "phone", f"{st.key} ({APPS[st.app]})", app=st.app, window_s=WINDOW_S[st.app])
         if samples:
+            self._details(st)
             self.engine.feed(st.session, samples, time.perf_counter())
             self.slot.touch(st.key)
+
+    def _details(self, st: Stream) -> None:
+        """What the decoder detected (platform, convention, device), on the session, for
+        the recording's events; looked up at most once a second."""
+        now = time.monotonic()
+        if now - st.details_at < 1.0 and st.session.details:
+            return
+        st.details_at = now
+        try:
+            dec = st.decoder.status()
+        except Exception:
+            return
+        keep = ("platform", "convention", "convention_source", "device_model", "model",
+                "device_id", "url")
+        st.session.details.update({k: dec[k] for k in keep if dec.get(k) is not None})
 
     def _end(self, st: Stream, reason: str) -> None:
         """End a stream: what its decoder holds goes in first, then the session closes."""

@@ -187,12 +187,13 @@ def decode_lines(lines, malformed) -> list[Sample]:
 
 
 def format_value(v: float) -> str:
-    """A value as the app writes it: 7 significant digits; NaN and ±Infinity spelled out."""
+    """A value as the app writes it: up to 9 significant digits (a Java float's text, so a
+    phone's reading written again reads back bit for bit), NaN and ±Infinity spelled out."""
     if math.isnan(v):
         return "NaN"
     if math.isinf(v):
         return "Infinity" if v > 0 else "-Infinity"
-    return f"{v:.7g}"
+    return f"{v:.9g}"
 
 
 def format_line(time_ms: int, tag: str, values) -> str:

@@ -181,7 +181,8 @@ class Recorder:
         self._params: dict[str, Any] = {}
 
     # ----------------------------------------------------------------- life
-    def start(self, params: dict[str, Any], label: str = "") -> Segment:
+    def start(self, params: dict[str, Any], label: str = "",
+              phone: dict[str, Any] | None = None) -> Segment:
         """Open the first segment; RecordingError (nothing written) if the folder
         cannot be created or written, or the name is taken."""
         try:
@@ -196,7 +197,7 @@ class Recorder:
         self._params = params
         self.active = True
         try:
-            return self._open_segment(label)
+            return self._open_segment(label, phone)
         except OSError as e:
             self.active = False
             raise RecordingError(_os_message(self.folder / self.base, e)) from None
@@ -209,7 +210,7 @@ class Recorder:
             name = f"{self.base}_{k}"
         return name
 
-    def _open_segment(self, label: str) -> Segment:
+    def _open_segment(self, label: str, phone: dict[str, Any] | None = None) -> Segment:
         name = self._segment_name()
         seg = Segment(name=name, path=self.folder / (name + LOG_SUFFIX), label=label,
                       started=self.clock())
@@ -218,20 +219,22 @@ class Recorder:
         self._events = open(self.folder / (name + EVENTS_SUFFIX), "w")
         self.segments.append(seg)
         self._est.write(",".join(ESTIMATE_COLUMNS + OUTPUT_COLUMNS) + "\n")
-        self._event({"kind": "start", "source": label, "params": self._params})
+        # the phone: its app, platform and sign convention, as the source detected them
+        self._event({"kind": "start", "source": label, "phone": phone or None,
+                     "params": self._params})
         return seg
 
     @property
     def segment(self) -> Segment | None:
         return self.segments[-1] if self.segments and self._log is not None else None
 
-    def new_segment(self, label: str = "") -> None:
+    def new_segment(self, label: str = "", phone: dict[str, Any] | None = None) -> None:
         """A new stream started while recording: go on in a new segment."""
         if not self.active:
             return
         if self._log is not None:
             self.end_segment("a new stream started")
-        self._guard(lambda: self._open_segment(label), self.folder / self.base)
+        self._guard(lambda: self._open_segment(label, phone), self.folder / self.base)
 
     def end_segment(self, reason: str) -> None:
         """The stream ended (phone disconnected, end of log): close the files cleanly."""

@@ -539,7 +539,7 @@ _REFERENCE_SCRIPT = r"""
 import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
-from tests.test_estimators import sim_rows
+from tests.estimators.test_estimators import sim_rows
 from app.estimators import make_estimator
 rows, _ = sim_rows(("still", "turn_x", "shake", "magnet", "gyro_dropout"), seed=15)
 res = make_estimator("robust").run(rows.t, rows.gyr, rows.acc, rows.mag)
