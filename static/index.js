@@ -50,19 +50,45 @@ async function post(path, body) {
 
 const fmt = (x, d = 0) => (x === null || x === undefined ? "–" : Number(x).toFixed(d));
 
+function span(s) {  // a duration in words: 3.2 s, 4 min, 2 h, 413 d
+  const a = Math.abs(s), sign = s < 0 ? "−" : "";
+  if (a < 120) return sign + a.toFixed(a < 10 ? 1 : 0) + " s";
+  if (a < 7200) return sign + (a / 60).toFixed(0) + " min";
+  if (a < 172800) return sign + (a / 3600).toFixed(1) + " h";
+  return sign + (a / 86400).toFixed(0) + " d";
+}
+
+const PLATFORM = { android: "Android", ios: "iPhone" };
+const CONVENTION = { android: "Android signs", ios: "Standardise off", "ios-standardised": "Standardise on" };
+
 function describe(v) {
   const slot = v.slot, s = v.stream, lines = [];
-  if (slot.holder) lines.push(`<b>${slot.holder.app_name}</b>: ${slot.holder.label}, streaming for ${fmt(slot.holder.for_s)} s` +
-    (slot.holder.silent_s > 1 ? `, silent for ${fmt(slot.holder.silent_s)} s` : ""));
-  else lines.push(s.kind === "phone" ? `last phone: ${s.label} (${s.close_reason || "ended"})` : "no phone: " + (s.kind || "waiting"));
-  const http = v.http.streams.find((x) => x.holder) || v.http.streams[0];
-  if (http && http.platform) lines.push(`platform ${http.platform}, convention ${http.convention} (${http.convention_source})`);
-  if (http && http.orientation) lines.push(`phone's own orientation: ${typeof http.orientation === "string" ? http.orientation : (http.orientation.message || http.orientation.state)}`);
-  if (s.kind && s.rates_hz) lines.push("rates: " + Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k)).map(([k, r]) => `${k} ${fmt(r)} Hz`).join(", "));
-  if (s.kind) lines.push(`late ${s.late}, clamped ${s.clamped}, malformed ${s.malformed}` +
-    (http ? `, gaps ${http.gaps ?? 0}, out of order ${http.out_of_order ?? 0}, duplicates ${http.duplicates ?? 0}` : ""));
-  if (http && http.clock_offset_s !== undefined && http.clock_offset_s !== null) lines.push(`phone clock − PC clock: ${fmt(http.clock_offset_s, 2)} s`);
-  if (s.last_sample_t !== null && s.last_sample_t !== undefined) lines.push(`last sample at ${fmt(s.last_sample_t, 2)} s (phone clock)`);
+  const http = v.http.streams.find((x) => x.holder) || null;
+  if (slot.holder) {
+    let who = `<b>${slot.holder.app_name}</b>`;
+    if (http && http.platform && http.platform !== "unknown") who += ` · ${PLATFORM[http.platform] || http.platform}`;
+    if (http && http.convention && http.app === "sensorlogger") who += ` (${CONVENTION[http.convention] || http.convention}, ${http.convention_source})`;
+    if (http && (http.model || http.device_model)) who += ` · ${http.model || http.device_model}`;
+    lines.push(`${who} · streaming ${span(slot.holder.for_s)}`);
+    lines.push(slot.holder.silent_s > 1.5 ? `<b>silent for ${span(slot.holder.silent_s)}</b>` : `last data ${span(slot.holder.silent_s)} ago`);
+  } else {
+    lines.push(s.kind === "phone" ? `last phone: ${s.label} (${s.close_reason || "ended"})` : "no phone: " + (s.kind || "waiting"));
+  }
+  if (http && http.orientation) {
+    const o = http.orientation;
+    lines.push("phone's own orientation: " + String(typeof o === "string" ? o : (o.message || o.state)).replace(/^orientation:\s*/, ""));
+  }
+  if (s.kind === "phone" && s.rates_hz) {
+    const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));
+    if (r.length) lines.push("rates: " + r.map(([k, x]) => `${k} ${fmt(x)}`).join(" · ") + " Hz");
+  }
+  if (s.kind === "phone") {
+    const parts = [];
+    if (http) parts.push(`gaps ${http.gaps ?? 0}`, `out of order ${http.out_of_order ?? 0}`, `duplicates ${http.duplicates ?? 0}`);
+    parts.push(`late ${s.late}`, `malformed ${s.malformed}`);
+    lines.push(parts.join(" · "));
+  }
+  if (http && http.clock_offset_s !== undefined && http.clock_offset_s !== null) lines.push(`phone clock − PC clock: ${span(http.clock_offset_s)}`);
   if (slot.locked) lines.push("<b>slot locked</b>: no new phone is accepted");
   if (slot.last_refusal) lines.push(`refused ${slot.refused}×: ${slot.last_refusal.replace(/^orientlab: /, "")}`);
   return lines.join("<br>");
