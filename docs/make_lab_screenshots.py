@@ -91,12 +91,12 @@ def main() -> int:
             page.screenshot(path=str(out / "lab_magnet.png"))
             api.post("/api/replay", json={"stop": True})
             # 3. what-if: the minute of the simulated phone with the primary's gates off
-            lab, lab_gui, loop = srv.app.state.lab, srv.app.state.lab_gui, srv.engine.loop
-            patch = {"robust": lab.no_rejection()[2]}
+            tk, lab_gui, loop = srv.app.state.toolkit, srv.app.state.lab_gui, srv.engine.loop
+            patch = {"robust": tk.variants.no_rejection()[2]}
             # once unseen: a user's second click (the first in a process also loads the
             # compiled batch runs from numba's cache), then the one shown
-            asyncio.run_coroutine_threadsafe(lab.rerun("demo_minute", patch), loop).result(120)
-            res = asyncio.run_coroutine_threadsafe(lab.rerun("demo_minute", patch), loop).result(120)
+            asyncio.run_coroutine_threadsafe(tk.whatif.rerun("demo_minute", patch), loop).result(120)
+            res = asyncio.run_coroutine_threadsafe(tk.whatif.rerun("demo_minute", patch), loop).result(120)
             done = threading.Event()
 
             def show():

@@ -35,7 +35,8 @@ from app.server.routers import (calibrate, connect, estimators, health, params, 
                                 recordings, replay, state)
 from app.server.routers import inject as inject_router
 from app.server.gui.lab import LabGui, run_lab_gui
-from app.server.lab import LabTools
+from app.server.routers import install_tool_errors
+from app.server.toolkit import Toolkit
 from app.server.gui.scene import Scene, loop_safe_wakeups
 from app.server.settings import Settings
 from app.sources.runners import ReplayControl, run_demo, run_replay
@@ -70,7 +71,7 @@ def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, h
     ])
 
 
-def start_source(engine: Engine, settings: Settings, lab: LabTools | None = None) -> asyncio.Task | None:
+def start_source(engine: Engine, settings: Settings, tk: Toolkit | None = None) -> asyncio.Task | None:
     if settings.source == "demo":
         return asyncio.create_task(run_demo(engine, settings.demo_seed), name="demo")
     if settings.source == "none" or settings.phyphox_url is not None:
@@ -78,8 +79,8 @@ def start_source(engine: Engine, settings: Settings, lab: LabTools | None = None
         return None
     path = Path(settings.source)
     control = ReplayControl(path.read_bytes().splitlines(), path.name)
-    if lab is not None:  # the page and /api/replay control it
-        lab.replay, lab.replay_name = control, path.stem
+    if tk is not None:  # the page and /api/replay control it
+        tk.replay.adopt(control, path.stem)
     return asyncio.create_task(run_replay(engine, path, settings.replay_pause_s, control=control),
                                name="replay")
 
@@ -124,13 +125,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 st.http_phones.start_poll(settings.phyphox_url)
             st.tasks["engine"] = asyncio.create_task(engine.run(), name="engine")
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
-            st.lab = LabTools(engine, settings, config)      # the lab toolkit (issue 9)
-            st.lab.app_state = st
-            st.lab.engine_server = st.viewer       # the variants' ghosts join the 3D scene
-            st.gui.injections = st.lab.injected_spans   # marked in the Plots panel
-            st.lab_gui = LabGui(st.viewer.gui, st.gui.tabs, st.lab, loop)
+            st.toolkit = Toolkit.build(engine, settings, config, st.tasks)   # the lab's tools
+            st.gui.injections = st.toolkit.injection.injected_spans   # marked in the Plots panel
+            # the Lab tab; the variants' ghosts join the 3D scene
+            st.lab_gui = LabGui(st.viewer.gui, st.gui.tabs, st.toolkit, loop, server=st.viewer)
             st.tasks["lab"] = asyncio.create_task(run_lab_gui(st.lab_gui), name="lab")
-            src = start_source(engine, settings, st.lab)
+            src = start_source(engine, settings, st.toolkit)
             if src is not None:
                 st.tasks["source"] = src
             if settings.verbose:
@@ -145,9 +145,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if getattr(st, "phone", None) is not None:
                 await st.phone.stop()
             await asyncio.gather(*st.tasks.values(), return_exceptions=True)
-            lab = getattr(st, "lab", None)
-            if lab is not None and lab.recorder is not None:   # a recording ends cleanly
-                lab.stop_recording()
+            if getattr(st, "toolkit", None) is not None:   # a recording ends cleanly
+                st.toolkit.close()
             st.viewer.stop()
 
     app = FastAPI(title="orientlab", lifespan=lifespan,
@@ -156,6 +155,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.access = access
     app.state.settings = settings
     install_error_handlers(app)
+    install_tool_errors(app)       # a tool's refusal (ToolError) as an HTTP answer
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
                        paths={"/sensorlogger": settings.max_push_bytes,
                               "/phyphox": settings.max_push_bytes})

@@ -19,20 +19,25 @@ and ``[robust]``, the statistics as comments).
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
 from app import quaternion as qm
 from app.params import dump_toml
+from app.toolkit.capture import Capture, check_seconds, check_streaming
+from app.toolkit.errors import ToolError
 
 # sensor -> (unit, unit of its covariance)
 UNITS = {"acc": ("m/s²", "(m/s²)²"), "gyr": ("rad/s", "(rad/s)²"), "mag": ("µT", "µT²")}
 TITLES = {"acc": "accelerometer", "gyr": "gyroscope", "mag": "magnetometer"}
 AXES = "xyz"
 STANDARD_GRAVITY = 9.81
+CAL_MIN_S, CAL_MAX_S = 1.0, 600.0     # a live calibration's seconds
 
 
 @dataclass(frozen=True)
@@ -420,3 +425,88 @@ def to_json(st: CalibrationStats, t=None, series: dict | None = None,
                            "y": _jlist(xx[idx, 1]), "z": _jlist(xx[idx, 2])}
         out["series"] = plots
     return out
+
+
+class CalibrationService:
+    """Exercise 2 on the live server: the statistics of the next ``seconds`` of the
+    stream (the phone kept still; collected by a record listener of the live core) or
+    of a stretch of a recording, and what "apply" sets.
+
+    ``core``: the live core; ``files(name)``: a recording's files (ToolError if none)."""
+
+    def __init__(self, core, files: Callable[[str], dict]):
+        self.core = core
+        self.files = files
+        self.capture: Capture | None = None
+        self.last: dict[str, Any] | None = None       # the last result (JSON)
+        self.last_stats: CalibrationStats | None = None
+        core.record_listeners.append(self.on_records)
+
+    def on_records(self, session, rec) -> None:
+        cap = self.capture
+        if cap is not None and cap.running and len(rec):
+            if cap.add(rec.t, rec.kind, rec.values):
+                self._finish(cap)
+
+    async def calibrate(self, seconds: float) -> dict[str, Any]:
+        """Statistics of the next ``seconds`` of the live stream (keep the phone still)."""
+        seconds = check_seconds(seconds, CAL_MIN_S, CAL_MAX_S)
+        if self.capture is not None and self.capture.running:
+            raise ToolError("seconds", "a calibration is already running", 409)
+        check_streaming(self.core)
+        cap = Capture("still", seconds)
+        cap.done = asyncio.get_running_loop().create_future()
+        self.capture = cap
+        await cap.done
+        return cap.result
+
+    def _finish(self, cap: Capture) -> None:
+        t, g, a, m = cap.arrays()
+        try:
+            st = calibrate(t, g, a, m)
+            if not st.sensors:
+                raise ValueError("no accelerometer, gyroscope or magnetometer samples")
+            result = to_json(st, t, {"acc": a, "gyr": g, "mag": m})
+        except Exception as e:
+            cap.fail(str(e))
+            return
+        self.last, self.last_stats = result, st
+        cap.succeed(result)
+
+    def tick(self) -> None:
+        """Called a few times a second: give up a capture whose stream stopped."""
+        if self.capture is not None:
+            self.capture.check_stalled()
+
+    def calibrate_recording(self, name: str, from_s: float = 0.0,
+                            to_s: float | None = None) -> dict[str, Any]:
+        """The statistics of a stretch of a recording (seconds from its start)."""
+        from app.sources.readers import read_recording
+        rec = read_recording(self.files(name)["log"])
+        if not len(rec):
+            raise ToolError("name", "the recording has no samples")
+        t = rec.t - rec.t[0]
+        hi = t[-1] if to_s is None else float(to_s)
+        sel = (t >= float(from_s)) & (t <= hi)
+        if sel.sum() < 2:
+            raise ToolError("from_s", "the stretch holds fewer than 2 samples")
+        st = calibrate(rec.t[sel], rec.gyr[sel], rec.acc[sel], rec.mag[sel])
+        out = to_json(st, rec.t[sel], {"acc": rec.acc[sel], "gyr": rec.gyr[sel],
+                                       "mag": rec.mag[sel]})
+        self.last, self.last_stats = out, st
+        return out
+
+    def change(self) -> dict[str, dict[str, Any]]:
+        """What "apply" sets: per builtin estimator on the bench the preset values (to
+        validate as ``{"estimators": ...}``)."""
+        if self.last is None:
+            raise ToolError("calibration", "no calibration yet: POST /api/calibrate first", 409)
+        names = self.core.bench.names
+        return {k: v for k, v in self.last["apply"].items() if k in names and v}
+
+    def preset_header(self) -> str:
+        """The comment of a preset saved after a calibration (its report)."""
+        header = "orientlab preset from a calibration on the page"
+        if self.last is not None:
+            header += "\n\n" + self.last["report"].rstrip("\n")
+        return header

@@ -36,6 +36,7 @@ place; :meth:`Injector.feed` also returns them for the plots.
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -45,6 +46,7 @@ import numpy as np
 from app.sources.samples import Sample
 from app.sources.sensorfusion import MalformedLine, decode_lines, format_line, parse_line
 from app.quaternion import Q
+from app.toolkit.errors import ToolError
 
 KINDS = ("magnet", "shake")
 FRAMES = ("world", "sensor")
@@ -320,3 +322,88 @@ def marks_in_log(lines: list[bytes]) -> list[dict[str, Any]]:
             continue
         out.append({"time_ms": s.time_ms, "text": " ".join(s.values)[len("orientlab: "):]})
     return out
+
+
+class InjectionService:
+    """The live stream's disturbances: requested from the page or the API, added by the
+    first of the live core's sample stages (so the recorder and the estimators see the
+    disturbed stream), marked for the plots and (:attr:`mark_listeners`) the recording.
+
+    ``core``: the live core (its ``sample_stages``, its session, the orientation a
+    world-frame magnet turns with)."""
+
+    def __init__(self, core):
+        self.core = core
+        self.injector = Injector(orientation=self.orientation)
+        self.marks: list[dict[str, Any]] = []      # injection marks for the plots (stream s)
+        self.spans: dict[int, list] = {}           # injection id -> [session, kind, start_s, end_s]
+        # (mark, t on the stream's reference clock) -> None: the recorder notes each mark
+        self.mark_listeners: list[Callable[[dict[str, Any], float], None]] = []
+        core.sample_stages.append(self.stage)
+
+    def orientation(self) -> np.ndarray | None:
+        """The phone's orientation for world-frame disturbances: the truth (demo), else
+        the phone's own estimate, else the primary's (before the disturbance shows)."""
+        q = self.core.truth_q()
+        if q is None:
+            q = self.core.bench.phone_q
+        if q is None:
+            b = self.core.bench
+            est = b.estimator(b.primary)
+            q = est.q if est.initialized else None
+        return q
+
+    def stage(self, session, samples: list) -> list:
+        """The sample stage: the disturbances added, their marks noted."""
+        if not self.injector.busy:
+            return samples
+        samples, marks = self.injector.feed(samples)
+        for m in marks:
+            self._on_mark(m, session)
+        return samples
+
+    def _on_mark(self, m: dict[str, Any], session=None) -> None:
+        self.marks.append({**m, "t": m["time_ms"] / 1000.0, "line": None})
+        del self.marks[:-40]
+        # the span on the stream's reference clock (the plots' time axis): the mark is
+        # on the clock of the sensor disturbed, which may run with an offset
+        tag = "MAG" if m["kind"] == "magnet" else "ACC"
+        off = session.orderer.offsets.get(tag, 0.0) if session is not None else 0.0
+        t = m["time_ms"] / 1000.0 - off
+        if m["event"] == "start":
+            self.spans[m["id"]] = [session, m["kind"], t, math.inf]
+            while len(self.spans) > 20:
+                del self.spans[next(iter(self.spans))]
+        elif m["id"] in self.spans and self.spans[m["id"]][0] is session:
+            self.spans[m["id"]][3] = t
+        for cb in self.mark_listeners:
+            cb(m, t)
+
+    def inject(self, body: dict[str, Any]) -> dict[str, Any]:
+        """Start the disturbance ``body`` asks for (:func:`parse_request`); ToolError if
+        refused or when no stream is on."""
+        try:
+            d = parse_request(body)
+        except InjectError as e:
+            raise ToolError(e.field, e.reason) from None
+        if self.core.session is None or not self.core.session.open:
+            raise ToolError("kind", "no stream to disturb: connect the phone or run the demo", 409)
+        a = self.injector.start(d, wall=time.time())
+        return {"id": a.id, **d.as_dict(), "text": d.describe()}
+
+    def injected_spans(self, session) -> list[tuple[str, float, float]]:
+        """``(kind, start_s, end_s)`` of the disturbances injected into ``session``, in
+        its stream time (reference clock, as the plots' history); ``end_s`` is inf while
+        one is on."""
+        return [(k, a, b) for s, k, a, b in self.spans.values() if s is session]
+
+    def size(self, ident: int) -> float:
+        """The size (µT or m/s²) of disturbance ``ident``; 0 if forgotten."""
+        for a in self.injector.history:
+            if a.id == ident:
+                return a.d.magnitude
+        return 0.0
+
+    def status(self) -> dict[str, Any]:
+        return {**self.injector.status(), "marks": [
+            {k: v for k, v in m.items() if k != "line"} for m in self.marks[-20:]]}

@@ -24,11 +24,17 @@ it (:func:`correct_values`); a preset keeps it as ``[magcal]`` ``offset_uT`` and
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from app.toolkit.capture import Capture, check_seconds, check_streaming
+from app.toolkit.errors import ToolError
+
+log = logging.getLogger("orientlab.magcal")
 
 N_DIRECTIONS = 32
 MIN_PER_DIRECTION = 3
@@ -222,3 +228,105 @@ def correct_samples(cal: MagCalibration | None, samples: list) -> list:
     from app.sources.samples import Sample
     return [Sample(s.time_ms, "MAG", correct_values(cal, s.values)) if s.tag == "MAG" else s
             for s in samples]
+
+
+MAGCAL_MIN_S, MAGCAL_MAX_S = 5.0, 300.0   # a live collection's seconds
+
+
+class MagCalService:
+    """The magnetometer calibration on the live server: collect the raw field while the
+    phone is turned (a sample stage of the live core, before the correction), fit it,
+    and correct every MAG sample with the calibration in force (the same stage).
+
+    ``core``: the live core; ``preset``: a preset's ``[magcal]`` table (applied at once).
+    :meth:`on_change` follows a preset loaded later, :meth:`preset_part` gives the table
+    for a saved preset; :attr:`listeners` are called when one is applied or cleared."""
+
+    def __init__(self, core, preset: dict[str, Any] | None = None):
+        self.core = core
+        self.applied: MagCalibration | None = None
+        if preset:
+            try:
+                self.applied = from_preset(preset)
+            except MagCalError as e:
+                log.warning("preset: %s", e)
+        self.capture: Capture | None = None
+        self.result: MagCalibration | None = None
+        self.listeners: list = []
+        self._raw: list[np.ndarray] = []
+        core.sample_stages.append(self.stage)
+
+    def stage(self, session, samples: list) -> list:
+        """The sample stage: the raw field collected, then the correction applied."""
+        if self.capture is not None and self.capture.result is None:
+            self._collect(samples)
+        if self.applied is not None:
+            samples = correct_samples(self.applied, samples)
+        return samples
+
+    def _collect(self, samples: list) -> None:
+        cap = self.capture
+        for s in samples:
+            if s.tag != "MAG":
+                continue
+            t = s.time_ms / 1000.0
+            if cap.t0 is None:
+                cap.t0 = t
+            cap.t_last = t
+            self._raw.append(np.array(s.values[:3], dtype=float))
+        if cap.elapsed >= cap.seconds:
+            try:
+                self.result = fit(np.array(self._raw).reshape(-1, 3))
+                cap.result = self.result.as_dict()
+            except MagCalError as e:
+                cap.error = str(e)
+
+    def on_change(self, ch) -> None:
+        """A preset loaded (page or API; the engine's change listener): its magnetometer
+        calibration, or none."""
+        if not getattr(ch, "magcal_set", False):
+            return
+        try:
+            self.applied = from_preset(ch.magcal) if ch.magcal else None
+        except MagCalError as e:    # load_config validated it: not expected
+            log.error("preset's [magcal] not applied: %s", e)
+
+    def preset_part(self) -> dict[str, Any]:
+        return {} if self.applied is None else {"magcal": self.applied.preset()}
+
+    def tick(self) -> None:
+        """Called a few times a second: give up a collection whose stream stopped."""
+        if self.capture is not None:
+            self.capture.check_stalled()
+
+    def start(self, seconds: float) -> dict[str, Any]:
+        seconds = check_seconds(seconds, MAGCAL_MIN_S, MAGCAL_MAX_S)
+        check_streaming(self.core)
+        self.capture = Capture("magcal", seconds)
+        self._raw = []
+        self.result = None
+        return self.status()
+
+    def status(self) -> dict[str, Any]:
+        cap = self.capture
+        out: dict[str, Any] = {"applied": None if self.applied is None else self.applied.as_dict()}
+        if cap is None:
+            return {**out, "capture": None}
+        m = np.array(self._raw).reshape(-1, 3)
+        cov, counts = coverage(m) if len(m) else (0.0, [0] * N_DIRECTIONS)
+        out["capture"] = {**cap.status(), "coverage": cov, "per_direction": [int(c) for c in counts],
+                          "samples": int(len(m))}
+        out["result"] = None if self.result is None else self.result.as_dict()
+        return out
+
+    def apply(self, clear: bool = False) -> dict[str, Any]:
+        """Correct every MAG sample with the fit (``clear``: stop correcting)."""
+        if clear:
+            self.applied = None
+        else:
+            if self.result is None:
+                raise ToolError("magcal", "no fit yet: turn the phone in all directions first", 409)
+            self.applied = self.result
+        for cb in self.listeners:
+            cb()
+        return self.status()

@@ -14,6 +14,7 @@ import dataclasses
 from typing import Any
 
 from app.estimators import estimator_class
+from app.toolkit.errors import ToolError
 
 
 def no_rejection_changes(base: str) -> dict[str, Any]:
@@ -37,3 +38,49 @@ def ready_made(primary: str) -> dict[str, tuple[str, dict[str, Any]]]:
     out = {f"{primary}-no-rejection": (primary, no_rejection_changes(primary))}
     out["lab-approx"] = ("lab", {"time_update": "approx"})
     return out
+
+
+class VariantService:
+    """Variants on the live bench: checks an instance to add or remove before the
+    server posts the change (the bench applies it between two chunks). ``core``: the
+    live core."""
+
+    def __init__(self, core):
+        self.core = core
+
+    def check_add(self, name: str, base: str, params: dict[str, Any] | None) -> dict[str, Any]:
+        """``params`` (a copy) if ``name`` may be added as a variant of ``base``, else
+        ToolError naming the field (``name``, ``base``, ``params`` or ``params.<key>``)."""
+        try:
+            self.core.bench.check_new(name, base, params)
+        except Exception as e:  # BenchError or ParamError: both name the field
+            fld = getattr(e, "field", "params")
+            if fld not in ("name", "base", "params"):
+                fld = f"params.{fld}"
+            raise ToolError(fld, getattr(e, "reason", str(e))) from None
+        return dict(params or {})
+
+    def no_rejection(self) -> tuple[str, str, dict[str, Any]]:
+        """The primary with every gate off: ``(name, base, params)``."""
+        base = self.core.bench.base_of(self.core.bench.primary)
+        return f"{base}-no-rejection", base, no_rejection_changes(base)
+
+    def check_remove(self, name: str) -> str:
+        """``name`` if it is a variant on the bench, else ToolError (404 or 409)."""
+        b = self.core.bench
+        if name not in b.names:
+            raise ToolError("name", f"no estimator {name!r} (known: {', '.join(b.names)})", 404)
+        if b.base_of(name) == name:
+            raise ToolError("name", f"{name} is built in and cannot be removed", 409)
+        return name
+
+    def variants(self) -> list[str]:
+        """The variants on the bench, in the order they were added."""
+        b = self.core.bench
+        return [n for n in b.names if b.base_of(n) != n]
+
+    def listing(self) -> dict[str, Any]:
+        """``GET /api/estimators``: the primary and every instance."""
+        b = self.core.bench
+        return {"primary": b.primary, "estimators": [
+            {"name": n, "base": b.base_of(n), "builtin": b.base_of(n) == n} for n in b.names]}

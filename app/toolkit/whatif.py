@@ -24,18 +24,20 @@ The ``phone`` estimator is the reference itself (the held ORI): it is scored, no
 
 from __future__ import annotations
 
+import asyncio
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from app.estimators import REJECTIONS, Reason, make_estimator
 from app.estimators.base import F_ACC, F_MAG
-from app.params import ParamError
+from app.params import ParamError, to_dict
 from app.quaternion import error_angles, q2euler_many
 from app.sources.readers import Recording, read_recording
+from app.toolkit.errors import ToolError
 
 MAX_POINTS = 1500
 _REJ = np.array(sorted(int(r) for r in REJECTIONS))
@@ -258,3 +260,60 @@ def _json_counts(c: dict) -> dict:
         elif isinstance(v, (list, tuple)):
             out[k] = [x for x in v if isinstance(x, (int, float, str))]
     return out
+
+
+class WhatIfService:
+    """What-if on the live server: re-run a recording of the folder through every
+    estimator on the bench, with the parameters in force before and ``patch`` after, in
+    a worker thread (the live stream goes on meanwhile).
+
+    ``core``: the live core (its bench's instances); ``files(name)``: a recording's
+    files (ToolError if none)."""
+
+    def __init__(self, core, files: Callable[[str], dict]):
+        self.core = core
+        self.files = files
+        self.last: dict[str, Any] | None = None
+        self._cache: dict = {}
+
+    def specs(self) -> dict[str, tuple[str, dict[str, Any]]]:
+        b = self.core.bench
+        return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
+
+    async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
+        from app.toolkit.recording import read_estimates
+        files = self.files(name)
+        if patch is not None and not isinstance(patch, dict):
+            raise ToolError("patch", "must be an object {estimator: {param: value}}")
+        truth = None
+        if files["estimates"] is not None:
+            truth = read_estimates(files["estimates"]).get("truth")
+        specs = self.specs()
+
+        def run():
+            return rerun(self._read_cached(files["log"]), specs, patch, truth)
+        try:
+            out = await asyncio.get_running_loop().run_in_executor(None, run)
+        except WhatIfError as e:
+            raise ToolError(e.field, e.reason) from None
+        except ValueError as e:  # a file that cannot be read
+            raise ToolError("name", str(e)) from None
+        out["name"] = name
+        self.last = out
+        return out
+
+    def _read_cached(self, path: Path) -> Recording:
+        """The recording at ``path``, parsed once: a what-if is re-run again and again
+        with new parameters (reading a 10-minute log costs more than re-running it).
+        Keyed on the file's size and time, so a rewritten file is read again; two kept."""
+        st = path.stat()
+        key = (str(path), st.st_size, st.st_mtime_ns)
+        cache = self._cache
+        if key in cache:
+            cache[key] = cache.pop(key)
+            return cache[key]
+        rec = read_recording(path)
+        cache[key] = rec
+        while len(cache) > 2:
+            cache.pop(next(iter(cache)))
+        return rec

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import types
 
 import numpy as np
 
@@ -16,7 +15,7 @@ from app.sources.simulate import simulate
 
 def test_the_monitor_keeps_each_estimators_heading_at_its_rate():
     core = LiveCore()
-    mon = Monitor(types.SimpleNamespace(core=core))    # it reads only the core's record hook
+    mon = Monitor(core)    # it reads only the core's record hook
     seen = []
     core.record_listeners.append(lambda s, rec: seen.append(rec))
     sim = simulate(duration_s=6.0, seed=3)

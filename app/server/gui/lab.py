@@ -1,5 +1,6 @@
 """The page's "Lab" tab: record, calibrate, magnetometer calibration, replay, what-if,
-variants and disturbances (the same operations as the API, on :class:`LabTools`).
+variants and disturbances (the same operations as the API, on the toolkit's services:
+:class:`app.server.toolkit.Toolkit`).
 
 The heading plot (every estimator's heading over the last 30 s, the injected disturbance
 beside it) is what a viewer would pay most for: viser resends a chart whole, and the
@@ -10,7 +11,7 @@ at most :data:`MONITOR_DRAW_HZ` times a second with :data:`MONITOR_POINTS` rows;
 the default view it sends nothing.
 
 viser runs the callbacks on its own threads: each one hands its work to the server's
-event loop (``run_coroutine_threadsafe``), where :class:`LabTools` lives; a refused
+event loop (``run_coroutine_threadsafe``), where the toolkit lives; a refused
 request comes back as a notification in the tab that clicked. :func:`run_lab_gui`
 refreshes the read-outs and plots a few times a second.
 """
@@ -26,9 +27,12 @@ from typing import Any, Callable
 import numpy as np
 
 from app.quaternion import q2euler_many
-from app.server.lab import LabError, LabTools
+from app.live.changes import Change, PatchError, Variant
 from app.server.gui.plots import send_data
 from app.server.gui.scene import set_wxyz
+from app.server.toolkit import Toolkit
+from app.toolkit.errors import ToolError
+from app.toolkit.inject import InjectionService
 
 log = logging.getLogger("orientlab.gui_lab")
 
@@ -43,15 +47,16 @@ VARIANT_SLOTS = 3
 
 class Monitor:
     """Heading of every estimator over the last :data:`MONITOR_S` s, with the injected
-    disturbance's size beside it (fed from the core's record hook)."""
+    disturbance's size beside it (fed from the core's record hook; ``injection``: the
+    disturbances' marks and sizes, None: none)."""
 
-    def __init__(self, lab: LabTools):
-        self.lab = lab
+    def __init__(self, core, injection: InjectionService | None = None):
+        self.injection = injection
         self.t: list[float] = []
         self.yaw: dict[str, list[float]] = {}
         self._last_t = -math.inf
         self._session = None
-        lab.core.record_listeners.append(self._on_records)
+        core.record_listeners.append(self._on_records)
 
     def _on_records(self, session, rec) -> None:
         if session is not self._session:    # a new stream (a new clock): start afresh
@@ -95,23 +100,19 @@ class Monitor:
     def injected(self, t: np.ndarray) -> np.ndarray:
         """Size of the injected disturbance at times ``t`` (µT or m/s²), from the marks."""
         out = np.zeros_like(t)
+        if self.injection is None:
+            return out
+        size = self.injection.size
         starts = {}
-        for m in self.lab.marks:
+        for m in self.injection.marks:
             if m["event"] == "start":
                 starts[m["id"]] = m
             elif m["event"] == "end" and m["id"] in starts:
                 s = starts.pop(m["id"])
-                mag = self._size(m["id"])
-                out[(t >= s["t"]) & (t <= m["t"])] += mag
+                out[(t >= s["t"]) & (t <= m["t"])] += size(m["id"])
         for i, s in starts.items():
-            out[t >= s["t"]] += self._size(i)
+            out[t >= s["t"]] += size(i)
         return out
-
-    def _size(self, ident: int) -> float:
-        for a in self.lab.injector.history:
-            if a.id == ident:
-                return a.d.magnitude
-        return 0.0
 
 
 GHOST_COLORS = ((220, 40, 40), (140, 70, 200), (30, 160, 200), (200, 160, 20), (90, 90, 90))
@@ -122,14 +123,14 @@ class VariantGhosts:
     (the scene's own ghosts are the phone's estimate and the truth). Follows the bench:
     a variant added or removed appears or goes at the next scene refresh."""
 
-    def __init__(self, server, lab: LabTools):
+    def __init__(self, server, tk: Toolkit):
         self.server = server
-        self.lab = lab
+        self.core = tk.engine.core
         self.frames: dict[str, Any] = {}
-        lab.engine.listeners.append(self.draw)
+        tk.engine.listeners.append(self.draw)
 
     def draw(self, _snapshot=None) -> None:
-        b = self.lab.core.bench
+        b = self.core.bench
         variants = [n for n in b.names if b.base_of(n) != n]
         for name in list(self.frames):
             if name not in variants:
@@ -150,14 +151,17 @@ class VariantGhosts:
 
 
 class LabGui:
-    """Builds the "Lab" tab in ``tabs`` (a viser tab group) of the shared GUI."""
+    """Builds the "Lab" tab in ``tabs`` (a viser tab group) of the shared GUI, on the
+    toolkit ``tk``; ``server``: the viser server whose 3D scene the variants' ghosts
+    join (None: no ghosts)."""
 
-    def __init__(self, gui, tabs, lab: LabTools, loop: asyncio.AbstractEventLoop):
+    def __init__(self, gui, tabs, tk: Toolkit, loop: asyncio.AbstractEventLoop, server=None):
         self.gui = gui
-        self.lab = lab
+        self.tk = tk
+        self.core = tk.engine.core
         self.loop = loop
-        self.monitor = Monitor(lab)
-        self.ghosts = VariantGhosts(lab.engine_server, lab) if getattr(lab, "engine_server", None) else None
+        self.monitor = Monitor(self.core, tk.injection)
+        self.ghosts = VariantGhosts(server, tk) if server is not None else None
         self._rerun_result: dict[str, Any] | None = None
         self._cal_shown = None
         self._known_recordings: tuple = ()
@@ -182,14 +186,14 @@ class LabGui:
                                             initial_value="east")
             b = gui.add_button("Bring a magnet", color="red",
                                hint="POST /api/inject {kind: magnet}")
-            b.on_click(lambda ev: self._do(ev, lambda: self.lab.inject({
+            b.on_click(lambda ev: self._do(ev, lambda: self.tk.injection.inject({
                 "kind": "magnet", "strength_uT": float(self.mag_strength.value),
                 "seconds": float(self.mag_seconds.value), "frame": self.mag_frame.value,
                 "direction": self.mag_dir.value}), "Magnet"))
             self.shake_amp = gui.add_slider("Shake [m/s²]", 1.0, 30.0, 1.0, 8.0)
             self.shake_seconds = gui.add_slider("Shake for [s]", 1.0, 30.0, 1.0, 3.0)
             s = gui.add_button("Shake", color="orange", hint="POST /api/inject {kind: shake}")
-            s.on_click(lambda ev: self._do(ev, lambda: self.lab.inject({
+            s.on_click(lambda ev: self._do(ev, lambda: self.tk.injection.inject({
                 "kind": "shake", "amplitude_ms2": float(self.shake_amp.value),
                 "seconds": float(self.shake_seconds.value)}), "Shake"))
             nr = gui.add_button("Add the primary without rejection",
@@ -203,17 +207,17 @@ class LabGui:
                      "window (each viewer pays for every refresh of a chart).")
             # fixed series (the page's uPlot keeps the count it was made with): the
             # builtins, VARIANT_SLOTS variants in the order they were added, the disturbance
-            self._mon_builtins = [n for n in self.lab.core.bench.names]
+            self._mon_builtins = [n for n in self.core.bench.names]
             self.p_monitor = self._plot("Heading [deg] of each estimator; injected size (grey)",
                                         self._mon_builtins + [f"variant {i + 1}" for i in range(VARIANT_SLOTS)]
                                         + ["disturbance"], height=220, x_range=(-MONITOR_S, 0.0))
         with gui.add_folder("Record", expand_by_default=False):
             self.rec_name = gui.add_text("Recording name", "", hint="empty: orientlab_<date>")
             rb = gui.add_button("Record", color="red")
-            rb.on_click(lambda ev: self._do(ev, lambda: self.lab.start_recording(
+            rb.on_click(lambda ev: self._do(ev, lambda: self.tk.recording.start(
                 self.rec_name.value.strip() or None), "Recording"))
             sb = gui.add_button("Stop recording")
-            sb.on_click(lambda ev: self._do(ev, self.lab.stop_recording, "Recording stopped"))
+            sb.on_click(lambda ev: self._do(ev, self.tk.recording.stop, "Recording stopped"))
             self.rec_md = gui.add_markdown("")
         with gui.add_folder("Calibrate (keep the phone still)", expand_by_default=False):
             self.cal_seconds = gui.add_slider("Seconds", 2.0, 60.0, 1.0, 10.0)
@@ -236,21 +240,21 @@ class LabGui:
             gui.add_markdown("Turn the phone slowly in all directions while it collects.")
             self.mc_seconds = gui.add_slider("Seconds", 5.0, 120.0, 5.0, 30.0)
             mb = gui.add_button("Start collecting", hint="POST /api/magcal {seconds}")
-            mb.on_click(lambda ev: self._do(ev, lambda: self.lab.magcal_start(
+            mb.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.start(
                 float(self.mc_seconds.value)), "Turn the phone"))
             self.mc_bar = gui.add_progress_bar(0.0)
             self.mc_md = gui.add_markdown("")
             mab = gui.add_button("Apply the fit")
-            mab.on_click(lambda ev: self._do(ev, lambda: self.lab.magcal_apply(False), "Applied"))
+            mab.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.apply(False), "Applied"))
             mcb = gui.add_button("Clear (no correction)")
-            mcb.on_click(lambda ev: self._do(ev, lambda: self.lab.magcal_apply(True), "Cleared"))
+            mcb.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.apply(True), "Cleared"))
         with gui.add_folder("Replay", expand_by_default=False):
             self.rp_name = gui.add_dropdown("Recording", ("(none)",))
             pb = gui.add_button("Replay it")
             pb.on_click(lambda ev: self._replay(ev, {"name": self.rp_name.value}))
             self.rp_pause = gui.add_button("Pause / play")
             self.rp_pause.on_click(lambda ev: self._replay(
-                ev, {"paused": not (self.lab.replay.paused if self.lab.replay else False)}))
+                ev, {"paused": not (self.tk.replay.control.paused if self.tk.replay.control else False)}))
             self.rp_speed = gui.add_slider("Speed [x]", 0.1, 10.0, 0.1, 1.0)
             self.rp_speed.on_update(lambda ev: ev.client is not None and self._replay(
                 ev, {"speed": float(self.rp_speed.value)}))
@@ -266,8 +270,8 @@ class LabGui:
             self.rp_md = gui.add_markdown("")
         with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
             self.wi_name = gui.add_dropdown("Recording ", ("(none)",))
-            self.wi_est = gui.add_dropdown("Estimator", tuple(self.lab.core.bench.names),
-                                           initial_value=self.lab.core.bench.primary)
+            self.wi_est = gui.add_dropdown("Estimator", tuple(self.core.bench.names),
+                                           initial_value=self.core.bench.primary)
             self.wi_patch = gui.add_text("Change (JSON)", '{"mag_norm_gate_rel": 0}',
                                          hint="parameters of that estimator, e.g. {\"acc_std\": 0.3}")
             wb = gui.add_button("Re-run before/after")
@@ -319,19 +323,15 @@ class LabGui:
 
     def _save_calibration_preset(self) -> str:
         """The calibration's preset, through the one preset save path; a refusal (a
-        shipped name, the cap, a folder that refuses the write) as a LabError."""
-        from app.live.changes import PatchError
-        try:
-            return str(self.lab.save_calibration_preset(self.cal_preset.value.strip()))
-        except PatchError as e:
-            raise LabError("save_as", e.reason, getattr(e, "status", 422)) from None
+        shipped name, the cap, a folder that refuses the write) as a ToolError."""
+        return str(self.tk.save_preset(self.cal_preset.value.strip()))
 
     def _do(self, ev, fn: Callable, title: str) -> None:
-        """Run a synchronous LabTools call on the loop; notify its outcome."""
+        """Run a synchronous toolkit call on the loop; notify its outcome."""
         def run():
             try:
                 out = fn()
-            except LabError as e:
+            except ToolError as e:
                 self._notify(ev, f"{title}: refused", f"{e.field}: {e.reason}")
                 return
             text = out.get("text") or out.get("name") or "" if isinstance(out, dict) else str(out)
@@ -340,23 +340,22 @@ class LabGui:
         self._call(run)
 
     def _replay(self, ev, body: dict) -> None:
-        from app.sources.runners import ReplayError
-        state = self.lab.app_state
+        rs = self.tk.replay
 
         def run():
             try:
                 if body.get("stop"):
-                    self.lab.stop_replay(state)
+                    rs.stop()
                     return
                 if "name" in body:
-                    self.lab.start_replay(state, body["name"])
-                    if self.lab.replay is not None:
-                        self.rp_seek.max = max(0.1, round(self.lab.replay.duration_s, 1))
+                    rs.start(body["name"])
+                    if rs.control is not None:
+                        self.rp_seek.max = max(0.1, round(rs.control.duration_s, 1))
                     return
-                if self.lab.replay is None:
-                    raise LabError("name", "nothing is replayed: pick a recording and press Replay it")
-                self.lab.replay.set(**body)
-            except (LabError, ReplayError) as e:
+                if rs.control is None:
+                    raise ToolError("name", "nothing is replayed: pick a recording and press Replay it")
+                rs.set(**body)
+            except ToolError as e:
                 self._notify(ev, "Replay", f"{e.field}: {e.reason}")
         self._call(run)
 
@@ -364,11 +363,12 @@ class LabGui:
         async def run():
             try:
                 if preset == "no-rejection":
-                    name, base, params = self.lab.no_rejection()
+                    name, base, params = self.tk.variants.no_rejection()
                 else:
                     name, base, params = "lab-approx", "lab", {"time_update": "approx"}
-                change = self.lab.variant_change(name, base, params)
-            except LabError as e:
+                checked = self.tk.variants.check_add(name, base, params)
+                change = Change(add=[Variant(name, base, checked)])
+            except ToolError as e:
                 self._notify(ev, "Variant", f"{e.field}: {e.reason}")
                 return
             await self._post(ev, change, f"{name} added")
@@ -377,8 +377,8 @@ class LabGui:
     def _remove_variant(self, ev) -> None:
         async def run():
             try:
-                change = self.lab.remove_change(self.var_remove.value)
-            except LabError as e:
+                change = Change(remove=[self.tk.variants.check_remove(self.var_remove.value)])
+            except ToolError as e:
                 self._notify(ev, "Variant", e.reason)
                 return
             await self._post(ev, change, f"{self.var_remove.value} removed")
@@ -386,7 +386,7 @@ class LabGui:
 
     async def _post(self, ev, change, ok_text: str) -> None:
         done = self.loop.create_future()
-        self.lab.engine.post(change, done)
+        self.tk.engine.post(change, done)
         try:
             await asyncio.wait_for(done, 5.0)
             self._notify(ev, "Done", ok_text, color="green")
@@ -396,19 +396,18 @@ class LabGui:
     def _start_calibration(self, ev) -> None:
         async def run():
             try:
-                await self.lab.calibrate(float(self.cal_seconds.value))
+                await self.tk.calibration.calibrate(float(self.cal_seconds.value))
                 self._notify(ev, "Calibration", "done: see the statistics", color="green")
                 self._draw_calibration(True)
-            except LabError as e:
+            except ToolError as e:
                 self._notify(ev, "Calibration", e.reason)
         self._call(run)
 
     async def _apply_calibration(self, ev) -> None:
-        from app.live.changes import PatchError
         try:
-            params = self.lab.calibration_change()
-            change = self.lab.core.validate({"estimators": params})
-        except (LabError, PatchError) as e:
+            params = self.tk.calibration.change()
+            change = self.core.validate({"estimators": params})
+        except (ToolError, PatchError) as e:
             self._notify(ev, "Not applied", str(e))
             return
         await self._post(ev, change, "calibration applied: " + ", ".join(
@@ -420,18 +419,18 @@ class LabGui:
                 patch_text = self.wi_patch.value.strip()
                 changes = json.loads(patch_text) if patch_text else {}
                 if not isinstance(changes, dict):
-                    raise LabError("patch", "a JSON object of parameter changes")
+                    raise ToolError("patch", "a JSON object of parameter changes")
             except json.JSONDecodeError as e:
                 self._notify(ev, "What-if", f"the change is not JSON: {e}")
                 return
-            except LabError as e:
+            except ToolError as e:
                 self._notify(ev, "What-if", e.reason)
                 return
             self.wi_md.content = "re-running..."
             try:
-                out = await self.lab.rerun(self.wi_name.value,
+                out = await self.tk.whatif.rerun(self.wi_name.value,
                                            {self.wi_est.value: changes} if changes else None)
-            except LabError as e:
+            except ToolError as e:
                 self.wi_md.content = ""
                 self._notify(ev, "What-if", f"{e.field}: {e.reason}")
                 return
@@ -479,7 +478,7 @@ class LabGui:
             plot.data = (t[ok], a[ok], b2[ok]) if ok.any() else (np.zeros(2),) * 3
 
     def _draw_calibration(self, force: bool = False) -> None:
-        res = self.lab.last_calibration
+        res = self.tk.calibration.last
         if res is None or (res is self._cal_shown and not force):
             return
         self._cal_shown = res
@@ -511,10 +510,10 @@ class LabGui:
 
     def refresh(self) -> None:
         """Read-outs and plots (on the event loop)."""
-        lab = self.lab
-        lab.tick()
+        tk = self.tk
+        tk.tick()
         # recordings
-        st = lab.recording_status()
+        st = tk.recording.status()
         if st["recording"]:
             seg = st["segments"][-1] if st["segments"] else {}
             self.rec_md.content = (f"**recording** `{seg.get('name', st['name'])}`: "
@@ -524,7 +523,7 @@ class LabGui:
             self.rec_md.content = "not recording" + (
                 "" if last is None else f"; last: `{last['name']}` {last['seconds']:.1f} s, "
                 f"{last['samples']} samples" + (f" -- **{last['error']}**" if last.get("error") else ""))
-        names = tuple(r["name"] for r in lab.recordings()) or ("(none)",)
+        names = tuple(r["name"] for r in tk.recording.recordings()) or ("(none)",)
         if names != self._known_recordings:
             self._known_recordings = names
             for dd in (self.rp_name, self.wi_name):
@@ -533,7 +532,7 @@ class LabGui:
                 if v in names:
                     dd.value = v
         # calibration countdown
-        cap = lab.capture
+        cap = tk.calibration.capture
         if cap is not None and cap.result is None and cap.error is None:
             self.cal_bar.visible = True
             self.cal_bar.value = 100.0 * min(1.0, cap.elapsed / cap.seconds)
@@ -544,7 +543,7 @@ class LabGui:
                 self.cal_md.content = f"**calibration failed**: {cap.error}"
             self._draw_calibration()
         # magnetometer calibration
-        ms = lab.magcal_status()
+        ms = tk.magcal.status()
         c = ms.get("capture")
         if c is not None:
             self.mc_bar.value = 100.0 * c["coverage"]
@@ -558,7 +557,7 @@ class LabGui:
             txt.append("applied: " + ("none" if ms["applied"] is None else "yes"))
             self.mc_md.content = "\n\n".join(txt)
         # replay
-        rs = lab.replay_status()
+        rs = tk.replay.status()
         if rs["replaying"]:
             dur = max(0.1, round(rs["duration_s"], 1))
             if self.rp_seek.max != dur:     # a replay started by the API or --source too
@@ -569,7 +568,7 @@ class LabGui:
         else:
             self.rp_md.content = "not replaying"
         # variants
-        b = lab.core.bench
+        b = self.core.bench
         variants = tuple(n for n in b.names if b.base_of(n) != n) or ("(none)",)
         if tuple(self.var_remove.options) != variants:
             self.var_remove.options = variants
@@ -577,7 +576,7 @@ class LabGui:
         if tuple(self.wi_est.options) != tuple(b.names):
             self.wi_est.options = tuple(b.names)
         # disturbances and the monitor
-        act = lab.injector.active
+        act = tk.injection.injector.active
         self.inject_md.content = ("active: " + "; ".join(a.d.describe() for a in act)) if act \
             else "no disturbance active"
         self._draw_monitor()
@@ -586,7 +585,7 @@ class LabGui:
         """Every estimator's Euler angles, error to the phone and its last magnetometer
         decision: the variants' read-outs beside the builtins'."""
         from app.quaternion import angle_between
-        b = self.lab.core.bench
+        b = self.core.bench
         phone = b.phone_q
         rows = ["| estimator | yaw pitch roll [deg] | to phone | magnetometer |", "|---|---|---|---|"]
         for n in b.names:
@@ -604,13 +603,13 @@ class LabGui:
     def monitor_live(self) -> bool:
         """Whether the heading plot follows the stream: "Live heading plot" ticked, a
         variant on the bench, a disturbance active or one in the plot's window."""
-        if self.monitor_follow.value or self.lab.injector.active:
+        if self.monitor_follow.value or self.tk.injection.injector.active:
             return True
-        b = self.lab.core.bench
+        b = self.core.bench
         if any(b.base_of(n) != n for n in b.names):
             return True
         m = self.monitor
-        return bool(m.t) and any(mk["t"] >= m.t[-1] - MONITOR_S for mk in self.lab.marks)
+        return bool(m.t) and any(mk["t"] >= m.t[-1] - MONITOR_S for mk in self.tk.injection.marks)
 
     def _draw_monitor(self) -> None:
         m = self.monitor
@@ -622,7 +621,7 @@ class LabGui:
         self._monitor_due = now + 1.0 / MONITOR_DRAW_HZ
         keep = np.unique(np.linspace(0, len(m.t) - 1, min(len(m.t), MONITOR_POINTS)).astype(np.int64))
         t = np.array(m.t)[keep]
-        b = self.lab.core.bench
+        b = self.core.bench
         variants = [n for n in b.names if b.base_of(n) != n][:VARIANT_SLOTS]
         cols = []
         for n in self._mon_builtins + variants + [None] * (VARIANT_SLOTS - len(variants)):

@@ -1,8 +1,11 @@
 """The HTTP/WebSocket API, one router per concern."""
 
-from fastapi import HTTPException, Request
+from fastapi import FastAPI, HTTPException, Request
+from fastapi.responses import JSONResponse
 
 from app.server.engine import Engine, PatchError
+from app.server.toolkit import Toolkit
+from app.toolkit.errors import ToolError
 
 
 async def get_engine(request: Request) -> Engine:
@@ -11,8 +14,29 @@ async def get_engine(request: Request) -> Engine:
     return request.app.state.engine
 
 
+async def get_toolkit(request: Request) -> Toolkit:
+    """The lab's tools (:class:`app.server.toolkit.Toolkit`), built in the lifespan."""
+    return request.app.state.toolkit
+
+
 def unprocessable(e: PatchError) -> HTTPException:
     """A 422 in FastAPI's own error shape, naming the field."""
     loc = [x if isinstance(x, int) else str(x)[:64] for x in e.loc][:8]   # never echo a big input
     return HTTPException(status_code=422, detail=[{"loc": ["body", *loc], "msg": str(e.reason)[:300],
                                                    "type": "value_error"}])
+
+
+def tool_error_response(e: ToolError) -> JSONResponse:
+    """A tool's refusal in FastAPI's own error shape (as a 422 is), naming the field; the
+    status says what kind of refusal (404 unknown, 409 not now, 422 invalid)."""
+    detail = [{"loc": ["body", *str(e.field).split(".")][:8], "msg": str(e.reason)[:300],
+               "type": "value_error"}]
+    return JSONResponse({"detail": detail}, status_code=e.status)
+
+
+def install_tool_errors(app: FastAPI) -> None:
+    """Every ToolError a route lets through becomes :func:`tool_error_response`."""
+
+    @app.exception_handler(ToolError)
+    async def _tool_error(request: Request, exc: ToolError) -> JSONResponse:
+        return tool_error_response(exc)

@@ -9,59 +9,51 @@ from typing import Any
 
 from fastapi import APIRouter, Body, Depends
 
+from app.live.changes import Change, Variant
 from app.server.access import require_presenter
-from app.server.lab import LabError, LabTools
-from app.server.routers._lab import get_lab, lab_error
-from app.server.routers.calibrate import post_change
+from app.server.routers import get_toolkit
+from app.server.toolkit import Toolkit
+from app.toolkit.errors import ToolError
 
 router = APIRouter(prefix="/api/estimators", tags=["estimators"])
 
 
 @router.get("")
-async def estimators(lab: LabTools = Depends(get_lab)) -> dict:
-    b = lab.core.bench
-    return {"primary": b.primary, "estimators": [
-        {"name": n, "base": b.base_of(n), "builtin": b.base_of(n) == n} for n in b.names]}
+async def estimators(tk: Toolkit = Depends(get_toolkit)) -> dict:
+    return tk.variants.listing()
 
 
 @router.post("", dependencies=[Depends(require_presenter)])
 async def add(body: Any = Body(..., examples=[{"name": "lab-approx", "base": "lab",
                                               "params": {"time_update": "approx"}},
                                              {"preset": "no-rejection"}]),
-              lab: LabTools = Depends(get_lab)) -> dict:
-    try:
-        if not isinstance(body, dict):
-            raise LabError("body", "expected a JSON object")
-        unknown = set(body) - {"name", "base", "params", "preset"}
-        if unknown:
-            raise LabError(sorted(unknown)[0], "unknown key (known: name, base, params, preset)")
-        if "preset" in body:
-            if body["preset"] == "no-rejection":
-                name, base, params = lab.no_rejection()
-            elif body["preset"] == "lab-approx":
-                name, base, params = "lab-approx", "lab", {"time_update": "approx"}
-            else:
-                raise LabError("preset", "one of no-rejection, lab-approx")
-            name = body.get("name", name)
+              tk: Toolkit = Depends(get_toolkit)) -> dict:
+    if not isinstance(body, dict):
+        raise ToolError("body", "expected a JSON object")
+    unknown = set(body) - {"name", "base", "params", "preset"}
+    if unknown:
+        raise ToolError(sorted(unknown)[0], "unknown key (known: name, base, params, preset)")
+    if "preset" in body:
+        if body["preset"] == "no-rejection":
+            name, base, params = tk.variants.no_rejection()
+        elif body["preset"] == "lab-approx":
+            name, base, params = "lab-approx", "lab", {"time_update": "approx"}
         else:
-            for k in ("name", "base"):
-                if k not in body:
-                    raise LabError(k, "required")
-            name, base, params = body["name"], body["base"], body.get("params") or {}
-            if not isinstance(params, dict):
-                raise LabError("params", "must be an object {param: value}")
-        change = lab.variant_change(name, base, params)
-    except LabError as e:
-        raise lab_error(e) from None
-    await post_change(lab.engine, change)
-    return {"name": name, "base": base, "params": params, **(await estimators(lab))}
+            raise ToolError("preset", "one of no-rejection, lab-approx")
+        name = body.get("name", name)
+    else:
+        for k in ("name", "base"):
+            if k not in body:
+                raise ToolError(k, "required")
+        name, base, params = body["name"], body["base"], body.get("params") or {}
+        if not isinstance(params, dict):
+            raise ToolError("params", "must be an object {param: value}")
+    checked = tk.variants.check_add(name, base, params)
+    await tk.post(Change(add=[Variant(name, base, checked)]))
+    return {"name": name, "base": base, "params": params, **tk.variants.listing()}
 
 
 @router.delete("/{name}", dependencies=[Depends(require_presenter)])
-async def remove(name: str, lab: LabTools = Depends(get_lab)) -> dict:
-    try:
-        change = lab.remove_change(name)
-    except LabError as e:
-        raise lab_error(e) from None
-    await post_change(lab.engine, change)
-    return await estimators(lab)
+async def remove(name: str, tk: Toolkit = Depends(get_toolkit)) -> dict:
+    await tk.post(Change(remove=[tk.variants.check_remove(name)]))
+    return tk.variants.listing()

@@ -10,23 +10,20 @@ from typing import Any
 from fastapi import APIRouter, Body, Depends
 
 from app.server.access import require_presenter
-from app.server.lab import LabError, LabTools
-from app.server.routers._lab import get_lab, lab_error
+from app.server.routers import get_toolkit
+from app.server.toolkit import Toolkit
 
 router = APIRouter(prefix="/api", tags=["disturbances"])
 
 
 @router.get("/inject")
-async def injections(lab: LabTools = Depends(get_lab)) -> dict:
-    return lab.inject_status()
+async def injections(tk: Toolkit = Depends(get_toolkit)) -> dict:
+    return tk.injection.status()
 
 
 @router.post("/inject", dependencies=[Depends(require_presenter)])
 async def inject(body: Any = Body(..., examples=[
         {"kind": "magnet", "strength_uT": 50, "direction": "east", "seconds": 5},
         {"kind": "shake", "amplitude_ms2": 8, "seconds": 3}]),
-        lab: LabTools = Depends(get_lab)) -> dict:
-    try:
-        return lab.inject(body)
-    except LabError as e:
-        raise lab_error(e) from None
+        tk: Toolkit = Depends(get_toolkit)) -> dict:
+    return tk.injection.inject(body)

@@ -16,79 +16,60 @@ from fastapi import APIRouter, Body, Depends
 from fastapi.responses import FileResponse
 
 from app.server.access import require_presenter
-from app.server.lab import LabError, LabTools
-from app.server.routers._lab import get_lab, lab_error
+from app.server.routers import get_toolkit
+from app.server.toolkit import Toolkit
+from app.toolkit.errors import ToolError
 
 router = APIRouter(prefix="/api/recordings", tags=["recordings"])
 
 
-def _body(body: Any) -> dict:
+def _body(body: Any, allowed: set[str]) -> dict:
     if body is None:
         return {}
     if not isinstance(body, dict):
-        raise lab_error(LabError("body", "expected a JSON object"))
+        raise ToolError("body", "expected a JSON object")
+    unknown = set(body) - allowed
+    if unknown:
+        raise ToolError(sorted(unknown)[0], f"unknown key (known: {', '.join(sorted(allowed))})")
     return body
 
 
 @router.get("")
-async def recordings(lab: LabTools = Depends(get_lab)) -> dict:
+async def recordings(tk: Toolkit = Depends(get_toolkit)) -> dict:
     """The recordings folder and what the recorder is doing."""
-    return {"folder": str(lab.folder), "status": lab.recording_status(),
-            "recordings": lab.recordings()}
+    rs = tk.recording
+    return {"folder": str(rs.folder), "status": rs.status(), "recordings": rs.recordings()}
 
 
 @router.post("/start", dependencies=[Depends(require_presenter)])
-async def start(body: Any = Body(None), lab: LabTools = Depends(get_lab)) -> dict:
+async def start(body: Any = Body(None), tk: Toolkit = Depends(get_toolkit)) -> dict:
     """Start recording the stream on show (``{"name": ...}`` optional)."""
-    b = _body(body)
-    unknown = set(b) - {"name"}
-    try:
-        if unknown:
-            raise LabError(sorted(unknown)[0], "unknown key (known: name)")
-        return lab.start_recording(b.get("name"))
-    except LabError as e:
-        raise lab_error(e) from None
+    return tk.recording.start(_body(body, {"name"}).get("name"))
 
 
 @router.post("/stop", dependencies=[Depends(require_presenter)])
-async def stop(lab: LabTools = Depends(get_lab)) -> dict:
+async def stop(tk: Toolkit = Depends(get_toolkit)) -> dict:
     """Stop recording: ``{name, path, seconds, samples, segments, error}``."""
-    try:
-        return lab.stop_recording()
-    except LabError as e:
-        raise lab_error(e) from None
+    return tk.recording.stop()
 
 
 @router.get("/{name}/log")
-async def download_log(name: str, lab: LabTools = Depends(get_lab)) -> FileResponse:
+async def download_log(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The recording's log, as the Sensor Fusion app writes it."""
-    try:
-        path = lab.files(name)["log"]
-    except LabError as e:
-        raise lab_error(e) from None
+    path = tk.recording.files(name)["log"]
     return FileResponse(path, media_type="text/plain", filename=path.name)
 
 
 @router.get("/{name}/estimates")
-async def download_estimates(name: str, lab: LabTools = Depends(get_lab)) -> FileResponse:
+async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The estimates recorded beside the log (CSV)."""
-    try:
-        path = lab.files(name)["estimates"]
-        if path is None:
-            raise LabError("name", f"{name!r} has no estimates file (an app log dropped in?)", 404)
-    except LabError as e:
-        raise lab_error(e) from None
+    path = tk.recording.files(name)["estimates"]
+    if path is None:
+        raise ToolError("name", f"{name!r} has no estimates file (an app log dropped in?)", 404)
     return FileResponse(path, media_type="text/csv", filename=path.name)
 
 
 @router.post("/{name}/rerun", dependencies=[Depends(require_presenter)])
-async def rerun(name: str, body: Any = Body(None), lab: LabTools = Depends(get_lab)) -> dict:
+async def rerun(name: str, body: Any = Body(None), tk: Toolkit = Depends(get_toolkit)) -> dict:
     """Re-run the whole recording through every estimator, before and after ``patch``."""
-    b = _body(body)
-    try:
-        unknown = set(b) - {"patch"}
-        if unknown:
-            raise LabError(sorted(unknown)[0], "unknown key (known: patch)")
-        return await lab.rerun(name, b.get("patch"))
-    except LabError as e:
-        raise lab_error(e) from None
+    return await tk.whatif.rerun(name, _body(body, {"patch"}).get("patch"))

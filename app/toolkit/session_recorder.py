@@ -1,0 +1,157 @@
+"""Recording the live session: :class:`RecordingService` keeps the one
+:class:`~app.toolkit.recording.Recorder` of the dashboard (start, stop, segments when a
+stream ends and another starts) and feeds it from the live core's hooks: the samples as
+the estimators get them (a sample stage after the injection's, before the magnetometer
+calibration's), every estimator's estimates (a record listener), the parameters at each
+change and the injections' marks. The files' format is :mod:`app.toolkit.recording`'s.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from app.params import to_dict
+from app.toolkit.errors import ToolError
+from app.toolkit.recording import Recorder, RecordingError, list_recordings, recording_files
+
+log = logging.getLogger("orientlab.recording")
+
+
+def params_in_force(bench, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
+    """Every instance's base and parameters, the primary, and the tables ``parts`` add
+    (the magnetometer calibration in force): what a recording notes at each change."""
+    out: dict[str, Any] = {n: {"base": bench.base_of(n), **to_dict(bench.params_of(n))}
+                           for n in bench.names}
+    out["primary"] = bench.primary
+    for part in parts:
+        out.update(part())
+    return out
+
+
+class RecordingService:
+    """See the module doc. ``core``: the live core; ``folder``: the recordings folder;
+    ``parts``: more tables of the parameters in force (``engine.preset_parts``)."""
+
+    def __init__(self, core, folder: str | Path, parts: list[Callable[[], dict]] | None = None):
+        self.core = core
+        self.folder = Path(folder)
+        self.parts = parts if parts is not None else []
+        self.recorder: Recorder | None = None
+        self.last: dict[str, Any] | None = None      # the last recording's summary
+        self._session = None                         # the stream being recorded
+        core.sample_stages.append(self.stage)
+        core.record_listeners.append(self.on_records)
+
+    @property
+    def recording(self) -> bool:
+        return self.recorder is not None
+
+    def params_in_force(self) -> dict[str, Any]:
+        return params_in_force(self.core.bench, self.parts)
+
+    # ----------------------------------------------------------------- the hooks
+    def stage(self, session, samples: list) -> list:
+        """The sample stage: the recorder's copy (samples unchanged)."""
+        rec = self.recorder
+        if rec is None:
+            return samples
+        if session is not self._session:
+            if self._session is not None:
+                rec.new_segment(session.label, session.describe())
+            self._session = session
+        rec.write_samples(samples)
+        self._check()
+        return samples
+
+    def on_records(self, session, rec) -> None:
+        """The record listener: every estimator's estimates (and the demo's truth)."""
+        r = self.recorder
+        if r is None or not len(rec) or session is not self._session:
+            return
+        sel = rec.kind < 3
+        r.count_samples(rec.t[sel])
+        tags = rec.tags
+        for name in rec.q:
+            r.write_estimates(name, rec.t, tags, rec.q[name], rec.flags[name])
+        if session.truth is not None:
+            try:
+                tq = np.asarray(session.truth(rec.t * 1000.0), dtype=float)
+                r.write_estimates("truth", rec.t, tags, tq)
+            except Exception:
+                log.exception("truth for the recording failed")
+        self._check()
+
+    def note_params(self) -> None:
+        """The parameters changed (the engine's parameter listener; a magnetometer
+        calibration applied): noted in the events and marked in the log."""
+        if self.recorder is not None:
+            t = self.core.t_sent
+            self.recorder.note("params", t=t, params=self.params_in_force(),
+                               mark=None if t is None else (int(t * 1000), "parameters changed"))
+
+    def note_mark(self, m: dict[str, Any], t: float) -> None:
+        """An injection's mark (:attr:`InjectionService.mark_listeners`)."""
+        if self.recorder is not None:
+            self.recorder.note("inject", t=m["time_ms"] / 1000.0, event=m["event"], id=m["id"],
+                               text=m["text"])
+
+    def tick(self) -> None:
+        """Called a few times a second: end the segment whose stream ended."""
+        s = self._session
+        if self.recorder is not None and s is not None and not s.open \
+                and self.recorder.segment is not None:
+            self.recorder.end_segment(s.close_reason or "end of stream")
+        self._check()
+
+    def _check(self) -> None:
+        rec = self.recorder
+        if rec is not None and rec.error is not None:
+            self.last = rec.stop("write failed")
+            self.recorder = None
+            self._session = None
+            log.error("recording stopped: %s", self.last["error"])
+
+    # ----------------------------------------------------------------- the requests
+    def start(self, name: str | None = None) -> dict[str, Any]:
+        if self.recorder is not None:
+            raise ToolError("recording", f"already recording {self.recorder.base!r}", 409)
+        try:
+            rec = Recorder(self.folder, name)
+            s = self.core.session
+            rec.start(self.params_in_force(), label="" if s is None else f"{s.kind} {s.label}",
+                      phone=None if s is None else s.describe())
+        except RecordingError as e:
+            raise ToolError("name" if "name" in str(e) else "folder", str(e),
+                            409 if "exists" in str(e) else 422) from None
+        self.recorder = rec
+        self._session = self.core.session
+        return rec.summary()
+
+    def stop(self) -> dict[str, Any]:
+        if self.recorder is None:
+            if self.last is not None:
+                return self.last
+            raise ToolError("recording", "not recording", 409)
+        self.last = self.recorder.stop("stopped")
+        self.recorder = None
+        self._session = None
+        return self.last
+
+    def status(self) -> dict[str, Any]:
+        if self.recorder is not None:
+            return {**self.recorder.summary(), "recording": True}
+        return {"recording": False, "last": self.last}
+
+    def recordings(self) -> list[dict[str, Any]]:
+        return list_recordings(self.folder)
+
+    def files(self, name: str) -> dict[str, Path | None]:
+        """The files of recording ``name``; ToolError (404) if there is none."""
+        try:
+            return recording_files(self.folder, name)
+        except RecordingError as e:
+            raise ToolError("name", str(e), 404) from None
