@@ -63,7 +63,7 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
     est.diagnostics()
     est.attitude_cov()
     est.reset()
-    # the live bench's per-chunk bookkeeping (app.live.bench)
+    # the live ensemble's per-chunk bookkeeping (app.live.ensemble)
     from app.estimators.base import NFLAGS, split_rows, tally_rows
     kind = np.array([0, 1, 2, 3], dtype=np.int8)
     G, A, M, O = np.empty((4, 3)), np.empty((4, 3)), np.empty((4, 3)), np.empty((4, 4))

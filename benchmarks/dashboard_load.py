@@ -76,7 +76,7 @@ def cpu_seconds(pid: int) -> np.ndarray:
     return np.array([int(fields[11]), int(fields[12])]) / tck   # utime, stime
 
 
-# The server process: ``orientlab serve``; with variants, they are put on the bench as the
+# The server process: ``orientlab serve``; with variants, they are put on the ensemble as the
 # live core is built (the two ready-made ones of app/toolkit/variants.py, as a lab would run them).
 SERVER_CODE = """
 import sys, types
@@ -89,8 +89,8 @@ _init = core.LiveCore.__init__
 
 def init_with_variants(self, *args, **kwargs):
     _init(self, *args, **kwargs)
-    for name, (base, params) in list(ready_made(self.bench.primary).items())[:N_VARIANTS]:
-        self.bench.add(name, base, params)
+    for name, (base, params) in list(ready_made(self.ensemble.primary).items())[:N_VARIANTS]:
+        self.ensemble.add(name, base, params)
 
 core.LiveCore.__init__ = init_with_variants
 args = types.SimpleNamespace(host="127.0.0.1", port={port}, viewer_port={viewer_port},

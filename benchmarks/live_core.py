@@ -39,8 +39,8 @@ CHUNK = 15          # lines per 10 ms at 3 x 500 Hz
 
 def one_run(lines: list[bytes], variants: int) -> dict[str, float]:
     core = LiveCore(None)
-    for name, (base, params) in list(ready_made(core.bench.primary).items())[:variants]:
-        core.bench.add(name, base, params)
+    for name, (base, params) in list(ready_made(core.ensemble.primary).items())[:variants]:
+        core.ensemble.add(name, base, params)
     s = core.open_session("phone", "benchmark")
     core.start(s)
     chunks = [lines[i:i + CHUNK] for i in range(0, len(lines), CHUNK)]
@@ -58,7 +58,7 @@ def one_run(lines: list[bytes], variants: int) -> dict[str, float]:
         t_feed, t_proc = t_feed + t1 - t0, t_proc + t2 - t1
         n += len(c)
     return {"parse + reorder": t_feed / n, "estimators + bookkeeping": t_proc / n,
-            "n": n, "names": core.bench.names}
+            "n": n, "names": core.ensemble.names}
 
 
 def main() -> int:

@@ -5,7 +5,7 @@ way the dashboard does: lines in chunks of ``CHUNK`` through a :class:`SampleOrd
 (window 0.05 s), every released sample one row for every estimator (default
 parameters), in order. ``--save DIR`` writes, per log, the estimate of every estimator
 after every sample (``q``, (N, 4)) and its flag record; ``--compare DIR`` runs the live
-core (:class:`app.live.Bench`, one compiled batch run per chunk) on the same chunks and
+core (:class:`app.live.Ensemble`, one compiled batch run per chunk) on the same chunks and
 prints the largest difference per estimator and log (target: < 1e-9).
 
 ``--save`` steps every estimator sample by sample as the engine did before the live core
@@ -76,14 +76,14 @@ def run_step(chunks) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def run_bench(chunks) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Chunk by chunk through the live core's bench (one batch run per estimator)."""
-    from app.live.bench import Bench
-    bench = Bench.from_config(None)
+def run_ensemble(chunks) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Chunk by chunk through the live core's ensemble (one batch run per estimator)."""
+    from app.live.ensemble import Ensemble
+    ensemble = Ensemble.from_config(None)
     qs = {n: [] for n in NAMES}
     fl = {n: [] for n in NAMES}
     for chunk in chunks:
-        rec = bench.step(chunk)
+        rec = ensemble.step(chunk)
         for n in NAMES:
             r = rec.of(n)
             qs[n].append(r.q)
@@ -120,7 +120,7 @@ def main() -> int:
                    for k, v in (("q", q), ("flags", f))}
         else:
             ref = np.load(args.compare / f"{key}.npz")
-        res = run_bench(chunks)
+        res = run_ensemble(chunks)
         cells = []
         for n in NAMES:
             q, f = res[n]

@@ -529,7 +529,7 @@ class Estimator:
         return BatchResult(t=t, q=qs, flags=flags)
 
     def run_into(self, t, G, A, M, O, qs, flags) -> None:
-        """:meth:`run` without checks or allocation (the live bench's path): ``t`` (n,),
+        """:meth:`run` without checks or allocation (the live ensemble's path): ``t`` (n,),
         ``G``/``A``/``M`` (n, 3), ``O`` (n, 4), contiguous float64 (NaN: absent); the
         estimate and the flag record after each row are written into ``qs`` (n, 4) and
         ``flags`` (n, NFLAGS)."""
@@ -632,10 +632,10 @@ def align_step(s, i_wait_t, i_wait_acc, t, gs, as_, ms, acc, use_acc, use_mag, f
     return ALIGN_WAIT
 
 
-# ------------------------------------------------------------------ the live bench's rows
+# ------------------------------------------------------------------ the live ensemble's rows
 # A chunk of stream samples becomes estimator rows (one sensor or ORI per row) and every
 # instance's flag records are tallied, each in one compiled call (the live path's per-chunk
-# bookkeeping; :mod:`app.live.bench`).
+# bookkeeping; :mod:`app.live.ensemble`).
 
 @njit(cache=True)
 def split_rows(kind, values, G, A, M, O):

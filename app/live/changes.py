@@ -15,12 +15,12 @@
 
 Everything is checked against copies of the current parameters; :class:`PatchError`
 names the offending field (its path in the body) and nothing is applied unless every
-field passes. The bench applies a change between two chunks (:meth:`LiveCore.apply`).
+field passes. The ensemble applies a change between two chunks (:meth:`LiveCore.apply`).
 
 **Threads.** Validation runs wherever the request is (the event loop, viser's GUI
 threads) while the filter task may add or remove a variant: it reads one
-:class:`~app.live.bench.BenchSchema` (``bench.schema``, replaced whole by the filter
-task after each change), never the live bench, and the :class:`Change` records which
+:class:`~app.live.ensemble.EnsembleSchema` (``ensemble.schema``, replaced whole by the filter
+task after each change), never the live ensemble, and the :class:`Change` records which
 instance (``uid``) each name meant. :func:`apply_change`, on the filter task, refuses
 (PatchError "raced with another change", nothing applied) a change whose instance has
 been removed or replaced since.
@@ -34,7 +34,7 @@ from typing import Any
 from app.config import renamed_message
 from app.estimators import NAMES, estimator_class
 from app.params import SHARED_MEANINGS, ParamError, fields_of, replace_params, to_dict
-from app.live.bench import Bench, BenchError, BenchSchema
+from app.live.ensemble import Ensemble, EnsembleError, EnsembleSchema
 
 
 class PatchError(ValueError):
@@ -68,39 +68,39 @@ class Change:
     magcal: dict[str, Any] | None = None
     magcal_set: bool = False
     # the instances the change was validated against (name -> Instance.uid): applied only
-    # if each is still on the bench, the same instance (not removed, not added again)
+    # if each is still on the ensemble, the same instance (not removed, not added again)
     against: dict[str, int] = field(default_factory=dict)
 
 
-def _schema(bench: Bench | BenchSchema) -> BenchSchema:
+def _schema(ensemble: Ensemble | EnsembleSchema) -> EnsembleSchema:
     """The one immutable picture a validation reads (see the module doc)."""
-    return bench.schema if isinstance(bench, Bench) else bench
+    return ensemble.schema if isinstance(ensemble, Ensemble) else ensemble
 
 
-def shared_names(bench: Bench | BenchSchema) -> list[str]:
+def shared_names(ensemble: Ensemble | EnsembleSchema) -> list[str]:
     """The names a PATCH takes at the top level: shared quantities some instance has."""
-    bench = _schema(bench)
+    ensemble = _schema(ensemble)
     have = set()
-    for n in bench.names:
-        have.update(fields_of(bench.params_of(n)))
+    for n in ensemble.names:
+        have.update(fields_of(ensemble.params_of(n)))
     return [k for k in SHARED_MEANINGS if k in have]
 
 
-def common_names(bench: Bench | BenchSchema) -> list[str]:
+def common_names(ensemble: Ensemble | EnsembleSchema) -> list[str]:
     """Parameters every instance has (GET /api/params shows the primary's values)."""
-    bench = _schema(bench)
-    sets = [set(fields_of(bench.params_of(n))) for n in bench.names]
+    ensemble = _schema(ensemble)
+    sets = [set(fields_of(ensemble.params_of(n))) for n in ensemble.names]
     return sorted(set.intersection(*sets)) if sets else []
 
 
-def _top_level_refusal(bench: BenchSchema, key: str) -> str:
-    owners = [n for n in bench.names if key in fields_of(bench.params_of(n))]
+def _top_level_refusal(ensemble: EnsembleSchema, key: str) -> str:
+    owners = [n for n in ensemble.names if key in fields_of(ensemble.params_of(n))]
     renames = [m for m in (renamed_message(b, key, estimator_class(b).Params) for b in NAMES) if m]
     parts = []
     if renames:
         parts.append("; ".join(renames))
     if owners:
-        f = fields_of(bench.params_of(owners[0]))[key].metadata
+        f = fields_of(ensemble.params_of(owners[0]))[key].metadata
         unit = f.get("unit") or "no unit"
         parts.append(f"not a shared parameter: it is {', '.join(owners)}'s own ({unit}); "
                      f"set it under \"estimators\": {{\"{owners[0]}\": {{\"{key}\": ...}}}}")
@@ -110,14 +110,14 @@ def _top_level_refusal(bench: BenchSchema, key: str) -> str:
     return "; ".join(parts)
 
 
-def validate_patch(bench: Bench | BenchSchema, body: Any) -> Change:
+def validate_patch(ensemble: Ensemble | EnsembleSchema, body: Any) -> Change:
     """Check a PATCH body (see the module doc); the :class:`Change` or PatchError.
-    Safe on any thread: it reads one schema of the bench."""
+    Safe on any thread: it reads one schema of the ensemble."""
     if not isinstance(body, dict):
         raise PatchError(("body",), "must be a JSON object")
-    bench = _schema(bench)
-    names = bench.names
-    shared = set(shared_names(bench))
+    ensemble = _schema(ensemble)
+    names = ensemble.names
+    shared = set(shared_names(ensemble))
     changes: dict[str, dict[str, Any]] = {n: {} for n in names}
     origin: dict[tuple[str, str], tuple] = {}
     ch = Change()
@@ -138,7 +138,7 @@ def validate_patch(bench: Bench | BenchSchema, body: Any) -> Change:
                     raise PatchError(("estimators", name), f"unknown estimator (known: {', '.join(names)})")
                 if not isinstance(sub, dict):
                     raise PatchError(("estimators", name), "must be an object {param: value}")
-                base = bench.base_of(name)
+                base = ensemble.base_of(name)
                 for k, v in sub.items():
                     msg = renamed_message(base, k, estimator_class(base).Params)
                     if msg is not None:
@@ -147,90 +147,90 @@ def validate_patch(bench: Bench | BenchSchema, body: Any) -> Change:
                     origin[(name, k)] = ("estimators", name, k)
         elif key in shared:
             for n in names:
-                if key in fields_of(bench.params_of(n)) and (n, key) not in origin:
+                if key in fields_of(ensemble.params_of(n)) and (n, key) not in origin:
                     changes[n][key] = value
                     origin[(n, key)] = (key,)
         else:
-            raise PatchError((key,), _top_level_refusal(bench, key))
+            raise PatchError((key,), _top_level_refusal(ensemble, key))
     for name, c in changes.items():
         if not c:
             continue
         try:
-            replace_params(bench.params_of(name), c)
+            replace_params(ensemble.params_of(name), c)
         except ParamError as e:
             raise PatchError(origin.get((name, e.field), ("estimators", name, e.field)),
                              e.reason) from None
     ch.params = {n: c for n, c in changes.items() if c}
-    ch.against = {n: bench.uid_of(n) for n in ch.params}
+    ch.against = {n: ensemble.uid_of(n) for n in ch.params}
     if ch.primary is not None:
-        ch.against[ch.primary] = bench.uid_of(ch.primary)
+        ch.against[ch.primary] = ensemble.uid_of(ch.primary)
     return ch
 
 
-def change_from_config(bench: Bench | BenchSchema, config: dict[str, Any]) -> Change:
+def change_from_config(ensemble: Ensemble | EnsembleSchema, config: dict[str, Any]) -> Change:
     """A change setting every builtin to its defaults + the preset (load_config's dict)
     and the magnetometer calibration to the preset's (none if it has none); variants
-    keep their parameters. Safe on any thread (one schema of the bench)."""
-    bench = _schema(bench)
+    keep their parameters. Safe on any thread (one schema of the ensemble)."""
+    ensemble = _schema(ensemble)
     p = config.get("primary")
     mc = config.get("magcal")
-    ch = Change(primary=p if p in bench.instances else None, magcal=dict(mc) if mc else None,
+    ch = Change(primary=p if p in ensemble.instances else None, magcal=dict(mc) if mc else None,
                 magcal_set=True)
-    for name, info in bench.instances.items():
+    for name, info in ensemble.instances.items():
         if not info.builtin:
             continue
         params = replace_params(type(info.params)(), config.get(name, {}))
         ch.params[name] = to_dict(params)
         ch.against[name] = info.uid
     if ch.primary is not None:
-        ch.against[ch.primary] = bench.uid_of(ch.primary)
+        ch.against[ch.primary] = ensemble.uid_of(ch.primary)
     return ch
 
 
-def _check_against(bench: Bench, ch: Change) -> None:
+def _check_against(ensemble: Ensemble, ch: Change) -> None:
     """PatchError unless every instance the change names is still the one it was
     validated against (on the filter task, before anything is applied)."""
     for n, uid in ch.against.items():
-        inst = bench.instances.get(n)
+        inst = ensemble.instances.get(n)
         if inst is None or inst.uid != uid:
             what = "was removed" if inst is None else "was removed and added again"
             loc = ("primary",) if n == ch.primary and n not in ch.params else ("estimators", n)
             raise PatchError(loc, f"raced with another change: {n} {what} meanwhile; "
                                   "nothing applied")
     for n in ch.params:
-        if n not in bench.instances:
+        if n not in ensemble.instances:
             raise PatchError(("estimators", n), f"raced with another change: no estimator {n!r} "
                                                 "on the bench now; nothing applied")
-    if ch.primary is not None and ch.primary not in bench.instances \
+    if ch.primary is not None and ch.primary not in ensemble.instances \
             and ch.primary not in {v.name for v in ch.add}:
         raise PatchError(("primary",), f"raced with another change: no estimator "
                                        f"{ch.primary!r} on the bench now; nothing applied")
 
 
-def apply_change(bench: Bench, ch: Change) -> None:
-    """Apply a validated change (between two chunks), on the thread that owns the bench
+def apply_change(ensemble: Ensemble, ch: Change) -> None:
+    """Apply a validated change (between two chunks), on the thread that owns the ensemble
     (the filter task). Validated again against the current parameters and instances
     (another change may have come first, e.g. removed the variant it names): PatchError,
     nothing applied."""
-    _check_against(bench, ch)
+    _check_against(ensemble, ch)
     try:
-        new = {n: replace_params(bench.params_of(n), c) for n, c in ch.params.items()}
+        new = {n: replace_params(ensemble.params_of(n), c) for n, c in ch.params.items()}
         for v in ch.add:
-            bench.check_new(v.name, v.base, v.params)
+            ensemble.check_new(v.name, v.base, v.params)
         for r in ch.remove:
-            if r not in bench.instances or bench.instances[r].builtin:
-                raise BenchError("remove", f"{r!r} is not a variant on the bench")
+            if r not in ensemble.instances or ensemble.instances[r].builtin:
+                raise EnsembleError("remove", f"{r!r} is not a variant on the bench")
     except ParamError as e:
         raise PatchError((e.field,), e.reason) from None
-    except BenchError as e:
+    except EnsembleError as e:
         raise PatchError((e.field,), e.reason) from None
     for n, p in new.items():
-        bench.set_params(n, {k: getattr(p, k) for k in ch.params[n]})
+        ensemble.set_params(n, {k: getattr(p, k) for k in ch.params[n]})
     for r in ch.remove:
-        bench.remove(r)
+        ensemble.remove(r)
     for v in ch.add:
-        bench.add(v.name, v.base, v.params)
+        ensemble.add(v.name, v.base, v.params)
     if ch.primary is not None:
-        bench.set_primary(ch.primary)
+        ensemble.set_primary(ch.primary)
     if ch.reset:
-        bench.reset()
+        ensemble.reset()

@@ -1,4 +1,4 @@
-"""The live core: the stream on show, the bench, the history; synchronous and pure.
+"""The live core: the stream on show, the ensemble, the history; synchronous and pure.
 
 One :class:`LiveCore` per dashboard. The async shell (:mod:`app.server.engine`) calls:
 
@@ -29,7 +29,7 @@ from app.estimators.base import F_ACC_NIS, F_MAG_NIS
 from app.params import describe, to_dict
 from app.sources.samples import Sample
 from app.live import views
-from app.live.bench import Bench, Records
+from app.live.ensemble import Ensemble, Records
 from app.live.changes import Change, apply_change, change_from_config, common_names, validate_patch
 from app.live.history import History
 from app.live.session import Session, Totals
@@ -45,7 +45,7 @@ class LiveCore:
 
     def __init__(self, config: dict[str, Any] | None = None, *, history_s: float = 20.0,
                  reorder_window_s: float = 0.05, history_rate_hz: float = 2000.0):
-        self.bench = Bench(config)
+        self.ensemble = Ensemble(config)
         self.history = History(int(history_s * history_rate_hz) + 1)
         self.reorder_window_s = reorder_window_s
         self.totals = Totals()
@@ -93,7 +93,7 @@ class LiveCore:
 
     def start(self, s: Session) -> None:
         """A new stream is on: every instance starts afresh (a new clock)."""
-        self.bench.reset()
+        self.ensemble.reset()
         self._reset_stream_state()
 
     def process(self, s: Session, samples: list[Sample]) -> Records | None:
@@ -101,8 +101,8 @@ class LiveCore:
         if s is not self.session or not samples:
             return None
         lk0 = self._primary_lk()
-        init0 = self.bench.estimator(self.bench.primary).initialized
-        rec = self.bench.step(samples)
+        init0 = self.ensemble.estimator(self.ensemble.primary).initialized
+        rec = self.ensemble.step(samples)
         self._record(rec, lk0, init0)
         s.count_processed(rec.n_samples)
         self.totals.samples += rec.n_samples
@@ -134,7 +134,7 @@ class LiveCore:
         if sel.size:
             h.gyr.extend(rec.t[sel], rec.values[sel, :3])
         flags = rec.flags[rec.primary]
-        est = self.bench.estimator(rec.primary)
+        est = self.ensemble.estimator(rec.primary)
         for k, ring, nis_col in ((1, h.acc, F_ACC_NIS), (2, h.mag, F_MAG_NIS)):
             sel = np.flatnonzero(kind == k)
             if not sel.size:
@@ -149,20 +149,20 @@ class LiveCore:
                 ring.extend(rec.t[sel], norm, np.nan if lk is None else lk, flags[sel, nis_col])
 
     def _primary_lk(self) -> float:
-        lk = self.bench.estimator(self.bench.primary).field_strength()
+        lk = self.ensemble.estimator(self.ensemble.primary).field_strength()
         return math.nan if lk is None else float(lk)
 
     # ----------------------------------------------------------------- changes
     def validate(self, body: Any) -> Change:
         """A PATCH body -> a validated change (PatchError naming the field)."""
-        return validate_patch(self.bench, body)
+        return validate_patch(self.ensemble, body)
 
     def change_from_config(self, config: dict[str, Any]) -> Change:
-        return change_from_config(self.bench, config)
+        return change_from_config(self.ensemble, config)
 
     def apply(self, ch: Change) -> dict[str, Any]:
         """Apply a validated change (PatchError if it no longer fits); the new parameters."""
-        apply_change(self.bench, ch)
+        apply_change(self.ensemble, ch)
         if ch.reset:
             self._reset_stream_state()
         return self.params_view()
@@ -177,7 +177,7 @@ class LiveCore:
     def params_view(self) -> dict[str, Any]:
         """GET /api/params: the primary, the switches every instance has (the primary's
         values), each instance's parameters (SI units) and its base kind."""
-        b = self.bench
+        b = self.ensemble
         prim = to_dict(b.params_of(b.primary))
         out: dict[str, Any] = {"primary": b.primary}
         for k in common_names(b):
@@ -189,7 +189,7 @@ class LiveCore:
     def preset_sections(self) -> dict[str, Any]:
         """The builtins' parameters and the primary (its base if it is a variant), as a
         preset's tables (variants are not part of a preset)."""
-        b = self.bench
+        b = self.ensemble
         out: dict[str, Any] = {"primary": b.base_of(b.primary)}
         for n, inst in b.instances.items():
             if inst.builtin:
@@ -197,7 +197,7 @@ class LiveCore:
         return out
 
     def params_schema(self) -> dict[str, Any]:
-        return {n: describe(type(self.bench.params_of(n))) for n in self.bench.names}
+        return {n: describe(type(self.ensemble.params_of(n))) for n in self.ensemble.names}
 
     def truth_q(self) -> np.ndarray | None:
         s = self.session
@@ -227,8 +227,8 @@ class LiveCore:
     def counts(self) -> dict[str, Any]:
         c = self.session.counts() if self.session else {"lines": 0, "samples": 0, "malformed": 0}
         tot = self.totals.as_dict()
-        tot["step_errors"] = self.bench.step_errors()
-        tot["restored"] = self.bench.restored()
+        tot["step_errors"] = self.ensemble.step_errors()
+        tot["restored"] = self.ensemble.restored()
         c.update({f"total_{k}": v for k, v in tot.items()})
-        c["updates"] = {n: i.updates() for n, i in self.bench.instances.items()}
+        c["updates"] = {n: i.updates() for n, i in self.ensemble.instances.items()}
         return c

@@ -2,7 +2,7 @@
 
 - :class:`Snapshot`: what the 3D scene draws;
 - :func:`state`: GET /api/state (see :class:`app.server.models.State`);
-- :func:`estimator_state` with :func:`app.live.bench.decision`: one instance's read-out;
+- :func:`estimator_state` with :func:`app.live.ensemble.decision`: one instance's read-out;
 - :class:`Latency` and :func:`percentiles`: GET /api/stats.
 
 Pure functions of the live core; JSON-safe (NaN and inf become None).
@@ -20,14 +20,14 @@ from app.estimators import REASON_TEXT, Diagnostics, Reason, StepFlags
 from app.estimators.base import is_rejected
 from app.quaternion import angle_between, q2euler
 
-from app.live.bench import Bench
+from app.live.ensemble import Ensemble
 from app.live.session import Session
 
 
 class CoreReadout(Protocol):
     """What the read models read of the live core (:class:`app.live.core.LiveCore` is
     one): the views are defined on this, so ``core`` imports ``views`` and not back."""
-    bench: Bench
+    ensemble: Ensemble
     session: Session | None
     t_sent: float | None
     last_vec: list
@@ -95,7 +95,7 @@ class Snapshot:
 
 
 def snapshot(core: CoreReadout) -> Snapshot:
-    b = core.bench
+    b = core.ensemble
     inst = b.instances[b.primary]
     est = inst.estimator
     return Snapshot(t=core.t_sent, primary=b.primary, q=est.q, initialized=est.initialized,
@@ -113,7 +113,7 @@ def error_deg(qa, qb) -> float | None:
 
 
 def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None) -> dict[str, Any]:
-    inst = core.bench.instances[name]
+    inst = core.ensemble.instances[name]
     est = inst.estimator
     q = est.q
     return {"q": qlist(q), "euler_deg": [float(np.degrees(a)) for a in q2euler(q)],
@@ -127,7 +127,7 @@ def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None) ->
 
 def state(core: CoreReadout) -> dict[str, Any]:
     """GET /api/state."""
-    b = core.bench
+    b = core.ensemble
     phone_q = b.phone_q
     truth_q = core.truth_q()
     ests = {n: estimator_state(core, n, phone_q, truth_q) for n in b.names}

@@ -1,7 +1,7 @@
 """The async shell around the live core: the inbox, the throttle, publishing, the supervisor.
 
 Everything the filter does lives in :class:`app.live.LiveCore` (pure and synchronous:
-sessions, the bench of estimators, changes, history, read models). This module only
+sessions, the ensemble of estimators, changes, history, read models). This module only
 moves work onto the event loop and results off it:
 
 - **the inbox**: one asyncio queue, in posting order. Streams (a phone of any app, the
@@ -16,7 +16,7 @@ moves work onto the event loop and results off it:
   pose to the scene after every batch (that moment ends the latency measurement), the
   rest of the scene at most ``scene_hz`` and the WebSocket subscribers at most ``ws_hz``
   times a second (:class:`Throttle`, in their own loop turns).
-- **it cannot die**: an exception in a step is caught by the bench (the sample is logged,
+- **it cannot die**: an exception in a step is caught by the ensemble (the sample is logged,
   counted and skipped); anything else failing on an item is logged and counted
   (``loop_errors``) and the loop goes on; a supervisor restarts the task if it ever ends
   (``restarts``, shown by /api/health and the status line). A WebSocket subscriber that
@@ -47,7 +47,7 @@ import numpy as np
 from app.config import load_config
 from app.live import Change, LiveCore, PatchError, Session, Snapshot
 from app.live.views import Latency
-from app.live.bench import TAG_OF_KIND
+from app.live.ensemble import TAG_OF_KIND
 from app.sources.samples import Sample
 
 log = logging.getLogger("orientlab.engine")
@@ -190,13 +190,13 @@ class Engine:
         core = self.core
         s = Session("warm-up", "warm-up", 0.0)
         samples = s.push(fed) + s.close()
-        core.bench.step(samples)
-        for n in core.bench.names:
-            est = core.bench.estimator(n)
+        core.ensemble.step(samples)
+        for n in core.ensemble.names:
+            est = core.ensemble.estimator(n)
             est.snapshot()
             est.diagnostics()
             est.attitude_cov()
-        core.bench.reset()
+        core.ensemble.reset()
 
     # ----------------------------------------------------------------- sessions
     def open_session(self, kind: str, label: str, truth=None, app: str = "",
@@ -334,7 +334,7 @@ class Engine:
         latency measurement), then let the rest follow at display rate."""
         self.latency.batches += 1
         if self.pose_listeners:
-            q = self.core.bench.estimator(self.core.bench.primary).q
+            q = self.core.ensemble.estimator(self.core.ensemble.primary).q
             for cb in self.pose_listeners:
                 try:
                     cb(q)
@@ -382,7 +382,7 @@ class Engine:
         t = np.concatenate([p[0] for p in pending]).tolist()
         kind = np.concatenate([p[1] for p in pending]).tolist()
         q = np.concatenate([p[2] for p in pending]).tolist()
-        msg = _JSON.encode({"primary": self.core.bench.primary, "source": self.core.source_kind(),
+        msg = _JSON.encode({"primary": self.core.ensemble.primary, "source": self.core.source_kind(),
                             "estimates": [{"t": a, "tag": TAG_OF_KIND[k], "q": b}
                                           for a, k, b in zip(t, kind, q)]}).decode()
         for sub in list(self.subscribers):
@@ -395,9 +395,9 @@ class Engine:
     def health(self, task: asyncio.Task | None) -> dict[str, Any]:
         ok = task is not None and not task.done()
         return {"status": "ok" if ok else "stopped", "restarts": self.restarts,
-                "loop_errors": self.loop_errors, "step_errors": self.core.bench.step_errors(),
+                "loop_errors": self.loop_errors, "step_errors": self.core.ensemble.step_errors(),
                 "dropped_subscribers": self.dropped_subscribers,
-                "restored": self.core.bench.restored()}
+                "restored": self.core.ensemble.restored()}
 
     def state(self) -> dict[str, Any]:
         st = self.core.state()

@@ -497,11 +497,11 @@ class CalibrationService:
         return out
 
     def change(self) -> dict[str, dict[str, Any]]:
-        """What "apply" sets: per builtin estimator on the bench the preset values (to
+        """What "apply" sets: per builtin estimator on the ensemble the preset values (to
         validate as ``{"estimators": ...}``)."""
         if self.last is None:
             raise ToolError("calibration", "no calibration yet: POST /api/calibrate first", 409)
-        names = self.core.bench.names
+        names = self.core.ensemble.names
         return {k: v for k, v in self.last["apply"].items() if k in names and v}
 
     def preset_header(self) -> str:

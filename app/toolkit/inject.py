@@ -346,9 +346,9 @@ class InjectionService:
         the phone's own estimate, else the primary's (before the disturbance shows)."""
         q = self.core.truth_q()
         if q is None:
-            q = self.core.bench.phone_q
+            q = self.core.ensemble.phone_q
         if q is None:
-            b = self.core.bench
+            b = self.core.ensemble
             est = b.estimator(b.primary)
             q = est.q if est.initialized else None
         return q

@@ -21,12 +21,12 @@ from app.toolkit.recording import Recorder, RecordingError, list_recordings, rec
 log = logging.getLogger("orientlab.recording")
 
 
-def params_in_force(bench, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
+def params_in_force(ensemble, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
     """Every instance's base and parameters, the primary, and the tables ``parts`` add
     (the magnetometer calibration in force): what a recording notes at each change."""
-    out: dict[str, Any] = {n: {"base": bench.base_of(n), **to_dict(bench.params_of(n))}
-                           for n in bench.names}
-    out["primary"] = bench.primary
+    out: dict[str, Any] = {n: {"base": ensemble.base_of(n), **to_dict(ensemble.params_of(n))}
+                           for n in ensemble.names}
+    out["primary"] = ensemble.primary
     for part in parts:
         out.update(part())
     return out
@@ -51,7 +51,7 @@ class RecordingService:
         return self.recorder is not None
 
     def params_in_force(self) -> dict[str, Any]:
-        return params_in_force(self.core.bench, self.parts)
+        return params_in_force(self.core.ensemble, self.parts)
 
     # ----------------------------------------------------------------- the hooks
     def stage(self, session, samples: list) -> list:

@@ -3,7 +3,7 @@
 ``robust-no-rejection`` (the primary with every gate off, for the disturbance
 demonstration) and ``lab-approx`` (exercise 9: the approximate time update (2k) beside
 the exact one (2j)) are the ready-made ones; any ``(name, base, params)`` is accepted
-(``app.live.bench.Bench.check_new`` validates it).
+(``app.live.ensemble.Ensemble.check_new`` validates it).
 Which parameters are gates is read from the parameter set itself (a gate, band or
 de-weighting field whose help says ``0: off``), so a renamed or new gate is covered without a list here.
 """
@@ -41,8 +41,8 @@ def ready_made(primary: str) -> dict[str, tuple[str, dict[str, Any]]]:
 
 
 class VariantService:
-    """Variants on the live bench: checks an instance to add or remove before the
-    server posts the change (the bench applies it between two chunks). ``core``: the
+    """Variants on the live ensemble: checks an instance to add or remove before the
+    server posts the change (the ensemble applies it between two chunks). ``core``: the
     live core."""
 
     def __init__(self, core):
@@ -52,8 +52,8 @@ class VariantService:
         """``params`` (a copy) if ``name`` may be added as a variant of ``base``, else
         ToolError naming the field (``name``, ``base``, ``params`` or ``params.<key>``)."""
         try:
-            self.core.bench.check_new(name, base, params)
-        except Exception as e:  # BenchError or ParamError: both name the field
+            self.core.ensemble.check_new(name, base, params)
+        except Exception as e:  # EnsembleError or ParamError: both name the field
             fld = getattr(e, "field", "params")
             if fld not in ("name", "base", "params"):
                 fld = f"params.{fld}"
@@ -62,12 +62,12 @@ class VariantService:
 
     def no_rejection(self) -> tuple[str, str, dict[str, Any]]:
         """The primary with every gate off: ``(name, base, params)``."""
-        base = self.core.bench.base_of(self.core.bench.primary)
+        base = self.core.ensemble.base_of(self.core.ensemble.primary)
         return f"{base}-no-rejection", base, no_rejection_changes(base)
 
     def check_remove(self, name: str) -> str:
-        """``name`` if it is a variant on the bench, else ToolError (404 or 409)."""
-        b = self.core.bench
+        """``name`` if it is a variant on the ensemble, else ToolError (404 or 409)."""
+        b = self.core.ensemble
         if name not in b.names:
             raise ToolError("name", f"no estimator {name!r} (known: {', '.join(b.names)})", 404)
         if b.base_of(name) == name:
@@ -75,12 +75,12 @@ class VariantService:
         return name
 
     def variants(self) -> list[str]:
-        """The variants on the bench, in the order they were added."""
-        b = self.core.bench
+        """The variants on the ensemble, in the order they were added."""
+        b = self.core.ensemble
         return [n for n in b.names if b.base_of(n) != n]
 
     def listing(self) -> dict[str, Any]:
         """``GET /api/estimators``: the primary and every instance."""
-        b = self.core.bench
+        b = self.core.ensemble
         return {"primary": b.primary, "estimators": [
             {"name": n, "base": b.base_of(n), "builtin": b.base_of(n) == n} for n in b.names]}

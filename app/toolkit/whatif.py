@@ -264,10 +264,10 @@ def _json_counts(c: dict) -> dict:
 
 class WhatIfService:
     """What-if on the live server: re-run a recording of the folder through every
-    estimator on the bench, with the parameters in force before and ``patch`` after, in
+    estimator on the ensemble, with the parameters in force before and ``patch`` after, in
     a worker thread (the live stream goes on meanwhile).
 
-    ``core``: the live core (its bench's instances); ``files(name)``: a recording's
+    ``core``: the live core (its ensemble's instances); ``files(name)``: a recording's
     files (ToolError if none)."""
 
     def __init__(self, core, files: Callable[[str], dict]):
@@ -277,7 +277,7 @@ class WhatIfService:
         self._cache: dict = {}
 
     def specs(self) -> dict[str, tuple[str, dict[str, Any]]]:
-        b = self.core.bench
+        b = self.core.ensemble
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from app.estimators import NAMES, estimator_class
-from app.live.bench import Bench
+from app.live.ensemble import Ensemble
 from app.live.changes import (Change, PatchError, Variant, apply_change, change_from_config,
                               shared_names, validate_patch)
 from app.params import SHARED_MEANINGS
@@ -35,64 +35,64 @@ def test_every_name_two_estimators_share_has_one_declared_meaning_and_unit():
 
 
 def test_top_level_takes_shared_names_only():
-    bench = Bench()
-    assert "use_mag" in shared_names(bench) and "gyr_noise" not in shared_names(bench)
-    ch = validate_patch(bench, {"use_mag": False})
-    assert set(ch.params) == set(bench.names) and all(c == {"use_mag": False} for c in ch.params.values())
+    ensemble = Ensemble()
+    assert "use_mag" in shared_names(ensemble) and "gyr_noise" not in shared_names(ensemble)
+    ch = validate_patch(ensemble, {"use_mag": False})
+    assert set(ch.params) == set(ensemble.names) and all(c == {"use_mag": False} for c in ch.params.values())
     with pytest.raises(PatchError) as e:
-        validate_patch(bench, {"gyr_noise": 0.01})
+        validate_patch(ensemble, {"gyr_noise": 0.01})
     assert e.value.loc == ("gyr_noise",)
     assert "gyr_noise was renamed gyr_std in lab" in e.value.reason
     assert "robust" in e.value.reason and "estimators" in e.value.reason
     with pytest.raises(PatchError) as e:
-        validate_patch(bench, {"tau": 2.0})
+        validate_patch(ensemble, {"tau": 2.0})
     assert "complementary" in e.value.reason
     with pytest.raises(PatchError) as e:
-        validate_patch(bench, {"bogus": 1})
+        validate_patch(ensemble, {"bogus": 1})
     assert "unknown parameter" in e.value.reason
 
 
 def test_a_renamed_key_is_refused_with_its_new_name():
-    bench = Bench()
+    ensemble = Ensemble()
     with pytest.raises(PatchError) as e:
-        validate_patch(bench, {"estimators": {"lab": {"gyr_noise": 0.02}}})
+        validate_patch(ensemble, {"estimators": {"lab": {"gyr_noise": 0.02}}})
     assert e.value.loc == ("estimators", "lab", "gyr_noise")
     assert e.value.reason == "gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"
-    ch = validate_patch(bench, {"estimators": {"lab": {"gyr_std": 0.02}, "robust": {"gyr_noise": 0.01}}})
-    apply_change(bench, ch)
-    assert bench.params_of("lab").gyr_std == 0.02 and bench.params_of("robust").gyr_noise == 0.01
+    ch = validate_patch(ensemble, {"estimators": {"lab": {"gyr_std": 0.02}, "robust": {"gyr_noise": 0.01}}})
+    apply_change(ensemble, ch)
+    assert ensemble.params_of("lab").gyr_std == 0.02 and ensemble.params_of("robust").gyr_noise == 0.01
 
 
 def test_nothing_applies_unless_everything_passes():
-    bench = Bench()
-    before = {n: bench.params_of(n) for n in bench.names}
+    ensemble = Ensemble()
+    before = {n: ensemble.params_of(n) for n in ensemble.names}
     for body in ({"use_mag": False, "estimators": {"lab": {"acc_std": -1.0}}},
                  {"primary": "nope"}, {"primary": {"a": 1}}, {"primary": ["robust"]},
                  {"estimators": {"nope": {}}}, {"use_mag": "yes"}, {"reset": 1}, [1, 2]):
         with pytest.raises(PatchError):
-            apply_change(bench, validate_patch(bench, body))
-    assert {n: bench.params_of(n) for n in bench.names} == before
+            apply_change(ensemble, validate_patch(ensemble, body))
+    assert {n: ensemble.params_of(n) for n in ensemble.names} == before
 
 
 def test_estimator_keys_win_and_primary_and_reset():
-    bench = Bench()
-    ch = validate_patch(bench, {"use_acc": False, "estimators": {"lab": {"use_acc": True}},
+    ensemble = Ensemble()
+    ch = validate_patch(ensemble, {"use_acc": False, "estimators": {"lab": {"use_acc": True}},
                                 "primary": "lab", "reset": True})
-    apply_change(bench, ch)
-    assert bench.primary == "lab" and bench.params_of("lab").use_acc is True
-    assert bench.params_of("robust").use_acc is False
+    apply_change(ensemble, ch)
+    assert ensemble.primary == "lab" and ensemble.params_of("lab").use_acc is True
+    assert ensemble.params_of("robust").use_acc is False
 
 
 def test_variants_through_a_change_and_presets_leave_them_alone():
-    bench = Bench()
-    apply_change(bench, Change(add=[Variant("robust-no-rejection", "robust", {"mag_nis_gate": 0.0})]))
-    assert bench.base_of("robust-no-rejection") == "robust"
-    ch = validate_patch(bench, {"estimators": {"robust-no-rejection": {"acc_nis_gate": 0.0}}})
-    apply_change(bench, ch)
-    apply_change(bench, change_from_config(bench, {"primary": "lab", "lab": {"acc_std": 0.3}}))
-    assert bench.params_of("lab").acc_std == 0.3 and bench.primary == "lab"
-    assert bench.params_of("robust-no-rejection").acc_nis_gate == 0.0
+    ensemble = Ensemble()
+    apply_change(ensemble, Change(add=[Variant("robust-no-rejection", "robust", {"mag_nis_gate": 0.0})]))
+    assert ensemble.base_of("robust-no-rejection") == "robust"
+    ch = validate_patch(ensemble, {"estimators": {"robust-no-rejection": {"acc_nis_gate": 0.0}}})
+    apply_change(ensemble, ch)
+    apply_change(ensemble, change_from_config(ensemble, {"primary": "lab", "lab": {"acc_std": 0.3}}))
+    assert ensemble.params_of("lab").acc_std == 0.3 and ensemble.primary == "lab"
+    assert ensemble.params_of("robust-no-rejection").acc_nis_gate == 0.0
     with pytest.raises(PatchError):
-        apply_change(bench, Change(remove=["robust"]))
-    apply_change(bench, Change(remove=["robust-no-rejection"]))
-    assert "robust-no-rejection" not in bench.names
+        apply_change(ensemble, Change(remove=["robust"]))
+    apply_change(ensemble, Change(remove=["robust-no-rejection"]))
+    assert "robust-no-rejection" not in ensemble.names

@@ -61,7 +61,7 @@ def test_params_view_and_presets_of_the_builtins():
     core.apply(core.validate({"use_mag": False, "primary": "lab"}))
     v = core.params_view()
     assert v["primary"] == "lab" and v["use_mag"] is False and v["bases"]["lab"] == "lab"
-    core.bench.add("lab-approx", "lab", {"time_update": "approx"})
+    core.ensemble.add("lab-approx", "lab", {"time_update": "approx"})
     assert "lab-approx" in core.params_view()["estimators"]
     sec = core.preset_sections()
     assert "lab-approx" not in sec and sec["primary"] == "lab" and sec["lab"]["use_mag"] is False

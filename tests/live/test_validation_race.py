@@ -3,7 +3,7 @@
 viser runs the GUI's callbacks on its own thread pool, and those validate a change
 (:meth:`LiveCore.validate`) while the filter task may be adding or removing a variant
 (the Estimators tab, ``POST /api/estimators``). The first version validated against the
-live bench: a variant removed half-way through a validation raised ``KeyError`` (not a
+live ensemble: a variant removed half-way through a validation raised ``KeyError`` (not a
 refusal), and a change validated against one ``v1`` was applied to another (removed and
 added again meanwhile) or reported applied when its instance was gone.
 
@@ -69,7 +69,7 @@ def post(eng: Engine, change: Change, timeout: float = 10.0) -> dict:
 
 def test_validation_and_apply_never_race_variant_add_remove(engine):
     eng = engine
-    bench = eng.core.bench
+    ensemble = eng.core.ensemble
     stop = threading.Event()
     errors: list[str] = []
     wrong: list[str] = []
@@ -104,16 +104,16 @@ def test_validation_and_apply_never_race_variant_add_remove(engine):
         own = OWN_FIELDS[i]
         while not stop.is_set():
             value = 0.5 + next(marker) * 1e-7     # a value no other change sets
-            before = bench.instances.get("v1")
+            before = ensemble.instances.get("v1")
             try:
                 change = eng.core.validate({"estimators": {"v1": {own: value}}})
             except PatchError:
-                note("refused by validation")     # v1 not on the bench: fine
+                note("refused by validation")     # v1 not on the ensemble: fine
                 continue
             except Exception:
                 fail(f"validate (thread {i})")
                 continue
-            after = bench.instances.get("v1")
+            after = ensemble.instances.get("v1")
             try:
                 view = post(eng, change)
             except PatchError:

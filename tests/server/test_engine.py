@@ -87,7 +87,7 @@ class Raising(PhoneOrientation):
 
 def test_a_step_that_raises_is_counted_and_the_stream_goes_on(srv, api):
     eng = srv.engine
-    eng.loop.call_soon_threadsafe(eng.core.bench.add, "raiser", "phone", None, Raising())
+    eng.loop.call_soon_threadsafe(eng.core.ensemble.add, "raiser", "phone", None, Raising())
     wait_for(lambda: "raiser" in api.get("/api/params").json()["estimators"], what="the variant")
     try:
         lines = ["1000\tACC\t0\t0\t9.81", "1005\tORI\t0.99\t0.14\t0\t0", "1010\tORI\t1\t0\t0\t0",
@@ -102,7 +102,7 @@ def test_a_step_that_raises_is_counted_and_the_stream_goes_on(srv, api):
         st = play(srv, api, simulate(("still",), seed=1).lines())
         assert st["initialized"] and st["estimators"]["raiser"]["q"] is not None
     finally:
-        eng.loop.call_soon_threadsafe(eng.core.bench.remove, "raiser")
+        eng.loop.call_soon_threadsafe(eng.core.ensemble.remove, "raiser")
         wait_for(lambda: "raiser" not in api.get("/api/params").json()["estimators"], what="removed")
 
 

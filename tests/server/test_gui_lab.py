@@ -25,13 +25,13 @@ def test_the_monitor_keeps_each_estimators_heading_at_its_rate():
     for i in range(0, len(lines), 200):
         core.process(s, feed_lines(core, s, lines[i:i + 200]))
     core.process(s, core.close_session(s))
-    assert set(mon.yaw) == set(core.bench.names) and len(mon.t) > 100
+    assert set(mon.yaw) == set(core.ensemble.names) and len(mon.t) > 100
     t = np.asarray(mon.t)
     assert np.all(np.diff(t) >= 1.0 / MONITOR_HZ - 1e-9)
     all_t = np.concatenate([r.t for r in seen])
     rows = np.searchsorted(all_t, t)                      # the rows the monitor kept
     np.testing.assert_array_equal(all_t[rows], t)
-    for name in core.bench.names:
+    for name in core.ensemble.names:
         q = np.concatenate([r.q[name] for r in seen])[rows]
         want = np.degrees(q2euler_many(q)[:, 0])
         np.testing.assert_allclose(mon.yaw[name], want, equal_nan=True, atol=1e-9)

@@ -147,7 +147,7 @@ def test_real_log_plots_draw_for_every_primary(tmp_path, browser):
         ctx, page, _ = open_page(browser, srv, tmp_path)
         try:
             frame = viewer_frame(page)
-            for primary in srv.engine.core.bench.names:
+            for primary in srv.engine.core.ensemble.names:
                 assert api.patch("/api/params", json={"primary": primary}).status_code == 200
                 play(srv, api, lines)
                 expect = {"acc": ["|acc|"], "mag": ["|mag|"]}

@@ -238,10 +238,10 @@ def test_every_parameter_of_every_estimator_has_a_control(srv):
     set has its control in that estimator's folder; the sensor switches are common."""
     from app.params import describe
     from app.server.gui.main import SENSOR_SWITCHES
-    gui, bench = srv.app.state.gui, srv.engine.core.bench
+    gui, ensemble = srv.app.state.gui, srv.engine.core.ensemble
     have = {(c.estimator, c.name) for c in gui.controls}
-    for name in bench.names:
-        fields = {row["name"] for row in describe(type(bench.params_of(name)))}
+    for name in ensemble.names:
+        fields = {row["name"] for row in describe(type(ensemble.params_of(name)))}
         missing = fields - dict(SENSOR_SWITCHES).keys() - {n for e, n in have if e == name}
         assert not missing, (name, sorted(missing))
     assert set(gui.switches) == set(dict(SENSOR_SWITCHES))     # the common switches
@@ -251,7 +251,7 @@ def test_every_gui_control_is_patchable(srv, api):
     gui = srv.app.state.gui
     assert gui.controls
     for c in gui.controls:
-        value = getattr(srv.engine.core.bench.params_of(c.estimator), c.name)
+        value = getattr(srv.engine.core.ensemble.params_of(c.estimator), c.name)
         r = api.patch("/api/params", json={"estimators": {c.estimator: {c.name: value}}})
         assert r.status_code == 200, (c.estimator, c.name, r.text)
 

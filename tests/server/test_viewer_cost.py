@@ -93,7 +93,7 @@ def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
             for gate, name in ((gate_a, "acc_nis_gate"), (gate_m, "mag_nis_gate")):
                 assert gate[1:-1] == [None] * (len(gate) - 2)
                 assert gate[0] == gate[-1] == pytest.approx(
-                    getattr(gui.engine.core.bench.params_of("robust"), name), rel=1e-3)
+                    getattr(gui.engine.core.ensemble.params_of("robust"), name), rel=1e-3)
             # a variant beside the builtins: the heading plot follows the stream
             r = api.post("/api/estimators", json={"preset": "no-rejection"})
             assert r.status_code == 200, r.text

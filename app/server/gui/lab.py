@@ -6,7 +6,7 @@ The heading plot (every estimator's heading over the last 30 s, the injected dis
 beside it) is what a viewer would pay most for: viser resends a chart whole, and the
 server cannot know whether a browser shows the Lab tab (the tab choice stays in the
 browser). So it is sent only while it has something to show (:meth:`LabGui.monitor_live`:
-a variant on the bench, a disturbance in its window, or "Live heading plot" ticked),
+a variant on the ensemble, a disturbance in its window, or "Live heading plot" ticked),
 at most :data:`MONITOR_DRAW_HZ` times a second with :data:`MONITOR_POINTS` rows; at
 the default view it sends nothing.
 
@@ -120,7 +120,7 @@ GHOST_COLORS = ((220, 40, 40), (140, 70, 200), (30, 160, 200), (200, 160, 20), (
 
 class VariantGhosts:
     """Each variant drawn as its own translucent phone with its name, beside the primary
-    (the scene's own ghosts are the phone's estimate and the truth). Follows the bench:
+    (the scene's own ghosts are the phone's estimate and the truth). Follows the ensemble:
     a variant added or removed appears or goes at the next scene refresh."""
 
     def __init__(self, server, tk: Toolkit):
@@ -130,7 +130,7 @@ class VariantGhosts:
         tk.engine.listeners.append(self.draw)
 
     def draw(self, _snapshot=None) -> None:
-        b = self.core.bench
+        b = self.core.ensemble
         variants = [n for n in b.names if b.base_of(n) != n]
         for name in list(self.frames):
             if name not in variants:
@@ -207,7 +207,7 @@ class LabGui:
                      "window (each viewer pays for every refresh of a chart).")
             # fixed series (the page's uPlot keeps the count it was made with): the
             # builtins, VARIANT_SLOTS variants in the order they were added, the disturbance
-            self._mon_builtins = [n for n in self.core.bench.names]
+            self._mon_builtins = [n for n in self.core.ensemble.names]
             self.p_monitor = self._plot("Heading [deg] of each estimator; injected size (grey)",
                                         self._mon_builtins + [f"variant {i + 1}" for i in range(VARIANT_SLOTS)]
                                         + ["disturbance"], height=220, x_range=(-MONITOR_S, 0.0))
@@ -270,8 +270,8 @@ class LabGui:
             self.rp_md = gui.add_markdown("")
         with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
             self.wi_name = gui.add_dropdown("Recording ", ("(none)",))
-            self.wi_est = gui.add_dropdown("Estimator", tuple(self.core.bench.names),
-                                           initial_value=self.core.bench.primary)
+            self.wi_est = gui.add_dropdown("Estimator", tuple(self.core.ensemble.names),
+                                           initial_value=self.core.ensemble.primary)
             self.wi_patch = gui.add_text("Change (JSON)", '{"mag_norm_gate_rel": 0}',
                                          hint="parameters of that estimator, e.g. {\"acc_std\": 0.3}")
             wb = gui.add_button("Re-run before/after")
@@ -568,7 +568,7 @@ class LabGui:
         else:
             self.rp_md.content = "not replaying"
         # variants
-        b = self.core.bench
+        b = self.core.ensemble
         variants = tuple(n for n in b.names if b.base_of(n) != n) or ("(none)",)
         if tuple(self.var_remove.options) != variants:
             self.var_remove.options = variants
@@ -585,7 +585,7 @@ class LabGui:
         """Every estimator's Euler angles, error to the phone and its last magnetometer
         decision: the variants' read-outs beside the builtins'."""
         from app.quaternion import angle_between
-        b = self.core.bench
+        b = self.core.ensemble
         phone = b.phone_q
         rows = ["| estimator | yaw pitch roll [deg] | to phone | magnetometer |", "|---|---|---|---|"]
         for n in b.names:
@@ -602,10 +602,10 @@ class LabGui:
 
     def monitor_live(self) -> bool:
         """Whether the heading plot follows the stream: "Live heading plot" ticked, a
-        variant on the bench, a disturbance active or one in the plot's window."""
+        variant on the ensemble, a disturbance active or one in the plot's window."""
         if self.monitor_follow.value or self.tk.injection.injector.active:
             return True
-        b = self.core.bench
+        b = self.core.ensemble
         if any(b.base_of(n) != n for n in b.names):
             return True
         m = self.monitor
@@ -621,7 +621,7 @@ class LabGui:
         self._monitor_due = now + 1.0 / MONITOR_DRAW_HZ
         keep = np.unique(np.linspace(0, len(m.t) - 1, min(len(m.t), MONITOR_POINTS)).astype(np.int64))
         t = np.array(m.t)[keep]
-        b = self.core.bench
+        b = self.core.ensemble
         variants = [n for n in b.names if b.base_of(n) != n][:VARIANT_SLOTS]
         cols = []
         for n in self._mon_builtins + variants + [None] * (VARIANT_SLOTS - len(variants)):

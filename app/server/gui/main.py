@@ -40,7 +40,7 @@ from app.estimators import AVERAGED_IN, Reason, is_rejected
 from app.params import describe, fields_of
 from app.quaternion import q2euler_many
 from app.server.gui.controls import Control, build_control, show_value
-from app.live.bench import SENSORS
+from app.live.ensemble import SENSORS
 from app.server.engine import Engine, PatchError
 from app.server.gui.plots import EULER_COLORS, Plot, angle_deg, during, ends, unwrap_deg
 from app.server.presets import (NAME_RE, list_presets, load_preset, load_preset_path, load_preset_text,
@@ -71,7 +71,7 @@ class Gui:
         self.folders: dict[str, object] = {}
         self._hold: dict[str, tuple[str, float, float]] = {}  # sensor -> (text, lit until, since)
         self._rej_seen: dict[str, int] = {s: 0 for s in SENSORS}
-        self._rej_primary = engine.core.bench.primary
+        self._rej_primary = engine.core.ensemble.primary
         self.indicators_now = Indicators()
         gui = server.gui
         gui.configure_theme(show_share_button=False, control_width="large",
@@ -88,7 +88,7 @@ class Gui:
                 h.on_update(self._make_switch_cb(key, h))
                 self.switches[key] = h
             self.primary = gui.add_dropdown(
-                "Primary estimator", engine.core.bench.names, initial_value=engine.core.bench.primary,
+                "Primary estimator", engine.core.ensemble.names, initial_value=engine.core.ensemble.primary,
                 hint="The estimator drawn as the phone, plotted and shown in the read-outs; "
                      "every estimator runs on every sample.")
             self.primary.on_update(lambda ev: self._submit({"primary": self.primary.value}, ev))
@@ -120,10 +120,10 @@ class Gui:
                              "for what it does. The primary estimator comes first.")
             self.bias_folder, self._bias_for = None, None   # lab's bias tool (_build_bias)
             self._build_bias(gui)
-            for name in engine.core.bench.names:
-                est = engine.core.bench.estimator(name)
+            for name in engine.core.ensemble.names:
+                est = engine.core.ensemble.estimator(name)
                 folder = gui.add_folder(f"{name}: {type(est).title or type(est).__name__}",
-                                        expand_by_default=(name == engine.core.bench.primary),
+                                        expand_by_default=(name == engine.core.ensemble.primary),
                                         order=self._folder_order(name))
                 self.folders[name] = folder
                 with folder:
@@ -155,18 +155,18 @@ class Gui:
 
     # ------------------------------------------------------------------ controls
     def _common_value(self, key: str):
-        # viser's threads call this too: one schema of the bench, never the live one (a
+        # viser's threads call this too: one schema of the ensemble, never the live one (a
         # variant removed meanwhile, the primary with it, cannot be half seen)
-        schema = self.engine.core.bench.schema
+        schema = self.engine.core.ensemble.schema
         return getattr(schema.params_of(schema.primary), key)
 
     def _folder_order(self, name: str) -> float:
-        names = self.engine.core.bench.names
-        return 10.0 if name == self.engine.core.bench.primary else 11.0 + names.index(name)
+        names = self.engine.core.ensemble.names
+        return 10.0 if name == self.engine.core.ensemble.primary else 11.0 + names.index(name)
 
     def _build_controls(self, gui, est_name: str, params_cls) -> None:
         fmeta = fields_of(params_cls)
-        current = self.engine.core.bench.params_of(est_name)
+        current = self.engine.core.ensemble.params_of(est_name)
         for row in describe(params_cls):
             name = row["name"]
             if name in dict(SENSOR_SWITCHES):
@@ -180,7 +180,7 @@ class Gui:
     def _build_bias(self, gui) -> None:
         """Give ``lab`` (which does not estimate it) the gyroscope bias: the mean rate of
         the last N s, when the phone lay still then."""
-        have = [n for n in BIAS_ESTIMATORS if n in self.engine.core.bench.instances]
+        have = [n for n in BIAS_ESTIMATORS if n in self.engine.core.ensemble.instances]
         if not have:
             return
         # just before lab's own folder: the primary's controls stay first (see sync())
@@ -218,7 +218,7 @@ class Gui:
         if bias is None:
             self._notify(ev, "Bias not set", why)
             return
-        names = [n for n in BIAS_ESTIMATORS if n in self.engine.core.bench.instances]
+        names = [n for n in BIAS_ESTIMATORS if n in self.engine.core.ensemble.instances]
         self._submit({"estimators": {n: {"gyr_bias": bias.tolist()} for n in names}}, ev)
         d = np.degrees(bias)
         self._notify(ev, "Gyroscope bias set", f"{', '.join(names)}: gyr_bias = "
@@ -244,7 +244,7 @@ class Gui:
             except (TypeError, ValueError):
                 self.engine.loop.call_soon_threadsafe(self.sync)
                 return
-            info = self.engine.core.bench.schema.instances.get(c.estimator)
+            info = self.engine.core.ensemble.schema.instances.get(c.estimator)
             if info is None:        # its variant was removed meanwhile (controls going too)
                 return
             if c.same(value, getattr(info.params, c.name)):
@@ -254,7 +254,7 @@ class Gui:
 
     def _submit(self, body: dict, ev=None) -> None:
         """Validate and post a change (the same body PATCH /api/params takes). Runs on
-        viser's threads: validation reads one schema of the bench (thread-safe); the
+        viser's threads: validation reads one schema of the ensemble (thread-safe); the
         filter task refuses the change if its estimator went meanwhile (a variant
         removed), and that refusal comes back here as a notice."""
         try:
@@ -339,21 +339,21 @@ class Gui:
                 v = self._common_value(key)
                 if h.value != v:
                     h.value = v
-            bench = self.engine.core.bench
-            if self.primary.value != bench.primary:
-                self.primary.value = bench.primary
+            ensemble = self.engine.core.ensemble
+            if self.primary.value != ensemble.primary:
+                self.primary.value = ensemble.primary
             for name, folder in self.folders.items():
                 order = self._folder_order(name)
                 if folder.order != order:
                     folder.order = order
-                    if name == bench.primary:
+                    if name == ensemble.primary:
                         folder.expand_by_default = True
             if self.bias_folder is not None:
                 order = self._folder_order(self._bias_for) - 0.5
                 if self.bias_folder.order != order:
                     self.bias_folder.order = order
             for c in self.controls:
-                value = getattr(bench.params_of(c.estimator), c.name)
+                value = getattr(ensemble.params_of(c.estimator), c.name)
                 if not c.gui_same(value):
                     show_value(c, value)
         finally:
@@ -400,7 +400,7 @@ class Gui:
         (no reference for the error, no magnetometer, no NIS) shows empty axes and the
         note under the plots says why."""
         core = self.engine.core
-        primary = core.bench.primary
+        primary = core.ensemble.primary
         hist, span = core.history, self.settings.history_s
         pose = hist.pose.window(span, MAX_POINTS)
         if len(pose) < 2:
@@ -409,7 +409,7 @@ class Gui:
         mag = hist.mag.window(span, MAX_POINTS)
         session = core.session
         truth = session.truth if session is not None else None
-        diag = core.bench.estimator(primary).diagnostics()
+        diag = core.ensemble.estimator(primary).diagnostics()
         t0 = self.stream_t0()
         if t0 is None:
             t0 = pose["t"][0]
@@ -438,7 +438,7 @@ class Gui:
         if not self.p_euler.has_data:
             notes.append(f"Euler angles: {primary} has no estimate yet"
                          + (" (it needs the phone's Orientation sensor, ORI)"
-                            if core.bench.base_of(primary) == "phone" else ""))
+                            if core.ensemble.base_of(primary) == "phone" else ""))
         yield
         err_p = np.full(x.shape, np.nan)
         if np.any(has_p):
@@ -515,7 +515,7 @@ class Gui:
         snap = eng.core.snapshot()
         now = time.monotonic()
         primary = snap.primary
-        inst = eng.core.bench.instances[primary]
+        inst = eng.core.ensemble.instances[primary]
         if primary != self._rej_primary:
             self._rej_primary = primary
             self._hold.clear()

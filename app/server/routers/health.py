@@ -13,8 +13,8 @@ router = APIRouter(prefix="/api", tags=["health"])
 async def health(request: Request, engine: Engine = Depends(get_engine)) -> Health:
     """Is the filter task running?"""
     h = engine.health(request.app.state.tasks.get("engine"))
-    return Health(**h, source=engine.core.source_kind(), estimators=engine.core.bench.names,
-                  primary=engine.core.bench.primary)
+    return Health(**h, source=engine.core.source_kind(), estimators=engine.core.ensemble.names,
+                  primary=engine.core.ensemble.primary)
 
 
 @router.get("/info", response_model=Info)

@@ -1,16 +1,16 @@
-"""The bench: every estimator instance, stepped together on the stream's samples.
+"""The ensemble: every estimator instance, stepped together on the stream's samples.
 
 An **instance** is a named estimator of a base kind (``robust``, ``lab``,
 ``complementary``, ``phone``): the four builtins carry their kind's name; variants
-(``lab-approx``, ``robust-no-rejection``, ...) are added with :meth:`Bench.add` and run
-beside them. :meth:`Bench.step` takes the samples released by a stream, in time order,
+(``lab-approx``, ``robust-no-rejection``, ...) are added with :meth:`Ensemble.add` and run
+beside them. :meth:`Ensemble.step` takes the samples released by a stream, in time order,
 and runs them through **each instance's batch run** (``Estimator.run_into``: the
 compiled ``robust_run`` for ``robust``, the same code the CLI uses, on the estimator's
 state arrays in place), one call per chunk, so the live path costs what the batch path
 costs. It returns :class:`Records`: per instance the
 estimate and the flag record after every row.
 
-Per row and instance the bench keeps, in one compiled call per chunk
+Per row and instance the ensemble keeps, in one compiled call per chunk
 (:func:`~app.estimators.base.tally_rows`): how many samples of
 each sensor ended with each :class:`~app.estimators.Reason`, and the flag record of the
 last row of each sensor (``decision``). It also guards the estimators:
@@ -22,12 +22,12 @@ last row of each sensor (``decision``). It also guards the estimators:
   every :data:`GOOD_EVERY_S` seconds) and counts it in ``restored``; the rows from the
   first non-finite one on report the restored estimate.
 
-**The schema** (:class:`BenchSchema`, :attr:`Bench.schema`): what a change is validated
+**The schema** (:class:`EnsembleSchema`, :attr:`Ensemble.schema`): what a change is validated
 against (the instances' names, bases, parameter sets, identities, the primary), an
 immutable value replaced whole after every add, remove and primary change. Changes are
 validated on other threads (the HTTP handlers, viser's GUI threads) while the filter
 task may add or remove a variant: they read one schema (never the live ``instances``
-dict), so they see the bench before or after a change, never half of it; the filter
+dict), so they see the ensemble before or after a change, never half of it; the filter
 task's :func:`app.live.changes.apply_change` then refuses a change whose instance is
 gone or was replaced meanwhile (its ``uid`` differs).
 
@@ -52,7 +52,7 @@ from app.estimators.base import (F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags,
 from app.params import replace_params
 from app.sources.samples import Sample
 
-log = logging.getLogger("orientlab.bench")
+log = logging.getLogger("orientlab.ensemble")
 
 SENSORS = ("gyr", "acc", "mag")
 FLAG_COL = (F_GYR, F_ACC, F_MAG)
@@ -66,8 +66,8 @@ NAME_RE = re.compile(r"[a-z][a-z0-9_-]{0,39}")
 _UIDS = itertools.count(1)      # every Instance ever made has its own (next() is atomic)
 
 
-class BenchError(ValueError):
-    """A refused bench operation (bad name, unknown base, builtin removed, ...)."""
+class EnsembleError(ValueError):
+    """A refused ensemble operation (bad name, unknown base, builtin removed, ...)."""
 
     def __init__(self, field_name: str, reason: str):
         super().__init__(f"{field_name}: {reason}")
@@ -85,7 +85,7 @@ def _flags_of(row: np.ndarray) -> StepFlags | None:
 
 @dataclass
 class Instance:
-    """One named estimator on the bench and what the bench keeps about it."""
+    """One named estimator on the ensemble and what the ensemble keeps about it."""
     name: str
     base: str                       # the estimator kind
     estimator: Estimator
@@ -136,7 +136,7 @@ class Instance:
 
 @dataclass(frozen=True)
 class InstanceInfo:
-    """One instance as validation sees it (part of a :class:`BenchSchema`)."""
+    """One instance as validation sees it (part of a :class:`EnsembleSchema`)."""
     name: str
     base: str
     builtin: bool
@@ -150,9 +150,9 @@ class InstanceInfo:
 
 
 @dataclass(frozen=True)
-class BenchSchema:
-    """An immutable picture of the bench for validating changes on any thread (see the
-    module doc). The same read methods as :class:`Bench` for what validation needs."""
+class EnsembleSchema:
+    """An immutable picture of the ensemble for validating changes on any thread (see the
+    module doc). The same read methods as :class:`Ensemble` for what validation needs."""
     instances: Mapping[str, InstanceInfo]
     primary: str
     version: int
@@ -173,7 +173,7 @@ class BenchSchema:
 
 @dataclass
 class Records:
-    """What one :meth:`Bench.step` made: one row per motion or ORI sample, in order."""
+    """What one :meth:`Ensemble.step` made: one row per motion or ORI sample, in order."""
     t: np.ndarray                   # (n,) s
     kind: np.ndarray                # (n,) 0 gyr, 1 acc, 2 mag, 3 ori
     values: np.ndarray              # (n, 4) the sample (3 values + NaN, or ORI's 4)
@@ -224,7 +224,7 @@ def rows_of(samples: Iterable[Sample]) -> tuple[np.ndarray, np.ndarray, np.ndarr
         (None if t_last is None else t_last / 1000.0)
 
 
-class Bench:
+class Ensemble:
     """The estimator instances and the primary (see the module doc)."""
 
     def __init__(self, config: dict[str, Any] | None = None):
@@ -250,13 +250,13 @@ class Bench:
         """Replace :attr:`schema` (one attribute store: atomic for readers on other
         threads) after the instances or the primary changed."""
         self._version += 1
-        self.schema = BenchSchema(
+        self.schema = EnsembleSchema(
             MappingProxyType({n: InstanceInfo(n, i.base, i.builtin, i.uid, i.estimator)
                               for n, i in self.instances.items()}),
             self.primary, self._version)
 
     @classmethod
-    def from_config(cls, path=None) -> "Bench":
+    def from_config(cls, path=None) -> "Ensemble":
         from app.config import load_config
         return cls(load_config(path))
 
@@ -275,17 +275,17 @@ class Bench:
         return self.instances[name].base
 
     def check_new(self, name: str, base: str, params: dict[str, Any] | None = None):
-        """Validate a new instance; returns its parameter set. Raises BenchError or
+        """Validate a new instance; returns its parameter set. Raises EnsembleError or
         ParamError (field named), nothing changed."""
         if not isinstance(name, str) or not NAME_RE.fullmatch(name):
-            raise BenchError("name", "1-40 lower-case letters, digits, '-' or '_', starting "
+            raise EnsembleError("name", "1-40 lower-case letters, digits, '-' or '_', starting "
                                      "with a letter")
         if name in self.instances:
-            raise BenchError("name", f"{name!r} is already on the bench")
+            raise EnsembleError("name", f"{name!r} is already on the bench")
         if base not in NAMES:
-            raise BenchError("base", f"must be one of {', '.join(NAMES)}")
+            raise EnsembleError("base", f"must be one of {', '.join(NAMES)}")
         if params is not None and not isinstance(params, dict):
-            raise BenchError("params", "must be an object {param: value}")
+            raise EnsembleError("params", "must be an object {param: value}")
         builtin = self.instances.get(base)
         start = builtin.estimator.params if builtin is not None else estimator_class(base).Params()
         return replace_params(start, params or {})
@@ -297,7 +297,7 @@ class Bench:
         object instead (an instance of ``base``'s class or a subclass; tests, experiments)."""
         p = self.check_new(name, base, params)
         if estimator is not None and not isinstance(estimator, estimator_class(base)):
-            raise BenchError("estimator", f"must be a {estimator_class(base).__name__}")
+            raise EnsembleError("estimator", f"must be a {estimator_class(base).__name__}")
         inst = Instance(name, base, estimator if estimator is not None else estimator_class(base)(p),
                         builtin=False)
         self.instances[name] = inst
@@ -307,9 +307,9 @@ class Bench:
     def remove(self, name: str) -> None:
         inst = self.instances.get(name)
         if inst is None:
-            raise BenchError("name", f"no instance {name!r} (known: {', '.join(self.instances)})")
+            raise EnsembleError("name", f"no instance {name!r} (known: {', '.join(self.instances)})")
         if inst.builtin:
-            raise BenchError("name", f"{name} is built in and cannot be removed")
+            raise EnsembleError("name", f"{name} is built in and cannot be removed")
         del self.instances[name]
         if self.primary == name:
             self.primary = inst.base
@@ -317,7 +317,7 @@ class Bench:
 
     def set_primary(self, name: str) -> None:
         if name not in self.instances:
-            raise BenchError("primary", f"must be one of {', '.join(self.instances)}; got {name!r}")
+            raise EnsembleError("primary", f"must be one of {', '.join(self.instances)}; got {name!r}")
         self.primary = name
         self._publish()
 
@@ -425,4 +425,4 @@ class Bench:
         return sum(i.restored for i in self.instances.values())
 
 
-__all__ = ["Bench", "BenchError", "BenchSchema", "Instance", "InstanceInfo", "Records", "rows_of"]
+__all__ = ["Ensemble", "EnsembleError", "EnsembleSchema", "Instance", "InstanceInfo", "Records", "rows_of"]

@@ -1,4 +1,4 @@
-"""app.live.bench: every instance steps a chunk in one batch run; the same estimates as
+"""app.live.ensemble: every instance steps a chunk in one batch run; the same estimates as
 stepping sample by sample; variants; a step that raises or a state that goes non-finite
 is contained."""
 
@@ -10,7 +10,7 @@ import pytest
 from app.estimators import make_estimator
 from app.estimators.base import Estimator
 from app.estimators.phone import PhoneOrientation
-from app.live.bench import Bench, BenchError
+from app.live.ensemble import Ensemble, EnsembleError
 from app.sources.simulate import simulate
 from app.sources.ordering import SampleOrderer
 
@@ -45,49 +45,49 @@ def stepped(name, chs):
 
 
 def test_batch_per_chunk_equals_stepping_per_sample(sim_chunks):
-    bench = Bench()
-    out = {n: [] for n in bench.names}
+    ensemble = Ensemble()
+    out = {n: [] for n in ensemble.names}
     for ch in sim_chunks:
-        rec = bench.step(ch)
-        for n in bench.names:
+        rec = ensemble.step(ch)
+        for n in ensemble.names:
             out[n].append(rec.q[n])
-    for n in bench.names:
+    for n in ensemble.names:
         np.testing.assert_allclose(np.concatenate(out[n]), stepped(n, sim_chunks), rtol=0, atol=1e-9)
 
 
 def test_counts_and_last_decisions(sim_chunks):
-    bench = Bench()
-    recs = [bench.step(ch) for ch in sim_chunks]
+    ensemble = Ensemble()
+    recs = [ensemble.step(ch) for ch in sim_chunks]
     n_acc = sum(int((r.kind == 1).sum()) for r in recs)
-    lab = bench.instances["lab"]
+    lab = ensemble.instances["lab"]
     assert lab.counts[1].sum() == n_acc
     assert lab.updates()["acc"]["used"] > 0
     f = lab.flags("acc")
     assert f is not None and f.t == recs[-1].t[recs[-1].kind == 1][-1]
-    assert bench.phone_q is not None
-    assert np.isnan(recs[0].phone_q[0]).all() or bench.instances["phone"].estimator.initialized
+    assert ensemble.phone_q is not None
+    assert np.isnan(recs[0].phone_q[0]).all() or ensemble.instances["phone"].estimator.initialized
 
 
 def test_variants_run_beside_the_builtins(sim_chunks):
-    bench = Bench()
-    v = bench.add("lab-approx", "lab", {"time_update": "approx"})
-    assert not v.builtin and bench.params_of("lab-approx").time_update == "approx"
-    assert bench.params_of("lab").time_update == "exact"
+    ensemble = Ensemble()
+    v = ensemble.add("lab-approx", "lab", {"time_update": "approx"})
+    assert not v.builtin and ensemble.params_of("lab-approx").time_update == "approx"
+    assert ensemble.params_of("lab").time_update == "exact"
     for ch in sim_chunks:
-        rec = bench.step(ch)
+        rec = ensemble.step(ch)
     assert set(rec.q) == {"robust", "lab", "complementary", "phone", "lab-approx"}
-    assert bench.estimator("lab-approx").initialized
-    with pytest.raises(BenchError):
-        bench.add("lab-approx", "lab")
-    with pytest.raises(BenchError):
-        bench.add("Bad Name", "lab")
-    with pytest.raises(BenchError):
-        bench.add("x", "nope")
-    with pytest.raises(BenchError):
-        bench.remove("lab")
-    bench.set_primary("lab-approx")
-    bench.remove("lab-approx")
-    assert "lab-approx" not in bench.names and bench.primary == "lab"
+    assert ensemble.estimator("lab-approx").initialized
+    with pytest.raises(EnsembleError):
+        ensemble.add("lab-approx", "lab")
+    with pytest.raises(EnsembleError):
+        ensemble.add("Bad Name", "lab")
+    with pytest.raises(EnsembleError):
+        ensemble.add("x", "nope")
+    with pytest.raises(EnsembleError):
+        ensemble.remove("lab")
+    ensemble.set_primary("lab-approx")
+    ensemble.remove("lab-approx")
+    assert "lab-approx" not in ensemble.names and ensemble.primary == "lab"
 
 
 class Raising(PhoneOrientation):
@@ -107,16 +107,16 @@ def ori_chunk(t0, xs):
 
 
 def test_a_step_that_raises_skips_that_sample_only():
-    bench = Bench()
-    inst = bench.add("raiser", "phone", estimator=Raising())
-    rec = bench.step(ori_chunk(1000, [0.1, 0.5, 0.2]))
+    ensemble = Ensemble()
+    inst = ensemble.add("raiser", "phone", estimator=Raising())
+    rec = ensemble.step(ori_chunk(1000, [0.1, 0.5, 0.2]))
     assert inst.step_errors == 1 and "planted" in inst.last_error
     q = rec.q["raiser"]
     np.testing.assert_allclose(q[1], q[0])            # the bad sample left the state as it was
     np.testing.assert_allclose(q[2], rec.q["phone"][2])
-    rec = bench.step(ori_chunk(2000, [0.3]))          # and the next chunk runs in batch again
+    rec = ensemble.step(ori_chunk(2000, [0.3]))          # and the next chunk runs in batch again
     np.testing.assert_allclose(rec.q["raiser"], rec.q["phone"])
-    assert bench.step_errors() == 1
+    assert ensemble.step_errors() == 1
 
 
 class NaNMaker(PhoneOrientation):
@@ -129,24 +129,24 @@ class NaNMaker(PhoneOrientation):
 
 
 def test_a_non_finite_state_is_restored():
-    bench = Bench()
-    inst = bench.add("nan", "phone", estimator=NaNMaker())
-    bench.step(ori_chunk(1000, [0.1]))
-    rec = bench.step(ori_chunk(2000, [0.2, 0.5, 0.3]))
+    ensemble = Ensemble()
+    inst = ensemble.add("nan", "phone", estimator=NaNMaker())
+    ensemble.step(ori_chunk(1000, [0.1]))
+    rec = ensemble.step(ori_chunk(2000, [0.2, 0.5, 0.3]))
     assert inst.restored == 1
     assert np.isfinite(rec.q["nan"]).all() and np.isfinite(inst.estimator.q).all()
 
 
 def test_the_phones_own_estimate_is_nan_until_its_first_valid_ori_then_shown_every_row():
     from app.sources.samples import Sample
-    bench = Bench()
+    ensemble = Ensemble()
     gyr = lambda t: Sample(t, "GYR", (0.01, 0.0, 0.0))      # noqa: E731
     x = 0.3
     ori = Sample(1020, "ORI", (float(np.sqrt(1 - x * x)), x, 0.0, 0.0))
-    r1 = bench.step([gyr(1000), gyr(1010)])                # no ORI yet
+    r1 = ensemble.step([gyr(1000), gyr(1010)])                # no ORI yet
     assert np.isnan(r1.phone_q).all()
-    r2 = bench.step([ori, gyr(1030), Sample(1040, "ORI", (0.0, 0.0, 0.0, 0.0))])
+    r2 = ensemble.step([ori, gyr(1030), Sample(1040, "ORI", (0.0, 0.0, 0.0, 0.0))])
     expected = np.array([np.sqrt(1 - x * x), x, 0.0, 0.0])
     np.testing.assert_allclose(r2.phone_q, np.tile(expected, (3, 1)))   # a zero ORI is refused
-    r3 = bench.step([gyr(1050)])                           # initialised before the chunk
+    r3 = ensemble.step([gyr(1050)])                           # initialised before the chunk
     np.testing.assert_allclose(r3.phone_q, [expected])
