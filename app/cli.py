@@ -212,7 +212,7 @@ class Progress:
 
 
 def input_summary(counts: dict) -> list[str]:
-    """Lines about skipped or rearranged input, from a Recording's counts."""
+    """Lines about skipped or rearranged input, from a LogData's counts."""
     out = []
     bad = counts.get("malformed") or {}
     if bad:
@@ -316,9 +316,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from app.toolkit.calibration import calibrate, format_report, to_preset
-    from app.sources.readers import read_recording
+    from app.sources.readers import read_log_data
 
-    rec = read_recording(args.input)
+    rec = read_log_data(args.input)
     stats = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
     if not stats.sensors:
         raise CliError(f"{args.input}: no accelerometer, gyroscope or magnetometer samples")

@@ -94,12 +94,12 @@ def load_broad(data: Path = BROAD) -> list[dict]:
 
 def load_app_logs() -> list[dict]:
     from conftest import REAL_LOGS
-    from app.sources.readers import read_recording
+    from app.sources.readers import read_log_data
     out = []
     for rel in REAL_LOGS:
         p = SHARED / "sensorfusion-app" / rel
         if p.is_file():
-            r = read_recording(p)
+            r = read_log_data(p)
             out.append(dict(name=p.stem, t=r.t, gyr=r.gyr, acc=r.acc, mag=r.mag))
     return out
 

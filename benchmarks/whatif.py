@@ -8,7 +8,7 @@ every estimator (``robust``, ``lab``, ``complementary``, ``phone`` and the varia
 time, and the ratio to real time (target: >= 300x) for
 
 - **cold**: the whole re-run counted from the file (reading the log with
-  :func:`app.sources.readers.read_recording`, then every estimator), as the first what-if on a
+  :func:`app.sources.readers.read_log_data`, then every estimator), as the first what-if on a
   recording;
 - **warm**: a re-run of the log already parsed (the server keeps the last two parsed
   recordings: a what-if is repeated with new parameters).
@@ -34,7 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from app.estimators import NAMES  # noqa: E402
-from app.sources.readers import iter_chunks, read_recording
+from app.sources.readers import iter_chunks, read_log_data
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import Simulation, stream
 from app.toolkit.variants import no_rejection_changes
@@ -84,8 +84,8 @@ def main() -> None:
         lines = write_log(log, args.minutes * 60.0)
         print(f"log: {lines} lines, {log.stat().st_size / 1e6:.1f} MB, "
               f"{args.minutes:g} min of the simulated phone")
-        wall, cpu, rec = timed(lambda: read_recording(log), args.repeat)
-        print(f"reading it whole (read_recording)      {wall:6.3f} s wall, {cpu:6.3f} s CPU")
+        wall, cpu, rec = timed(lambda: read_log_data(log), args.repeat)
+        print(f"reading it whole (read_log_data)      {wall:6.3f} s wall, {cpu:6.3f} s CPU")
         t0, c0 = time.perf_counter(), time.process_time()
         n_rows = sum(len(c) for c in iter_chunks(log))
         print(f"reading it line by line (iter_chunks)  {time.perf_counter() - t0:6.3f} s wall, "

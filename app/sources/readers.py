@@ -1,7 +1,7 @@
 """Recorded sensor data in, estimator rows out: app logs, CSV and npz.
 
-:func:`read_recording` reads a whole file into one :class:`Recording`;
-:func:`iter_chunks` yields it in pieces of at most ``rows`` rows so a long recording
+:func:`read_log_data` reads a whole file into one :class:`LogData`;
+:func:`iter_chunks` yields it in pieces of at most ``rows`` rows so a long log
 (an hour at 100 Hz, or an app log of a million lines) streams with bounded memory.
 The format is told from the content, not the extension:
 
@@ -58,11 +58,11 @@ _MOTION = frozenset(MOTION_TAGS)
 
 
 class ReaderError(ValueError):
-    """The file cannot be read as a recording (the message says why, in one line)."""
+    """The file cannot be read as a log (the message says why, in one line)."""
 
 
 @dataclass
-class Recording:
+class LogData:
     """Rows of sensor data. ``gyr``/``acc``/``mag`` are (N, 3) with NaN where missing,
     ``ori`` (N, 4) or None, ``t`` (N,) s. ``counts`` says what was skipped or noticed:
     ``malformed`` (reason -> lines); for app logs also ``lines``, ``tags``, ``late``,
@@ -114,8 +114,8 @@ def detect_format(path: str | Path) -> str:
                       f"a CSV with a 't' column, or an .npz)")
 
 
-def iter_chunks(path: str | Path, rows: int = DEFAULT_CHUNK_ROWS) -> Iterator[Recording]:
-    """The recording at ``path`` in chunks of at most ``rows`` rows, in order (always at
+def iter_chunks(path: str | Path, rows: int = DEFAULT_CHUNK_ROWS) -> Iterator[LogData]:
+    """The log at ``path`` in chunks of at most ``rows`` rows, in order (always at
     least one chunk, possibly empty). ReaderError for a file that cannot be read."""
     if rows < 1:
         raise ValueError("rows must be >= 1")
@@ -124,8 +124,8 @@ def iter_chunks(path: str | Path, rows: int = DEFAULT_CHUNK_ROWS) -> Iterator[Re
     return reader(Path(path), rows)
 
 
-def read_recording(path: str | Path) -> Recording:
-    """The whole recording at ``path`` (see the module doc for formats). An app log is
+def read_log_data(path: str | Path) -> LogData:
+    """The whole log at ``path`` (see the module doc for formats). An app log is
     read at once with numpy when it fits (:func:`_applog_whole`: the same rows and
     counts as reading it line by line, several times faster)."""
     path = Path(path)
@@ -144,7 +144,7 @@ def rows_of_lines(lines: Iterable[bytes], window: float = LOG_WINDOW) -> Rows:
     return samples_to_rows([x for ln in lines for x in orderer.push_line(ln)] + orderer.flush())
 
 
-def concat(chunks: list[Recording]) -> Recording:
+def concat(chunks: list[LogData]) -> LogData:
     """Chunks of one file joined (counts and ``done`` of the last)."""
     if len(chunks) == 1:
         return chunks[0]
@@ -152,7 +152,7 @@ def concat(chunks: list[Recording]) -> Recording:
     has_ori = any(c.ori is not None for c in chunks)
     ori = (np.concatenate([c.ori if c.ori is not None else np.full((len(c), 4), np.nan)
                            for c in chunks]) if has_ori else None)
-    return Recording(t=np.concatenate([c.t for c in chunks]),
+    return LogData(t=np.concatenate([c.t for c in chunks]),
                      gyr=np.concatenate([c.gyr for c in chunks]),
                      acc=np.concatenate([c.acc for c in chunks]),
                      mag=np.concatenate([c.mag for c in chunks]),
@@ -185,19 +185,19 @@ def _fraction(consumed: int, size: int) -> float:
 
 # ---------------------------------------------------------------- app log
 
-def _applog_chunks(path: Path, rows: int) -> Iterator[Recording]:
+def _applog_chunks(path: Path, rows: int) -> Iterator[LogData]:
     orderer = SampleOrderer(window=LOG_WINDOW)
     size = path.stat().st_size
     motion: list = []
     lines = 0
 
-    def chunk(samples: list, done: float) -> Recording:
+    def chunk(samples: list, done: float) -> LogData:
         r = samples_to_rows(samples)
         ori = r.ori if not np.isnan(r.ori).all() else None
         counts = {**orderer.summary(), "lines": lines}
         if splitter.overflows:
             counts["malformed"] = {**counts["malformed"], "too_long": splitter.overflows}
-        return Recording(t=r.t, gyr=r.gyr, acc=r.acc, mag=r.mag, ori=ori, kind="applog",
+        return LogData(t=r.t, gyr=r.gyr, acc=r.acc, mag=r.mag, ori=ori, kind="applog",
                          counts=counts, done=done)
 
     emitted = False
@@ -237,7 +237,7 @@ def _cell(text: str) -> float:
     return float(s)  # accepts nan, inf, -inf, Infinity, 1e-3
 
 
-def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
+def _csv_chunks(path: Path, rows: int) -> Iterator[LogData]:
     size = path.stat().st_size
     splitter = LineSplitter(MAX_LINE_BYTES)
     with open(path, "rb") as fh:
@@ -266,7 +266,7 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
         block: list[list[float]] = []
         n_rows = 0
 
-        def chunk(done: float) -> Recording:
+        def chunk(done: float) -> LogData:
             a = np.array(block, dtype=float).reshape(len(block), len(wanted))
             out, col = {}, 1
             for key, width in (("gyr", 3), ("acc", 3), ("mag", 3), ("ori", 4)):
@@ -279,7 +279,7 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[Recording]:
             counts["rows"] = n_rows
             if splitter.overflows:
                 malformed["too_long"] = splitter.overflows
-            return Recording(t=a[:, 0].copy(), gyr=out["gyr"], acc=out["acc"], mag=out["mag"],
+            return LogData(t=a[:, 0].copy(), gyr=out["gyr"], acc=out["acc"], mag=out["mag"],
                              ori=out["ori"], kind="csv",
                              counts={**counts, "malformed": dict(malformed)}, done=done)
 
@@ -321,7 +321,7 @@ def _refuse_impossible(arrays: dict, malformed: dict) -> None:
 
 # ---------------------------------------------------------------- npz
 
-def _npz_chunks(path: Path, rows: int) -> Iterator[Recording]:
+def _npz_chunks(path: Path, rows: int) -> Iterator[LogData]:
     try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, zipfile.BadZipFile) as e:
@@ -369,7 +369,7 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[Recording]:
                 return None if key == "ori" else np.full((stop - start, 3), np.nan)
             return a[sl]
         counts["rows"] = stop
-        yield Recording(t=t[sl], gyr=part("gyr"), acc=part("acc"), mag=part("mag"),
+        yield LogData(t=t[sl], gyr=part("gyr"), acc=part("acc"), mag=part("mag"),
                         ori=part("ori"), kind="npz", counts=dict(counts),
                         done=stop / n if n else 1.0)
         start = stop
@@ -380,7 +380,7 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[Recording]:
 
 # ---------------------------------------------------------------- app log, whole file at once
 
-# A whole-file read (:func:`read_recording`) of an app log takes the vectorised path
+# A whole-file read (:func:`read_log_data`) of an app log takes the vectorised path
 # below when the file is not too large for memory; a log it cannot put in order exactly
 # as :class:`app.sources.ordering.SampleOrderer` would falls back to the line-by-line reader.
 WHOLE_FILE_MAX_BYTES = 1 << 30
@@ -439,7 +439,7 @@ def _to_float(fields: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return out.reshape(fields.shape), bad.reshape(fields.shape)
 
 
-def _applog_whole(path: Path, window: float = LOG_WINDOW) -> Recording | None:
+def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
     """The app log at ``path`` read at once with numpy: the same rows and counts as the
     line-by-line reader (:func:`_applog_chunks`), or None when the file needs it.
 
@@ -571,7 +571,7 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> Recording | None:
               "rates_hz": rates, "lines": n_lines}
     if overflows:
         counts["malformed"] = {**malformed, "too_long": overflows}
-    return Recording(t=t, gyr=cols["gyr"], acc=cols["acc"], mag=cols["mag"], ori=ori,
+    return LogData(t=t, gyr=cols["gyr"], acc=cols["acc"], mag=cols["mag"], ori=ori,
                      kind="applog", counts=counts, done=1.0)
 
 

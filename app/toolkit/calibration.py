@@ -169,7 +169,7 @@ def level_field(acc_mean: np.ndarray, mag_mean: np.ndarray) -> np.ndarray:
 def calibrate(t, gyr=None, acc=None, mag=None,
               limits: StationaryLimits = StationaryLimits()) -> CalibrationStats:
     """Statistics of a stationary recording: arrays ``t`` (N,) s and (N, 3) per sensor
-    (NaN rows: no sample). A :class:`app.sources.readers.Recording` can be passed as
+    (NaN rows: no sample). A :class:`app.sources.readers.LogData` can be passed as
     ``calibrate(rec.t, rec.gyr, rec.acc, rec.mag)``."""
     t = np.asarray(t, dtype=float)
     n = t.shape[0]
@@ -481,8 +481,8 @@ class CalibrationService:
     def calibrate_recording(self, name: str, from_s: float = 0.0,
                             to_s: float | None = None) -> dict[str, Any]:
         """The statistics of a stretch of a recording (seconds from its start)."""
-        from app.sources.readers import read_recording
-        rec = read_recording(self.files(name)["log"])
+        from app.sources.readers import read_log_data
+        rec = read_log_data(self.files(name)["log"])
         if not len(rec):
             raise ToolError("name", "the recording has no samples")
         t = rec.t - rec.t[0]

@@ -1,7 +1,7 @@
 """What-if: re-run a whole recording through every estimator, before and after a
 parameter change, and compare.
 
-:func:`rerun` reads the recording once (:func:`app.sources.readers.read_recording`, as
+:func:`rerun` reads the recording once (:func:`app.sources.readers.read_log_data`, as
 ``orientlab estimate`` does), then runs each estimator over all its rows with the batch
 path (``Estimator.run``) twice: with the parameters it has now ("before") and with the
 patch applied ("after"; skipped when the patch leaves it unchanged). Per estimator and
@@ -36,7 +36,7 @@ from app.estimators import REJECTIONS, Reason, make_estimator
 from app.estimators.base import F_ACC, F_MAG
 from app.params import ParamError, to_dict
 from app.quaternion import error_angles, q2euler_many
-from app.sources.readers import Recording, read_recording
+from app.sources.readers import LogData, read_log_data
 from app.toolkit.errors import ToolError
 
 MAX_POINTS = 1500
@@ -54,7 +54,7 @@ class WhatIfError(ValueError):
         self.reason = reason
 
 
-def hold_ori(rec: Recording) -> np.ndarray | None:
+def hold_ori(rec: LogData) -> np.ndarray | None:
     """The phone's estimate at every row: the last ORI sample held (NaN before the
     first), or None when the recording has none."""
     if rec.ori is None:
@@ -118,7 +118,7 @@ def _decimate(n: int, max_points: int) -> np.ndarray:
     return np.linspace(0, n - 1, max_points).astype(np.int64)
 
 
-def _one_run(base: str, params: dict[str, Any], rec: Recording, ref: np.ndarray | None,
+def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | None,
              ref_kind: str | None, truth: np.ndarray | None, idx: np.ndarray,
              phone_ref: np.ndarray | None) -> tuple[dict[str, Any], float]:
     est = make_estimator(base, params)
@@ -186,11 +186,11 @@ def _clean(x: np.ndarray) -> list[float | None]:
     return [float(v) if math.isfinite(v) else None for v in np.round(x, 4).tolist()]
 
 
-def rerun(source: str | Path | Recording, specs: dict[str, tuple[str, dict[str, Any]]],
+def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, Any]]],
           patch: dict[str, dict[str, Any]] | None = None,
           truth: dict[str, np.ndarray] | None = None,
           max_points: int = MAX_POINTS) -> dict[str, Any]:
-    """Re-run a recording (a path or a read :class:`Recording`) through every estimator
+    """Re-run a recording (a path or a read :class:`LogData`) through every estimator
     of ``specs`` (``{name: (base, params)}``), before and after ``patch``
     (``{name: {key: value}}``); see the module doc for what comes back.
     WhatIfError for a patch naming an unknown estimator or a refused value (nothing run)."""
@@ -212,7 +212,7 @@ def rerun(source: str | Path | Recording, specs: dict[str, tuple[str, dict[str, 
                 raise WhatIfError(f"patch.{name}.{e.field}", e.reason) from None
             after_params[name] = merged
     t_read = time.perf_counter()
-    rec = source if isinstance(source, Recording) else read_recording(source)
+    rec = source if isinstance(source, LogData) else read_log_data(source)
     read_s = time.perf_counter() - t_read
     n = len(rec)
     phone = hold_ori(rec)
@@ -302,7 +302,7 @@ class WhatIfService:
         self.last = out
         return out
 
-    def _read_cached(self, path: Path) -> Recording:
+    def _read_cached(self, path: Path) -> LogData:
         """The recording at ``path``, parsed once: a what-if is re-run again and again
         with new parameters (reading a 10-minute log costs more than re-running it).
         Keyed on the file's size and time, so a rewritten file is read again; two kept."""
@@ -312,7 +312,7 @@ class WhatIfService:
         if key in cache:
             cache[key] = cache.pop(key)
             return cache[key]
-        rec = read_recording(path)
+        rec = read_log_data(path)
         cache[key] = rec
         while len(cache) > 2:
             cache.pop(next(iter(cache)))

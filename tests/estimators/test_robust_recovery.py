@@ -14,7 +14,7 @@ from app.estimators import Reason, is_rejected, make_estimator
 from app.estimators.base import F_ACC, F_ACC_VAL, F_GYR, F_MAG, F_MAG_VAL
 from app.estimators.robust import S
 from app.quaternion import error_angles, quat_mul
-from app.sources.readers import read_recording
+from app.sources.readers import read_log_data
 
 DEG = 180.0 / np.pi
 
@@ -160,7 +160,7 @@ def test_magnet_attached_is_flagged_and_a_standstill_log_is_not(shared_dir):
         "sensorLog_20221024T182616_standstill.txt"
     if not log.is_file():
         pytest.skip(f"{log} not present")
-    r = read_recording(log)
+    r = read_log_data(log)
     res = make_estimator("robust").run(r.t, r.gyr, r.acc, r.mag)
     assert _mag_refused(res.flags) < 0.01
     acc = res.flags[:, F_ACC].astype(int)

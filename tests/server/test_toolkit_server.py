@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from app.toolkit.calibration import calibrate
-from app.sources.readers import read_recording
+from app.sources.readers import read_log_data
 from app.toolkit.recording import read_estimates, read_events
 from harness import Phone, running_server, wait_for
 
@@ -85,7 +85,7 @@ def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
             assert (tmp_path / "mycal.toml").is_file()
         wait_for(lambda: _state(api)["source"] == "phone-disconnected", what="disconnect")
         # the statistics: the same numbers as orientlab calibrate on those 4 s of samples
-        rec = read_recording(still_log)
+        rec = read_log_data(still_log)
         for name in ("acc", "gyr", "mag"):
             assert cal["sensors"][name]["n"] > 50
         for name in ("acc", "gyr", "mag"):       # a histogram per axis, its fitted Gaussian
@@ -187,7 +187,7 @@ def test_magnet_injected_into_a_real_stream_primary_rides_it_out(tmp_path, still
         from app.estimators import make_estimator
         from app.quaternion import error_angles
         from app.toolkit.variants import no_rejection_changes
-        clean = read_recording(still_log)
+        clean = read_log_data(still_log)
         ref = {"robust": make_estimator("robust").run(clean.t, clean.gyr, clean.acc, clean.mag),
                variant: make_estimator("robust", no_rejection_changes("robust")).run(
                    clean.t, clean.gyr, clean.acc, clean.mag)}

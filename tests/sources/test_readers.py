@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from app.sources.readers import ReaderError, detect_format, iter_chunks, read_recording
+from app.sources.readers import ReaderError, detect_format, iter_chunks, read_log_data
 
 # ---------------------------------------------------------------- generated app logs
 
@@ -46,7 +46,7 @@ def write_log(path, lines, ending="\n"):
     return path
 
 
-def check_log_recording(rec, expect):
+def check_log_data(rec, expect):
     assert rec.kind == "applog"
     n_acc = int(np.sum(~np.isnan(rec.acc[:, 0])))
     n_gyr = int(np.sum(~np.isnan(rec.gyr[:, 0])))
@@ -76,19 +76,19 @@ def test_app_log_with_all_quirks(tmp_path, ending):
     lines, expect = app_log_lines()
     path = write_log(tmp_path / "sensorLog_x.txt", lines, ending)
     assert detect_format(path) == "applog"
-    check_log_recording(read_recording(path), expect)
+    check_log_data(read_log_data(path), expect)
 
 
 def test_app_log_detected_by_content_not_extension(tmp_path):
     lines, expect = app_log_lines()
     path = write_log(tmp_path / "recording.csv", lines)
-    check_log_recording(read_recording(path), expect)
+    check_log_data(read_log_data(path), expect)
 
 
 def test_app_log_chunks_concatenate_to_the_whole(tmp_path):
     lines, expect = app_log_lines()
     path = write_log(tmp_path / "log.txt", lines)
-    whole = read_recording(path)
+    whole = read_log_data(path)
     chunks = list(iter_chunks(path, rows=7))
     assert all(len(c) <= 7 for c in chunks) and len(chunks) == math.ceil(len(whole) / 7)
     np.testing.assert_array_equal(np.concatenate([c.t for c in chunks]), whole.t)
@@ -118,7 +118,7 @@ def test_csv_with_empty_cells_nan_inf_and_malformed_rows(tmp_path):
             "0.05,1,2,3,4,5,6,e\r\n")
     path = tmp_path / "rec.csv"
     path.write_text(text, newline="")
-    rec = read_recording(path)
+    rec = read_log_data(path)
     assert rec.kind == "csv"
     np.testing.assert_array_equal(rec.t, [0.0, 0.01, 0.02, 0.05])
     assert np.isnan(rec.acc[1]).all()
@@ -134,7 +134,7 @@ def test_csv_with_ori_and_columns_in_any_order(tmp_path):
     path.write_text("mag_z,mag_y,mag_x,ori_w,ori_x,ori_y,ori_z,t\n"
                     "-40,20,1,1,0,0,0,0.5\n"
                     "-41,21,2,0,1,0,0,0.6\n")
-    rec = read_recording(path)
+    rec = read_log_data(path)
     np.testing.assert_array_equal(rec.t, [0.5, 0.6])
     np.testing.assert_array_equal(rec.mag, [[1, 20, -40], [2, 21, -41]])
     np.testing.assert_array_equal(rec.ori, [[1, 0, 0, 0], [0, 1, 0, 0]])
@@ -154,7 +154,7 @@ def test_csv_chunks(tmp_path):
 def test_csv_header_only_gives_an_empty_recording(tmp_path):
     path = tmp_path / "rec.csv"
     path.write_text("t,gyr_x,gyr_y,gyr_z\n")
-    rec = read_recording(path)
+    rec = read_log_data(path)
     assert len(rec) == 0 and rec.gyr.shape == (0, 3)
 
 
@@ -169,13 +169,13 @@ def test_unreadable_files_raise_a_clear_error(tmp_path, content, message):
     path = tmp_path / "bad.csv"
     path.write_text(content)
     with pytest.raises(ReaderError, match=message) as e:
-        read_recording(path)
+        read_log_data(path)
     assert "\n" not in str(e.value)
 
 
 def test_missing_file(tmp_path):
     with pytest.raises(ReaderError, match="no such file"):
-        read_recording(tmp_path / "nope.csv")
+        read_log_data(tmp_path / "nope.csv")
 
 
 # ---------------------------------------------------------------- npz
@@ -187,7 +187,7 @@ def test_npz_with_t_and_extra_keys(tmp_path):
     path = tmp_path / "rec.npz"
     np.savez(path, acc=acc, gyr=gyr, mag=mag, t=t, opt_quat=np.ones((50, 4)),
              movement=np.ones(50, bool))
-    rec = read_recording(path)
+    rec = read_log_data(path)
     assert rec.kind == "npz" and rec.ori is None
     np.testing.assert_array_equal(rec.t, t)
     np.testing.assert_array_equal(rec.acc, acc)
@@ -217,13 +217,13 @@ def test_bad_npz(tmp_path, arrays, message):
     path = tmp_path / "bad.npz"
     np.savez(path, **arrays)
     with pytest.raises(ReaderError, match=message):
-        read_recording(path)
+        read_log_data(path)
 
 
 # ---------------------------------------------------------------- real data
 
 def test_real_logs_read_in_order(real_log):
-    rec = read_recording(real_log)
+    rec = read_log_data(real_log)
     assert rec.kind == "applog" and len(rec) > 1000
     assert np.all(np.diff(rec.t) >= 0)
     tags = rec.counts["tags"]
@@ -243,7 +243,7 @@ def test_standstill_log_has_two_corrupted_rawgyr_lines(shared_dir):
             / "sensorLog_20221024T182616_standstill.txt")
     if not path.is_file():
         pytest.skip("standstill log absent")
-    rec = read_recording(path)
+    rec = read_log_data(path)
     assert rec.counts["malformed"] == {"wrong_count": 2}
     assert rec.counts["tags"]["RAWGYR"] == 2632
     # a block of ~23 lines was written ~0.9 s early in this file: it is put back in place
@@ -254,7 +254,7 @@ def test_broad_npz(shared_dir):
     path = shared_dir / "data" / "broad" / "01_undisturbed_slow_rotation_A.npz"
     if not path.is_file():
         pytest.skip("BROAD data absent")
-    rec = read_recording(path)
+    rec = read_log_data(path)
     raw = np.load(path)
     assert len(rec) == raw["acc"].shape[0]
     np.testing.assert_allclose(np.diff(rec.t), 1.0 / float(raw["fs"]))
@@ -269,7 +269,7 @@ def test_an_over_long_line_in_a_log_is_counted_and_the_rest_read(tmp_path):
     path = tmp_path / "blob.txt"
     path.write_bytes(("\n".join(good[:20]) + "\n").encode() + b"z" * (3 * MAX_LINE_BYTES)
                      + ("\n" + "\n".join(good[20:]) + "\n").encode())
-    rec = read_recording(path)
+    rec = read_log_data(path)
     assert len(rec) == 50
     assert rec.counts["malformed"] == {"too_long": 1}
 
@@ -281,7 +281,7 @@ def _line_by_line(path):
     return concat(list(iter_chunks(path)))
 
 
-def _same_recording(a, b):
+def _same_log_data(a, b):
     """Bit for bit the same rows, and the same counts in the same key order."""
     assert a.kind == b.kind
     for k in ("t", "gyr", "acc", "mag"):
@@ -305,8 +305,8 @@ def test_whole_file_read_of_the_quirks_log_is_the_line_by_line_read(tmp_path, en
     path = write_log(tmp_path / "log.txt", lines, ending)
     fast = _applog_whole(path)
     assert fast is not None, "a log with only in-window disorder takes the vectorised path"
-    _same_recording(fast, _line_by_line(path))
-    check_log_recording(read_recording(path), expect)
+    _same_log_data(fast, _line_by_line(path))
+    check_log_data(read_log_data(path), expect)
 
 
 def _damaged_log(seed: int) -> bytes:
@@ -379,8 +379,8 @@ def test_whole_file_read_of_a_damaged_log_is_the_line_by_line_read(tmp_path, see
     slow = _line_by_line(path)
     assert sum(slow.counts["malformed"].values()) > 10
     if fast is not None:
-        _same_recording(fast, slow)
-    _same_recording(read_recording(path), slow)
+        _same_log_data(fast, slow)
+    _same_log_data(read_log_data(path), slow)
 
 
 def test_damaged_logs_mostly_take_the_vectorised_path(tmp_path):
@@ -402,15 +402,15 @@ def test_a_clock_jump_leaves_the_log_to_the_orderer_a_lone_glitch_does_not(tmp_p
     jump = good[:200] + [f"{60_000 + 10 * k}\tACC\t0.1\t0.2\t9.8" for k in range(100)]
     path = write_log(tmp_path / "jump.txt", jump)
     assert _applog_whole(path) is None
-    _same_recording(read_recording(path), _line_by_line(path))
-    assert read_recording(path).counts["jumps"] == 1
+    _same_log_data(read_log_data(path), _line_by_line(path))
+    assert read_log_data(path).counts["jumps"] == 1
     for name, bad in (("ahead", 20_000 + 10 * 100), ("back", 10_000 + 10 * 100 - 2800)):
         lines = good[:100] + [f"{bad}\tACC\t0.1\t0.2\t9.8"] + good[101:]
         path = write_log(tmp_path / f"{name}.txt", lines)
         fast = _applog_whole(path)
         assert fast is not None and fast.counts["malformed"] == {"time_jump": 1}
         assert len(fast) == 499
-        _same_recording(fast, _line_by_line(path))
+        _same_log_data(fast, _line_by_line(path))
 
 
 @pytest.mark.parametrize("seed", range(30))
@@ -458,13 +458,13 @@ def test_real_logs_whole_file_read_is_the_line_by_line_read(real_log):
     from app.sources.readers import _applog_whole
     fast = _applog_whole(real_log)
     assert fast is not None
-    _same_recording(fast, _line_by_line(real_log))
+    _same_log_data(fast, _line_by_line(real_log))
 
 
 def test_a_logs_lines_held_in_memory_give_the_files_rows(real_log):
     """rows_of_lines (a log with a disturbance injected, not on disk) puts the samples in
     order as reading the file does."""
     from app.sources.readers import rows_of_lines
-    rows, rec = rows_of_lines(real_log.read_bytes().splitlines()), read_recording(real_log)
+    rows, rec = rows_of_lines(real_log.read_bytes().splitlines()), read_log_data(real_log)
     for k in ("t", "gyr", "acc", "mag"):
         np.testing.assert_array_equal(getattr(rows, k), getattr(rec, k), err_msg=k)

@@ -13,7 +13,7 @@ from app import quaternion as qm
 from app.toolkit.calibration import (StationaryLimits, calibrate, format_report, normality_test,
     preset_values, to_preset)
 from app.config import load_config
-from app.sources.readers import read_recording
+from app.sources.readers import read_log_data
 
 G = 9.81
 M0_TRUE = np.array([0.0, 15.0, -45.0])    # µT, ENU (north, down-pointing dip)
@@ -153,7 +153,7 @@ def test_real_standstill_log(shared_dir, tmp_path):
             / "sensorLog_20221024T182616_standstill.txt")
     if not path.is_file():
         pytest.skip("standstill log absent")
-    rec = read_recording(path)
+    rec = read_log_data(path)
     st = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
     assert set(st.sensors) == {"acc", "gyr", "mag"}
     assert st.sensors["acc"].n == 2635 and st.sensors["mag"].n == 712

@@ -216,8 +216,8 @@ def test_a_ramped_magnet_is_first_refused_as_a_field_turning_without_the_phone(s
 def test_a_real_field_is_not_called_turned_while_the_phone_walks_or_runs(real_log_9dof):
     """The turn test's other side: on the real app logs (standstill to running, turn rates
     up to ~18 rad/s, beyond a phone gyroscope's range) the field is never flagged TURN."""
-    from app.sources.readers import read_recording
-    r = read_recording(real_log_9dof)
+    from app.sources.readers import read_log_data
+    r = read_log_data(real_log_9dof)
     assert (~np.isnan(r.mag[:, 0])).sum() > 100 and (~np.isnan(r.gyr[:, 0])).sum() > 100
     res = make_estimator("robust").run(r.t, r.gyr, r.acc, r.mag)
     judged = np.isin(res.flags[:, F_MAG].astype(int), [int(Reason.USED)] + [int(x) for x in REJECTIONS])

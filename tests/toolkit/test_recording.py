@@ -11,7 +11,7 @@ import pytest
 
 from app.cli import main as cli_main
 from app.estimators import make_estimator
-from app.sources.readers import read_recording
+from app.sources.readers import read_log_data
 from app.sources.sensorfusion import decode_lines
 from app.toolkit.recording import (Recorder, RecordingError, list_recordings, read_estimates,
     read_events, recording_files)
@@ -30,7 +30,7 @@ def test_the_log_is_the_stream_and_reads_like_the_original(tmp_path, shared_dir)
     rec.start({"robust": {"gyr_noise": 0.005}}, label="phone")
     for i in range(0, len(lines), 97):
         rec.write_samples(_samples(lines[i:i + 97]))
-    r0 = read_recording(src)
+    r0 = read_log_data(src)
     res = make_estimator("robust").run(r0.t, r0.gyr, r0.acc, r0.mag, r0.ori)
     tags = ["ACC"] * len(r0)
     rec.count_samples(r0.t)
@@ -46,7 +46,7 @@ def test_the_log_is_the_stream_and_reads_like_the_original(tmp_path, shared_dir)
     # the stream's samples, written again: the same readings, bit for bit
     head = src.read_bytes().replace(b"\r\n", b"\n")[:1000].splitlines()[:-1]
     assert _samples(body.splitlines()[:len(head)]) == _samples(head)
-    r1 = read_recording(log)
+    r1 = read_log_data(log)
     for k in ("t", "gyr", "acc", "mag", "ori"):
         np.testing.assert_array_equal(getattr(r1, k), getattr(r0, k))
     # the CLI reads it as any app log

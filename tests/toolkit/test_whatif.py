@@ -11,7 +11,7 @@ from app.toolkit.calibration import calibrate, format_report, to_json
 from app.cli import main as cli_main
 from app.estimators import make_estimator
 from app.quaternion import angle_between
-from app.sources.readers import read_recording
+from app.sources.readers import read_log_data
 from app.sources.simulate import Simulation
 from app.toolkit.variants import no_rejection_changes
 from app.toolkit.whatif import WhatIfError, hold_ori, rerun
@@ -43,7 +43,7 @@ def test_rerun_before_and_after_a_patch(tmp_path):
                                     "robust": no_rejection_changes("robust")})
     json.dumps(out, allow_nan=False)           # plain JSON for the API
     assert out["reference"] == "phone" and out["rows"] > 1000
-    rec = read_recording(path)
+    rec = read_log_data(path)
     # "before" is exactly what the batch path gives with the current parameters
     res = make_estimator("robust").run(rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)
     ref = hold_ori(rec)
@@ -86,7 +86,7 @@ def test_a_bad_patch_is_refused_before_anything_runs(shared_dir):
 
 def test_rerun_scores_against_the_truth_when_given(tmp_path):
     path, truth = demo_log(tmp_path / "demo.txt", seconds=20)
-    rec = read_recording(path)
+    rec = read_log_data(path)
     out = rerun(rec, {"robust": ("robust", {}), "phone": ("phone", {})},
                 truth={"t": rec.t, "q": truth(rec.t)})
     assert out["reference"] == "truth" and out["has_phone"]
@@ -100,7 +100,7 @@ def test_calibration_json_has_the_same_numbers_as_orientlab_calibrate(shared_dir
     path = shared_dir / "data" / "sensorfusion-app" / STILL
     assert cli_main(["calibrate", str(path), "--out", str(tmp_path / "p.toml")]) == 0
     printed = capsys.readouterr().out
-    rec = read_recording(path)
+    rec = read_log_data(path)
     st = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
     j = to_json(st, rec.t, {"acc": rec.acc, "gyr": rec.gyr, "mag": rec.mag})
     json.dumps(j, allow_nan=False)
