@@ -59,7 +59,7 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
         est.step(t + 0.004, mag=m)
         est.step(t + 0.006, ori=o)
     est.step(0.05, gyr=g, acc=a, mag=m, ori=o)
-    est.snapshot()
+    est.save_state()
     est.diagnostics()
     est.attitude_cov()
     est.reset()

@@ -479,12 +479,12 @@ class Estimator:
     def _reset_state(self) -> None:
         raise NotImplementedError
 
-    def snapshot(self) -> Any:
+    def save_state(self) -> Any:
         """A deep copy of the whole mutable state (not the parameters)."""
         return copy.deepcopy({k: v for k, v in self.__dict__.items() if k != "_params"})
 
-    def restore(self, snap: Any) -> None:
-        self.__dict__.update(copy.deepcopy(snap))
+    def load_state(self, state: Any) -> None:
+        self.__dict__.update(copy.deepcopy(state))
 
     # ----------------------------------------------------------- processing
     def step(self, t: float, gyr=None, acc=None, mag=None, ori=None) -> StepFlags:

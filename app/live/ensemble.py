@@ -375,7 +375,7 @@ class Ensemble:
         """One instance over the chunk, its bookkeeping, and the guards (module doc)."""
         est = inst.estimator
         if inst._good is None or now - inst._good_at >= GOOD_EVERY_S:
-            inst._good, inst._good_at = est.snapshot(), now
+            inst._good, inst._good_at = est.save_state(), now
         n = t.shape[0]
         q = np.empty((n, 4))
         f = np.empty((n, NFLAGS))
@@ -385,7 +385,7 @@ class Ensemble:
             q, f = self._rerun(inst, t, G, A, M, O, kind, values)
         bad = tally_rows(kind, t, f, q, inst.counts, inst.last, inst.last_rejected, _IS_REJECTION)
         if bad >= 0:
-            est.restore(inst._good)
+            est.load_state(inst._good)
             inst.restored += 1
             log.warning("%s: estimate not finite at t = %.3f s (row %d of the chunk): last good "
                         "state restored", inst.name, t[bad], bad)
@@ -396,18 +396,18 @@ class Ensemble:
         """The chunk again, row by row from the last good state; a row that raises is
         skipped (state before it restored), logged with its sample and counted."""
         est = inst.estimator
-        est.restore(inst._good)
+        est.load_state(inst._good)
         n = t.shape[0]
         q = np.empty((n, 4))
         f = np.empty((n, NFLAGS))
         for k in range(n):
-            before = est.snapshot()
+            before = est.save_state()
             try:
                 fl = est.step(t[k], G[k], A[k], M[k], O[k])
                 f[k] = (fl.gyr, fl.acc, fl.acc_value, fl.acc_nis, fl.mag, fl.mag_value,
                         fl.mag_nis, float(fl.rest), fl.time)
             except Exception as e:
-                est.restore(before)
+                est.load_state(before)
                 inst.step_errors += 1
                 tag = ("GYR", "ACC", "MAG", "ORI")[int(kind[k])]
                 inst.last_error = f"{type(e).__name__}: {e}"

@@ -193,7 +193,7 @@ class Engine:
         core.ensemble.step(samples)
         for n in core.ensemble.names:
             est = core.ensemble.estimator(n)
-            est.snapshot()
+            est.save_state()
             est.diagnostics()
             est.attitude_cov()
         core.ensemble.reset()

@@ -329,7 +329,7 @@ def test_live_stream_one_sample_per_row():
     assert np.sqrt(np.mean(tot ** 2)) < 2.0
 
 
-def test_snapshot_restore_equals_uninterrupted_run():
+def test_save_state_load_state_equals_uninterrupted_run():
     rate = lambda t: np.array([0.4, -0.3 * math.cos(t), 0.5])
     t, gyr, acc, mag, _ = synth(POSES[6], rate, T=3.0, seed=8)
     params = {"ma_window": 4, "tau": 0.7}
@@ -337,11 +337,11 @@ def test_snapshot_restore_equals_uninterrupted_run():
     est = make_estimator("complementary", params)
     h = len(t) // 2
     est.run(t[:h], gyr[:h], acc[:h], mag[:h])
-    snap = est.snapshot()
+    saved = est.save_state()
     second = est.run(t[h:], gyr[h:], acc[h:], mag[h:])
     np.testing.assert_array_equal(second.q, whole.q[h:])
     est.step(t[-1] + 1.0, gyr[0], acc[0], mag[0])          # wander off, then go back
-    est.restore(snap)
+    est.load_state(saved)
     again = est.run(t[h:], gyr[h:], acc[h:], mag[h:])
     np.testing.assert_array_equal(again.q, whole.q[h:])
     np.testing.assert_array_equal(again.flags, whole.flags[h:])

@@ -1,5 +1,5 @@
 """The estimators' behaviour: measurement models, convergence, disturbance rejection,
-sensor switches, bad input, snapshot/restore, live parameter changes, and the
+sensor switches, bad input, save_state/load_state, live parameter changes, and the
 compiled robust filter against its uncompiled numpy reference."""
 
 from __future__ import annotations
@@ -422,17 +422,17 @@ def test_bad_input_is_flagged_never_fatal_never_nan(name):
 # ------------------------------------------------------------------ state and parameters
 
 @pytest.mark.parametrize("name", NAMES)
-def test_snapshot_and_restore_mid_stream_equals_one_run(name):
+def test_save_state_and_load_state_mid_stream_equals_one_run(name):
     rows, _ = sim_rows(("still", "turn_x", "magnet"), seed=12)
     whole = run(make_estimator(name), rows)
     est = make_estimator(name)
     k = len(rows) // 2
     first = est.run(rows.t[:k], rows.gyr[:k], rows.acc[:k], rows.mag[:k], rows.ori[:k])
-    snap = est.snapshot()
+    saved = est.save_state()
     est.run(rows.t[k:k + 300], rows.gyr[k:k + 300], rows.acc[k:k + 300], rows.mag[k:k + 300],
             rows.ori[k:k + 300])  # wander off ...
     other = make_estimator(name)
-    other.restore(snap)           # ... and resume from the snapshot in a new instance
+    other.load_state(saved)           # ... and resume from the saved state in a new instance
     second = other.run(rows.t[k:], rows.gyr[k:], rows.acc[k:], rows.mag[k:], rows.ori[k:])
     np.testing.assert_array_equal(np.vstack([first.q, second.q]), whole.q)
     np.testing.assert_array_equal(np.vstack([first.flags, second.flags]), whole.flags)

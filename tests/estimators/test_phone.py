@@ -59,17 +59,17 @@ def test_three_value_ori_and_bad_samples():
     np.testing.assert_array_equal(est.q, [0.0, 0.0, 1.0, 0.0])
 
 
-def test_switches_time_and_snapshot():
+def test_switches_time_and_save_state():
     est = make_estimator("phone", {"use_acc": False})
     f = est.step(1.0, acc=[0.0, 0.0, 9.8], ori=[1.0, 0.0, 0.0, 0.0])
     assert f.acc == Reason.DISABLED and f.time == TimeIssue.FIRST
-    snap = est.snapshot()
+    saved = est.save_state()
     est.step(1.1, ori=[0.0, 1.0, 0.0, 0.0])
     f = est.step(1.05, ori=[0.0, 0.0, 1.0, 0.0])      # backward timestamp: row skipped
     assert f.time == TimeIssue.BACKWARD
     np.testing.assert_array_equal(est.q, [0.0, 1.0, 0.0, 0.0])
     assert est.diagnostics().ori_t == 1.1
-    est.restore(snap)
+    est.load_state(saved)
     np.testing.assert_array_equal(est.q, [1.0, 0.0, 0.0, 0.0])
     est.reset()
     assert not est.initialized and est.attitude_cov() is None
