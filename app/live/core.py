@@ -64,13 +64,13 @@ class LiveCore:
         self.history.clear()
 
     # ----------------------------------------------------------------- streams
-    def open_session(self, kind: str, label: str, truth=None, app: str = "",
+    def open_session(self, kind: str, label: str, truth=None, phone_app: str = "",
                      window_s: float | None = None) -> Session:
         """A new stream replaces the one on show (which is closed). ``window_s``: its
         reorder window (default the core's; a source that delivers in batches may ask
         for more)."""
         s = Session(kind, label, self.reorder_window_s if window_s is None else window_s,
-                    truth, app=app)
+                    truth, phone_app=phone_app)
         if self.session is not None and self.session.open:
             self.session.close(f"replaced by {kind} {label}")
         self.session = s

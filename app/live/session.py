@@ -27,10 +27,10 @@ class Session:
     orientations (N, 4)."""
 
     def __init__(self, kind: str, label: str, window_s: float,
-                 truth: Callable[[np.ndarray], np.ndarray] | None = None, app: str = ""):
+                 truth: Callable[[np.ndarray], np.ndarray] | None = None, phone_app: str = ""):
         self.kind = kind            # "phone", "demo", "replay"
         self.label = label
-        self.app = app              # the phone app feeding a "phone" stream (slot.APPS)
+        self.phone_app = phone_app  # the phone app feeding a "phone" stream (slot.PHONE_APPS)
         self.details: dict[str, Any] = {}   # what its source detected: platform, convention
         self.orderer = SampleOrderer(window=window_s)
         self.truth = truth
@@ -43,7 +43,7 @@ class Session:
 
     def describe(self) -> dict[str, Any]:
         """The stream's source for a recording's events: kind, app and what was detected."""
-        return {"kind": self.kind, "label": self.label, "app": self.app or None, **self.details}
+        return {"kind": self.kind, "label": self.label, "app": self.phone_app or None, **self.details}
 
     @property
     def open(self) -> bool:

@@ -199,10 +199,10 @@ class Engine:
         core.ensemble.reset()
 
     # ----------------------------------------------------------------- sessions
-    def open_session(self, kind: str, label: str, truth=None, app: str = "",
+    def open_session(self, kind: str, label: str, truth=None, phone_app: str = "",
                      window_s: float | None = None) -> Session:
         """Start a stream; it replaces the one on show (the estimators start afresh)."""
-        s = self.core.open_session(kind, label, truth, app=app, window_s=window_s)
+        s = self.core.open_session(kind, label, truth, phone_app=phone_app, window_s=window_s)
         self.inbox.put_nowait(("session", s))
         return s
 

@@ -27,7 +27,7 @@ from typing import Any
 
 from app.sources.phyphox import PhyphoxError, PhyphoxPoller, PhyphoxPushStream
 from app.sources.sensorlogger import SensorLoggerError, SensorLoggerStream
-from app.sources.slot import APPS, PhoneSlot
+from app.sources.slot import PHONE_APPS, PhoneSlot
 
 log = logging.getLogger("orientlab.phones")
 
@@ -40,7 +40,7 @@ WINDOW_S = {"sensorlogger": 0.05, "phyphox": 0.3, "phyphox-poll": 0.1}
 @dataclass
 class Stream:
     """One HTTP phone's stream: its decoder and the engine's session."""
-    app: str
+    phone_app: str
     key: str
     decoder: Any
     session: Any = None
@@ -55,7 +55,7 @@ class Reply:
 
 
 @dataclass
-class AppCounts:
+class PhoneAppCounts:
     requests: int = 0
     refused: int = 0
     bad: Counter = field(default_factory=Counter)
@@ -72,29 +72,29 @@ class HttpPhones:
         self.engine = engine
         self.settings = settings
         self.slot = slot
-        self.streams: dict[tuple[str, str], Stream] = {}    # (app, key) -> decoder state
-        self.counts = {app: AppCounts() for app in ("sensorlogger", "phyphox", "phyphox-poll")}
+        self.streams: dict[tuple[str, str], Stream] = {}    # (phone_app, key) -> decoder state
+        self.counts = {a: PhoneAppCounts() for a in ("sensorlogger", "phyphox", "phyphox-poll")}
         self.poller: PhyphoxPoller | None = None
         self.poll_task: asyncio.Task | None = None
         self.conventions: dict[str, str] = {}     # Sensor Logger: the presenter's choice
 
     # ------------------------------------------------------------------ pushes
-    def push(self, app: str, body: bytes, client: str) -> Reply:
+    def push(self, phone_app: str, body: bytes, client: str) -> Reply:
         """One POST of a push app (``sensorlogger`` or ``phyphox``) from ``client``."""
-        c = self.counts[app]
+        c = self.counts[phone_app]
         c.requests += 1
         now = time.time()
-        why = self.slot.refusal(app, client)
+        why = self.slot.refusal(phone_app, client)
         if why is not None:
             c.refused += 1
             self.slot.refused += 1
             self.slot.last_refusal = why
             self.engine.core.totals.count_refused()
-            return Reply(499 if app == "sensorlogger" else 409, why)
-        st = self.streams.get((app, client))
+            return Reply(499 if phone_app == "sensorlogger" else 409, why)
+        st = self.streams.get((phone_app, client))
         if st is None:
-            st = Stream(app, client, self._decoder(app))
-            self.streams[(app, client)] = st
+            st = Stream(phone_app, client, self._decoder(phone_app))
+            self.streams[(phone_app, client)] = st
         try:
             batch = st.decoder.decode(body, now)
         except (SensorLoggerError, PhyphoxError) as e:
@@ -109,8 +109,8 @@ class HttpPhones:
         self._deliver(st, batch.samples, batch.new_session)
         return Reply(200, "")
 
-    def _decoder(self, app: str):
-        if app == "sensorlogger":
+    def _decoder(self, phone_app: str):
+        if phone_app == "sensorlogger":
             d = SensorLoggerStream()
             conv = self.conventions.get("sensorlogger")
             if conv:
@@ -124,8 +124,8 @@ class HttpPhones:
         if not samples and st.session is None:
             return
         if not self.slot.holds(st.key):
-            label = f"{st.key} ({APPS[st.app]})"
-            if self.slot.take(st.app, st.key, label, lambda why, s=st: self._end(s, why)) is not None:
+            label = f"{st.key} ({PHONE_APPS[st.phone_app]})"
+            if self.slot.take(st.phone_app, st.key, label, lambda why, s=st: self._end(s, why)) is not None:
                 return              # taken meanwhile by another phone
             new_session = True
         if new_session or st.session is None or not st.session.open:
@@ -133,7 +133,8 @@ class HttpPhones:
                 self.engine.close_session(st.session, "the phone started a new recording")
             self.engine.pause_background()
             st.session = self.engine.open_session(
-                "phone", f"{st.key} ({APPS[st.app]})", app=st.app, window_s=WINDOW_S[st.app])
+                "phone", f"{st.key} ({PHONE_APPS[st.phone_app]})", phone_app=st.phone_app,
+                window_s=WINDOW_S[st.phone_app])
         if samples:
             self._details(st)
             self.engine.feed(st.session, samples, time.perf_counter())
@@ -162,15 +163,15 @@ class HttpPhones:
                 self.engine.feed(st.session, rest, time.perf_counter())
             self.engine.close_session(st.session, reason)
         self.slot.leave(st.key)
-        self.streams.pop((st.app, st.key), None)
-        if st.app == "phyphox-poll" and self.poller is not None and reason.startswith("released"):
+        self.streams.pop((st.phone_app, st.key), None)
+        if st.phone_app == "phyphox-poll" and self.poller is not None and reason.startswith("released"):
             self.stop_poll()
 
     def tick(self) -> None:
         """Release messages held for a missing one that timed out; end silent streams."""
         now_wall, now = time.time(), time.monotonic()
         for st in list(self.streams.values()):
-            if st.app == "phyphox-poll":
+            if st.phone_app == "phyphox-poll":
                 continue
             due = getattr(st.decoder, "due", None)
             if due is not None and st.session is not None and st.session.open:
@@ -222,19 +223,20 @@ class HttpPhones:
         """Sensor Logger's sign convention, for the stream now and the next ones."""
         SensorLoggerStream().set_convention(value)       # validates (ValueError)
         self.conventions["sensorlogger"] = value
-        for (app, _), st in self.streams.items():
-            if app == "sensorlogger":
+        for (phone_app, _), st in self.streams.items():
+            if phone_app == "sensorlogger":
                 st.decoder.set_convention(value)
 
     def status(self) -> dict:
         out: dict[str, Any] = {"counts": {a: c.as_dict() for a, c in self.counts.items()},
                                "streams": []}
-        for (app, key), st in self.streams.items():
+        for (phone_app, key), st in self.streams.items():
             try:
                 dec = st.decoder.status()
             except Exception:      # a status must never fail the page
                 dec = {}
-            out["streams"].append({"app": app, "app_name": APPS[app], "holder": self.slot.holds(key),
+            out["streams"].append({"app": phone_app, "app_name": PHONE_APPS[phone_app],
+                                   "holder": self.slot.holds(key),
                                    "streaming": st.session is not None and st.session.open,
                                    **dec})
         out["poll"] = None if self.poller is None else self.poller.status()

@@ -80,7 +80,7 @@ def quick_ack(sock: socket.socket | None) -> None:
         pass
 
 
-APP = "sensorfusion"       # this source's key in the phone slot (app.sources.slot.APPS)
+PHONE_APP = "sensorfusion"   # this source's key in the phone slot (app.sources.slot.PHONE_APPS)
 HELLO_MAX_LINES = 2000     # lines without a valid sample before a connection is dropped
 
 
@@ -188,7 +188,7 @@ class PhoneServer:
         peer = writer.get_extra_info("peername")
         label = f"{peer[0]}:{peer[1]}" if peer else "?"
         eng = self.engine
-        why = self.slot.refusal(APP, label)
+        why = self.slot.refusal(PHONE_APP, label)
         if why is not None:
             if self.slot.locked:
                 self.counts["refused_locked"] += 1
@@ -215,12 +215,12 @@ class PhoneServer:
                 eng.close_session(conn["session"], reason)
             writer.close()
 
-        why = self.slot.take(APP, label, f"{label} (Sensor Fusion app)", on_release)
+        why = self.slot.take(PHONE_APP, label, f"{label} (Sensor Fusion app)", on_release)
         if why is not None:   # another phone got in meanwhile
             self._writers.discard(writer)
             return self._refuse(writer, label, why)
         eng.pause_background()
-        session = eng.open_session("phone", label, app=APP)
+        session = eng.open_session("phone", label, phone_app=PHONE_APP)
         conn["session"] = session
         self.current = session
         log.info("phone %s connected", label)

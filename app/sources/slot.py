@@ -25,13 +25,13 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 #: the apps that can hold the slot, with the words shown for them
-APPS = {"sensorfusion": "Sensor Fusion app", "sensorlogger": "Sensor Logger",
+PHONE_APPS = {"sensorfusion": "Sensor Fusion app", "sensorlogger": "Sensor Logger",
         "phyphox": "phyphox", "phyphox-poll": "phyphox (remote access)"}
 
 
 @dataclass
 class Holder:
-    app: str                    # a key of APPS
+    phone_app: str              # a key of PHONE_APPS
     key: str                    # who it is: a TCP peer, a device id, a phone URL
     label: str                  # shown on the page
     since: float
@@ -63,8 +63,8 @@ class PhoneSlot:
     def holds(self, key: str) -> bool:
         return self.holder is not None and self.holder.key == key
 
-    def refusal(self, app: str, key: str) -> str | None:
-        """Why a phone (``app``, ``key``) may not take the slot now, in words its user
+    def refusal(self, phone_app: str, key: str) -> str | None:
+        """Why a phone (``phone_app``, ``key``) may not take the slot now, in words its user
         can read; None if it may (free, silent holder, or it is the holder)."""
         if self.holds(key):
             return None
@@ -78,16 +78,17 @@ class PhoneSlot:
         if self.locked:
             return "orientlab: the presenter has locked the phone slot; no new phone is accepted"
         if self.busy():
-            return (f"orientlab: another phone ({APPS.get(self.holder.app, self.holder.app)}) "
+            name = PHONE_APPS.get(self.holder.phone_app, self.holder.phone_app)
+            return (f"orientlab: another phone ({name}) "
                     "is streaming; try again when it stops")
         return None
 
     # ------------------------------------------------------------------ changes
-    def take(self, app: str, key: str, label: str,
+    def take(self, phone_app: str, key: str, label: str,
              on_release: Callable[[str], None] | None = None) -> str | None:
         """Take the slot (a silent holder is released first, taken over). Returns the
         refusal (nothing changed) or None. Taking it again as the holder only refreshes."""
-        why = self.refusal(app, key)
+        why = self.refusal(phone_app, key)
         if why is not None:
             self.refused += 1
             self.last_refusal = why
@@ -98,7 +99,7 @@ class PhoneSlot:
             return None
         if self.holder is not None:
             self._drop(f"silent for {self.idle_s:g} s, taken over by {label}")
-        self.holder = Holder(app, key, label, now, now, on_release)
+        self.holder = Holder(phone_app, key, label, now, now, on_release)
         return None
 
     def touch(self, key: str) -> None:
@@ -135,7 +136,8 @@ class PhoneSlot:
         now = self.clock()
         return {"locked": self.locked,
                 "holder": None if h is None else {
-                    "app": h.app, "app_name": APPS.get(h.app, h.app), "label": h.label,
+                    "app": h.phone_app, "app_name": PHONE_APPS.get(h.phone_app, h.phone_app),
+                    "label": h.label,
                     "for_s": round(now - h.since, 1),
                     "silent_s": round(now - h.last_valid, 1)},
                 "busy": self.busy(), "refused": self.refused, "released": self.released,

@@ -125,7 +125,7 @@ def test_one_phone_at_a_time_across_apps_and_the_presenter_releases_it():
             presenter.post("/api/phone", json={"locked": False})
             r = other.post("/sensorlogger", content=json.dumps(msg).encode())
             assert r.status_code == 200
-            assert srv.app.state.slot.holder.app == "sensorlogger"
+            assert srv.app.state.slot.holder.phone_app == "sensorlogger"
         # a watcher can neither release nor lock
         assert httpx.post(srv.url + "/api/phone", json={"release": True}).status_code == 403
 

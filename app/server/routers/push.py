@@ -22,10 +22,10 @@ from app.sources.phyphox import experiment_xml
 router = APIRouter(tags=["phones"], dependencies=[Depends(phone_push)])
 
 
-async def _push(request: Request, app: str) -> PlainTextResponse:
+async def _push(request: Request, phone_app: str) -> PlainTextResponse:
     body = await request.body()
     client = request.client.host if request.client else "?"
-    reply = request.app.state.http_phones.push(app, body, client)
+    reply = request.app.state.http_phones.push(phone_app, body, client)
     return PlainTextResponse(reply.text, status_code=reply.status)
 
 
