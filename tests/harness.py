@@ -97,7 +97,7 @@ class RunningServer:
 
     @property
     def phone_port(self) -> int:
-        return self.app.state.phone.port
+        return self.app.state.sensorfusion.port
 
     @property
     def viewer_port(self) -> int:

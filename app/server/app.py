@@ -29,7 +29,7 @@ from app.server.limits import BodyLimit, install_error_handlers
 from app.server.connect import Connect
 from app.server.phones import HttpPhones
 from app.sources.phyphox import PhyphoxPoller
-from app.sources.sensorfusion_tcp import PhoneServer
+from app.sources.sensorfusion_tcp import SensorFusionServer
 from app.sources.slot import PhoneSlot
 from app.server.routers import (calibrate, connect, estimators, health, params, phone, push,
                                 recordings, replay, state)
@@ -115,8 +115,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             engine.atomic = st.viewer.atomic
             engine.listeners.append(st.scene.draw)
             st.slot = PhoneSlot(settings.phone_idle_s)     # one phone at a time, every app
-            st.phone = PhoneServer(engine, settings, st.slot)
-            await st.phone.start()
+            st.sensorfusion = SensorFusionServer(engine, settings, st.slot)
+            await st.sensorfusion.start()
             st.http_phones = HttpPhones(engine, settings, st.slot)
             st.tasks["phones"] = asyncio.create_task(st.http_phones.run(), name="phones")
             st.connect = Connect(settings, st)
@@ -134,7 +134,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if src is not None:
                 st.tasks["source"] = src
             if settings.verbose:
-                print(banner(settings, st.lan_ip, st.viewer.get_port(), st.phone.port,
+                print(banner(settings, st.lan_ip, st.viewer.get_port(), st.sensorfusion.port,
                              settings.port, access), flush=True)
             yield
         finally:
@@ -142,8 +142,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 t.cancel()
             if getattr(st, "http_phones", None) is not None:
                 st.http_phones.stop_poll()
-            if getattr(st, "phone", None) is not None:
-                await st.phone.stop()
+            if getattr(st, "sensorfusion", None) is not None:
+                await st.sensorfusion.stop()
             await asyncio.gather(*st.tasks.values(), return_exceptions=True)
             if getattr(st, "toolkit", None) is not None:   # a recording ends cleanly
                 st.toolkit.close()

@@ -48,9 +48,9 @@ class Connect:
             "sensor_logger": {"url": f"{base}/sensorlogger"},
             "phyphox": {"experiment_url": f"{base}/phyphox/orientlab.phyphox",
                         "push_url": f"{base}/phyphox"},
-            "sensorfusion": {"host": self.host(request), "port": st.phone.port},
+            "sensorfusion": {"host": self.host(request), "port": st.sensorfusion.port},
             "slot": st.slot.status(),
-            "tcp": st.phone.status(),
+            "tcp": st.sensorfusion.status(),
             "http": st.http_phones.status(),
             "stream": self.stream_status(),
         }

@@ -111,7 +111,7 @@ def _n_samples(session) -> int:
         return session.lines
 
 
-class PhoneServer:
+class SensorFusionServer:
     """asyncio TCP server feeding phone connections into the engine."""
 
     def __init__(self, engine, settings, slot: PhoneSlot | None = None):

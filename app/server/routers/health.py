@@ -24,7 +24,7 @@ async def info(request: Request, engine: Engine = Depends(get_engine)) -> Info:
     st = request.app.state
     presenter = st.access.is_presenter(request)
     return Info(viewer_port=st.viewer.get_port(),
-                phone_port=st.phone.port if presenter else None,
+                phone_port=st.sensorfusion.port if presenter else None,
                 lan_ip=st.connect.host(request) if presenter else None,
                 source=engine.core.source_kind(), presenter=presenter,
                 viewer_token=st.access.token if presenter and not st.access.open else None)

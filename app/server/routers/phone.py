@@ -12,7 +12,7 @@ def slot_status(request: Request) -> dict:
     """The TCP receiver's counts and the shared slot's state; a watcher (no token) does
     not see who streams (a phone's address is the presenter's business)."""
     st = request.app.state
-    out = {**st.phone.status(), "slot": st.slot.status()}
+    out = {**st.sensorfusion.status(), "slot": st.slot.status()}
     if not st.access.is_presenter(request):
         out["streaming"] = "a phone" if out["streaming"] else None
         if out["slot"]["holder"] is not None:
