@@ -140,7 +140,7 @@ def breakdown(seconds: float) -> None:
     with running_server(source="demo") as srv:
         ws = srv.app.state.viewer._websock_server
         original = ws.queue_message
-        labels = {**_labels(srv.app.state.lab_gui), **_labels(srv.app.state.gui),
+        labels = {**_labels(srv.app.state.toolkit_tab), **_labels(srv.app.state.gui),
                   **_plot_labels(srv.app.state.gui)}
 
         def counting(message):

@@ -91,7 +91,7 @@ def main() -> int:
             page.screenshot(path=str(out / "lab_magnet.png"))
             api.post("/api/replay", json={"stop": True})
             # 3. what-if: the minute of the simulated phone with the primary's gates off
-            tk, lab_gui, loop = srv.app.state.toolkit, srv.app.state.lab_gui, srv.engine.loop
+            tk, toolkit_tab, loop = srv.app.state.toolkit, srv.app.state.toolkit_tab, srv.engine.loop
             patch = {"robust": tk.variants.no_rejection()[2]}
             # once unseen: a user's second click (the first in a process also loads the
             # compiled batch runs from numba's cache), then the one shown
@@ -100,9 +100,9 @@ def main() -> int:
             done = threading.Event()
 
             def show():
-                lab_gui._rerun_result = res
-                lab_gui.wi_est.value = "robust"
-                lab_gui._draw_rerun()
+                toolkit_tab._rerun_result = res
+                toolkit_tab.wi_est.value = "robust"
+                toolkit_tab._draw_rerun()
                 done.set()
             loop.call_soon_threadsafe(show)
             done.wait(10)

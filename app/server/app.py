@@ -34,7 +34,7 @@ from app.sources.slot import PhoneSlot
 from app.server.routers import (calibrate, connect, estimators, health, params, phone, push,
                                 recordings, replay, state)
 from app.server.routers import inject as inject_router
-from app.server.gui.lab import LabGui, run_lab_gui
+from app.server.gui.toolkit_tab import ToolkitTab, run_toolkit_tab
 from app.server.routers import install_tool_errors
 from app.server.toolkit import Toolkit
 from app.server.gui.scene import Scene, loop_safe_wakeups
@@ -128,8 +128,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.toolkit = Toolkit.build(engine, settings, config, st.tasks)   # the lab's tools
             st.gui.injections = st.toolkit.injection.injected_spans   # marked in the Plots panel
             # the Lab tab; the variants' ghosts join the 3D scene
-            st.lab_gui = LabGui(st.viewer.gui, st.gui.tabs, st.toolkit, loop, server=st.viewer)
-            st.tasks["lab"] = asyncio.create_task(run_lab_gui(st.lab_gui), name="lab")
+            st.toolkit_tab = ToolkitTab(st.viewer.gui, st.gui.tabs, st.toolkit, loop, server=st.viewer)
+            st.tasks["toolkit_tab"] = asyncio.create_task(run_toolkit_tab(st.toolkit_tab), name="toolkit_tab")
             src = start_source(engine, settings, st.toolkit)
             if src is not None:
                 st.tasks["source"] = src

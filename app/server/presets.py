@@ -10,7 +10,7 @@ Used by the GUI's Presets tab and the API (``/api/presets``).
   trailing newline, no path): ``<preset_dir>/<name>.toml``. At most
   ``Settings.max_presets`` are saved (then saving a new name is refused).
 - **One save path** (:func:`write_preset`) for every preset: the dashboard's "save",
-  an uploaded file kept, a calibration's ``save_as`` (:meth:`app.server.lab.LabTools.save_calibration_preset`).
+  an uploaded file kept, a calibration's ``save_as`` (:meth:`app.server.toolkit.Toolkit.save_preset`).
 - **Writes are atomic**: a temporary file in the same folder, then ``os.replace``; a
   folder that refuses the write (read-only, full) is :class:`PresetWriteError` (HTTP
   507 with the reason), nothing left behind.
@@ -19,7 +19,7 @@ Used by the GUI's Presets tab and the API (``/api/presets``).
   of an uploaded file (at most :data:`MAX_PRESET_BYTES`); each sets every estimator to
   its defaults plus the preset, after the same validation as ``--config``, and the
   magnetometer calibration to the preset's ``[magcal]`` (none when it has none: a preset
-  is the whole tuning; :class:`app.server.lab.LabTools` applies it). Saving writes the
+  is the whole tuning; :class:`app.toolkit.magcal.MagCalService` applies it). Saving writes the
   magnetometer calibration in force too.
 """
 

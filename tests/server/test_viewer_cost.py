@@ -71,8 +71,8 @@ class ViewerClient:
 def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
     with running_server(source="demo", preset_dir=tmp_path) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api:
-        gui, lab_gui = srv.app.state.gui, srv.app.state.lab_gui
-        monitor = lab_gui.p_monitor._impl.uuid
+        gui, toolkit_tab = srv.app.state.gui, srv.app.state.toolkit_tab
+        monitor = toolkit_tab.p_monitor._impl.uuid
         acc_plot = gui.p_acc.handle._impl.uuid
         nis_plot = gui.p_nis.handle._impl.uuid
         with ViewerClient(srv.viewer_port) as viewer:
@@ -80,7 +80,7 @@ def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
             wait_for(lambda: viewer.count(acc_plot) >= 4, 60.0, what="|acc| plot updates")
             # ... the heading plot of the Lab tab does not
             assert viewer.count(monitor) == 0
-            assert not lab_gui.monitor_live()
+            assert not toolkit_tab.monitor_live()
             # a gate's line: its two ends, gaps between (the series spans them); robust,
             # the demo's primary, has both NIS gates once it makes updates
 
@@ -100,4 +100,4 @@ def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
             wait_for(lambda: viewer.count(monitor) >= 2, 30.0, what="heading plot updates")
             with viewer._lock:
                 data = viewer.last[monitor]
-            assert len(data[0]) <= 300 and len(data) == len(lab_gui.p_monitor.series)
+            assert len(data[0]) <= 300 and len(data) == len(toolkit_tab.p_monitor.series)

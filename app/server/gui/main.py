@@ -103,7 +103,7 @@ class Gui:
         # at zero width keeps a broken x window in viser's client and stays blank).
         self.plot_panel = None
         # (kind, start_s, end_s) of the disturbances injected into a stream (the lab's
-        # LabTools.injected_spans, set in the lifespan): drawn over |acc| and |mag|
+        # InjectionService.injected_spans, set in the lifespan): drawn over |acc| and |mag|
         self.injections: Callable[[Any], list[tuple[str, float, float]]] | None = None
         if hasattr(gui, "add_panel"):
             self.plot_panel = gui.add_panel()
@@ -111,7 +111,7 @@ class Gui:
                 self._build_plots(gui)
             self.plot_panel.dock_left()
             self.plot_panel.set_width(PLOT_PANEL_PX)
-        tabs = self.tabs = gui.add_tab_group(order=3)   # the Lab tab joins it (gui_lab)
+        tabs = self.tabs = gui.add_tab_group(order=3)   # the Lab tab joins it (gui/toolkit_tab.py)
         if self.plot_panel is None:                     # an older viser: plots in a tab
             with tabs.add_tab("Plots"):
                 self._build_plots(gui)

@@ -1,4 +1,4 @@
-"""app/server/gui/lab.py's heading monitor, fed by a real live core (no server)."""
+"""app/server/gui/toolkit_tab.py's heading monitor, fed by a real live core (no server)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 from app.live import LiveCore
 from harness import feed_lines
 from app.quaternion import q2euler_many
-from app.server.gui.lab import MONITOR_HZ, Monitor
+from app.server.gui.toolkit_tab import MONITOR_HZ, Monitor
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import simulate
 

@@ -16,7 +16,7 @@ pytestmark = [
 ]
 
 
-def test_lab_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):
+def test_toolkit_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):
     sync_api = pytest.importorskip("playwright.sync_api")
     ARTIFACTS.mkdir(exist_ok=True)
     with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as srv, \

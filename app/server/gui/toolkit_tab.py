@@ -5,14 +5,14 @@ variants and disturbances (the same operations as the API, on the toolkit's serv
 The heading plot (every estimator's heading over the last 30 s, the injected disturbance
 beside it) is what a viewer would pay most for: viser resends a chart whole, and the
 server cannot know whether a browser shows the Lab tab (the tab choice stays in the
-browser). So it is sent only while it has something to show (:meth:`LabGui.monitor_live`:
+browser). So it is sent only while it has something to show (:meth:`ToolkitTab.monitor_live`:
 a variant on the ensemble, a disturbance in its window, or "Live heading plot" ticked),
 at most :data:`MONITOR_DRAW_HZ` times a second with :data:`MONITOR_POINTS` rows; at
 the default view it sends nothing.
 
 viser runs the callbacks on its own threads: each one hands its work to the server's
 event loop (``run_coroutine_threadsafe``), where the toolkit lives; a refused
-request comes back as a notification in the tab that clicked. :func:`run_lab_gui`
+request comes back as a notification in the tab that clicked. :func:`run_toolkit_tab`
 refreshes the read-outs and plots a few times a second.
 """
 
@@ -34,7 +34,7 @@ from app.server.toolkit import Toolkit
 from app.toolkit.errors import ToolError
 from app.toolkit.inject import InjectionService
 
-log = logging.getLogger("orientlab.gui_lab")
+log = logging.getLogger("orientlab.toolkit_tab")
 
 COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
 AXIS_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
@@ -150,7 +150,7 @@ class VariantGhosts:
                 set_wxyz(f, est.q)
 
 
-class LabGui:
+class ToolkitTab:
     """Builds the "Lab" tab in ``tabs`` (a viser tab group) of the shared GUI, on the
     toolkit ``tk``; ``server``: the viser server whose 3D scene the variants' ghosts
     join (None: no ghosts)."""
@@ -643,7 +643,7 @@ class LabGui:
         self.monitor_sent += 1
 
 
-async def run_lab_gui(g: LabGui, hz: float = 2.0) -> None:
+async def run_toolkit_tab(g: ToolkitTab, hz: float = 2.0) -> None:
     """Refresh the Lab tab ``hz`` times a second."""
     while True:
         try:
