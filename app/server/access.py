@@ -14,10 +14,19 @@ it may *watch*, only the presenter may *change* the session.
   set back), and every changing API call answers **403**.
 - ``--open`` (``Settings.open_access``) turns the token off, for a trusted network.
 - **Origin.** A browser names the page a request comes from. A state-changing request
-  or a WebSocket (``/ws/state`` and the viewer's) whose ``Origin`` is not this server
-  (same host name) is refused, token or not: a cross-site form post or a foreign page's
-  script cannot reset the filters or listen in. Requests without ``Origin`` (scripts,
-  curl) are judged by the token alone.
+  or a WebSocket (``/ws/state`` and the viewer's) whose ``Origin`` is not a page of this
+  server is refused, token or not: a cross-site form post or a foreign page's script
+  cannot reset the filters or listen in. "This server" is scheme, host and port: the
+  scheme the request came in with, a host name of this machine (``localhost``, a
+  loopback address, one of its own addresses or its host name; never what the request
+  says it is) and one of this server's ports (the HTTP and the viewer port, as
+  configured or bound). Another app on another port of the same PC is another site.
+  Requests without ``Origin`` (scripts, curl) are judged by the token alone.
+- **Host (DNS rebinding).** A state-changing request whose ``Host`` names another host
+  (``evil.example`` resolved to this PC's address by a foreign page's DNS) is refused:
+  only this machine's names and addresses are accepted, so the presenter's page on
+  ``http://localhost:PORT``, ``http://127.0.0.1:PORT`` and ``http://<LAN IP>:PORT``
+  works and a rebound name does not.
 
 **For routers:** every state-changing route takes the one dependency
 :func:`require_presenter`::
@@ -38,9 +47,12 @@ button clicks, uploads) from a client without the token.
 from __future__ import annotations
 
 import inspect
+import ipaddress
 import logging
 import secrets
+import socket
 import threading
+import time
 from dataclasses import dataclass, field
 from urllib.parse import parse_qs, urlsplit
 
@@ -67,6 +79,55 @@ def _host_of(url_or_host: str | None) -> str | None:
     return h.lower() if h else None
 
 
+def _split_origin(origin: str) -> tuple[str, str, int] | None:
+    """``(scheme, host, port)`` of an ``Origin`` (the port made explicit), else None."""
+    try:
+        u = urlsplit(origin.strip())
+        port = u.port
+    except ValueError:
+        return None
+    scheme = (u.scheme or "").lower()
+    if scheme not in ("http", "https") or not u.hostname:
+        return None
+    return scheme, u.hostname.lower(), port if port is not None else (443 if scheme == "https" else 80)
+
+
+_OWN_TTL_S = 30.0          # this machine's addresses, looked up again after this (DHCP)
+_own_cache: list = [0.0, frozenset()]
+_own_lock = threading.Lock()
+
+
+def _own_names() -> frozenset:
+    """This machine's host names and addresses (no traffic; cached for a while)."""
+    now = time.monotonic()
+    with _own_lock:
+        if now - _own_cache[0] < _OWN_TTL_S:
+            return _own_cache[1]
+    names = {"localhost", "localhost.localdomain", "ip6-localhost"}
+    try:
+        hn = socket.gethostname().lower()
+        if hn:
+            names |= {hn, hn.split(".")[0] + ".local"}
+    except OSError:
+        pass
+    try:
+        from app.server.net import lan_ipv4_all
+        names |= set(lan_ipv4_all())
+    except Exception:     # an odd network set-up: loopback still works
+        log.debug("could not list this machine's addresses", exc_info=True)
+    out = frozenset(names)
+    with _own_lock:
+        _own_cache[:] = [now, out]
+    return out
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
 @dataclass
 class Access:
     """The session's access rules (one per server, on ``app.state.access``)."""
@@ -74,11 +135,40 @@ class Access:
     open: bool = False
     presenters: set = field(default_factory=set)      # viser client ids holding the token
     lock: threading.Lock = field(default_factory=threading.Lock)
+    ports: frozenset = frozenset()     # this server's HTTP and viewer ports (as configured)
+    hosts: frozenset = frozenset()     # the addresses it is configured to listen on
 
     @classmethod
     def from_settings(cls, settings) -> "Access":
         tok = getattr(settings, "token", None) or secrets.token_urlsafe(18)
-        return cls(token=tok, open=bool(getattr(settings, "open_access", False)))
+        ports = {int(p) for p in (getattr(settings, "port", 0), getattr(settings, "viewer_port", 0))
+                 if p}
+        hosts = {str(h).lower() for h in (getattr(settings, "host", None),
+                                          getattr(settings, "viewer_host", None))
+                 if h and str(h) not in ("0.0.0.0", "::", "")}
+        return cls(token=tok, open=bool(getattr(settings, "open_access", False)),
+                   ports=frozenset(ports), hosts=frozenset(hosts))
+
+    def own_host(self, host: str | None, local: str | None = None) -> bool:
+        """A host name (of an Origin or a Host header, no port) naming this machine:
+        ``localhost``, a loopback address, the address the connection came in on
+        (``local``), a configured listening address, one of its addresses or its host
+        name. Never a name only the request vouches for (DNS rebinding)."""
+        if not host:
+            return False
+        h = host.lower().strip("[]")
+        if _is_loopback(h) or h in self.hosts:
+            return True
+        if local is not None and h == str(local).lower().strip("[]"):
+            return True
+        return h in _own_names()
+
+    def host_ok(self, host_header: str | None, local: str | None = None) -> bool:
+        """The ``Host`` header of a state-changing request: absent (HTTP/1.0, a bare
+        script) or naming this machine (:meth:`own_host`)."""
+        if host_header is None:
+            return True
+        return self.own_host(_host_of(host_header), local)
 
     # ------------------------------------------------------------ checks
     def token_ok(self, candidate: str | None) -> bool:
@@ -88,15 +178,31 @@ class Access:
             return False
         return secrets.compare_digest(candidate.encode(), self.token.encode())
 
-    @staticmethod
-    def origin_ok(origin: str | None, host: str | None) -> bool:
-        """No Origin (not a browser) or an Origin on this server's host name."""
+    def origin_ok(self, origin: str | None, host: str | None = None,
+                  local: tuple | None = None, scheme: str = "http") -> bool:
+        """No Origin (not a browser), or an Origin that is a page of this server: the
+        request's ``scheme`` (``http``/``https``), a host of this machine
+        (:meth:`own_host`) and one of this server's ports (configured, or ``local``:
+        the ``(address, port)`` the connection came in on). ``host`` (the Host header)
+        is not trusted for it (DNS rebinding); see :meth:`host_ok`."""
         if origin is None:
             return True
         if origin == "null":   # sandboxed frame, file:// page: never this server's page
             return False
-        o, h = _host_of(origin), _host_of(host)
-        return o is not None and h is not None and o == h
+        parts = _split_origin(origin)
+        if parts is None:
+            return False
+        o_scheme, o_host, o_port = parts
+        want = {"ws": "http", "wss": "https"}.get(scheme, scheme)
+        if o_scheme != want:
+            return False
+        local_addr, local_port = (local[0], local[1]) if local else (None, None)
+        ports = set(self.ports)
+        if local_port:
+            ports.add(int(local_port))
+        if o_port not in ports:
+            return False
+        return self.own_host(o_host, local_addr)
 
     def token_of(self, conn: Request | WebSocket) -> str | None:
         h = conn.headers
@@ -127,7 +233,12 @@ async def require_presenter(request: Request) -> None:
     a plain ``def`` dependency would run in FastAPI's thread pool, a thread hop per
     request."""
     acc: Access = request.app.state.access
-    if not acc.origin_ok(request.headers.get("origin"), request.headers.get("host")):
+    local = request.scope.get("server")
+    if not acc.host_ok(request.headers.get("host"), local[0] if local else None):
+        raise HTTPException(403, "refused: this request names another host (Host is not "
+                                 "an address of this server)")
+    if not acc.origin_ok(request.headers.get("origin"), request.headers.get("host"), local,
+                         request.url.scheme):
         raise HTTPException(403, "refused: this request comes from another site (Origin "
                                  "is not this server)")
     if not acc.is_presenter(request):
@@ -156,7 +267,8 @@ async def require_presenter_read(request: Request) -> None:
 
 def websocket_origin_ok(ws: WebSocket) -> bool:
     acc: Access = ws.app.state.access
-    return acc.origin_ok(ws.headers.get("origin"), ws.headers.get("host"))
+    return acc.origin_ok(ws.headers.get("origin"), ws.headers.get("host"),
+                         ws.scope.get("server"), ws.url.scheme)
 
 
 # ---------------------------------------------------------------- the viewer
@@ -184,7 +296,8 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
         live = va.websocket_connection(viewer, conn.client_id)
         req = getattr(live, "request", None)
         headers = req.headers if req is not None else {}
-        if not access.origin_ok(headers.get("Origin"), headers.get("Host")):
+        if not access.origin_ok(headers.get("Origin"), headers.get("Host"),
+                                getattr(live, "local_address", None)):
             log.warning("viewer: refused a WebSocket from Origin %.80s", headers.get("Origin"))
             await live.close(1008, "foreign Origin")
             return

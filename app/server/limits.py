@@ -4,13 +4,21 @@
   ``Settings.max_body_bytes`` (1 MB) is answered **413** before it is read: at once from
   ``Content-Length``, or as soon as a chunked body passes the limit.
 - :func:`install_error_handlers`: a 422 names the field and the reason, never echoes
-  the input (FastAPI's default puts the whole body in ``input``).
-- :func:`guarded_protocol`: uvicorn's HTTP protocol with a **connection cap**
-  (``max_connections``: a connection beyond it is closed at once, before anything is
-  read) and a **header timeout** (``header_timeout_s``: a connection that has not sent
-  a complete request head in time is closed; slow-loris). uvicorn's own
-  ``limit_concurrency`` answers 503 only after reading a request and its
-  ``timeout_keep_alive`` only starts after a first response.
+  the input (FastAPI's default puts the whole body in ``input``); and every 4xx JSON
+  answer passes :func:`no_echo` in :class:`BodyLimit` (a message quoting a long value the
+  client sent is cut to an excerpt, whoever raised it).
+- :func:`guarded_protocol`: uvicorn's HTTP protocol with
+  a **first-byte timeout** (``first_byte_timeout_s``, 2.5 s: a connection that has sent
+  nothing is closed), a **header timeout** (``header_timeout_s``: a connection that has
+  not sent a complete request head in time is closed; slow-loris), a **cap per client
+  address** (``max_connections_per_ip``) and a **connection cap** (``max_connections``).
+  A connection over a cap takes the place of an idle one (sent nothing yet, then a slow
+  request head, then keep-alive), from the address holding the most connections; only
+  when none is idle is it closed at once. So idle sockets held by one laptop (issue 21:
+  250 of them locked everyone out) cost that laptop its own connections, never the
+  presenter's request. uvicorn's own ``limit_concurrency`` answers 503 only after
+  reading a request (and counts idle connections), its ``timeout_keep_alive`` only
+  starts after a first response.
 - :class:`RateLimitFilter`: the same log line at most ``burst`` times per ``period``
   seconds, then one summary of how many were suppressed.
 """
@@ -19,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 import time
 
@@ -31,7 +40,8 @@ log = logging.getLogger("orientlab.limits")
 
 class BodyLimit:
     """ASGI middleware: 413 for a request body over ``max_bytes`` (``paths``: a larger
-    cap for the given paths, the phones' pushes)."""
+    cap for the given paths, the phones' pushes); every 4xx JSON answer passed through
+    :func:`no_echo` (no input repeated, whoever raised the error)."""
 
     def __init__(self, app, max_bytes: int, paths: dict[str, int] | None = None):
         self.app = app
@@ -52,10 +62,28 @@ class BodyLimit:
                     return await _too_large(send, max_bytes)
         seen = 0
         refused = False     # 413 sent: whatever the app answers after it is dropped
+        held: list = []     # a 4xx JSON answer, held until whole to be cut (no_echo)
 
         async def send_wrapper(message):
-            if not refused:
-                await send(message)
+            if refused:
+                return
+            if message["type"] == "http.response.start" and 400 <= message.get("status", 200) < 500 \
+                    and _is_json(message.get("headers", ())):
+                held.append(message)
+                return
+            if held and message["type"] == "http.response.body":
+                held.append(message)
+                if message.get("more_body", False):
+                    return
+                start, body = held[0], b"".join(m.get("body", b"") for m in held[1:])
+                held.clear()
+                body = no_echo(body)
+                headers = [(k, v) for k, v in start.get("headers", ()) if k.lower() != b"content-length"]
+                headers.append((b"content-length", str(len(body)).encode()))
+                await send({**start, "headers": headers})
+                await send({"type": "http.response.body", "body": body})
+                return
+            await send(message)
 
         async def limited_receive():
             nonlocal seen, refused
@@ -71,6 +99,56 @@ class BodyLimit:
             return message
 
         await self.app(scope, limited_receive, send_wrapper)
+
+
+def _is_json(headers) -> bool:
+    return any(k.lower() == b"content-type" and b"json" in v.lower() for k, v in headers)
+
+
+_QUOTED = re.compile(r"'([^'\n]{65,})('|$)" + r'|"([^"\n]{65,})("|$)')   # a long quoted value
+_RUN = re.compile(r"[^\s'\"]{81,}")        # a long run without a space or a quote
+MAX_MSG = 300         # characters of one string in an error answer
+MAX_QUOTE = 48        # characters of a long quoted (or unbroken) value kept in a message
+
+
+def _cut_quotes(text: str) -> str:
+    """A value quoted in a message (``got 'AAAA...'``) cut to an excerpt and its length."""
+    def cut(m):
+        q = "'" if m.group(1) is not None else '"'
+        v = m.group(1) if m.group(1) is not None else m.group(3)
+        return f"{q}{v[:MAX_QUOTE]}...{q} ({len(v)}+ characters)"
+    text = _QUOTED.sub(cut, text)
+    return _RUN.sub(lambda m: f"{m.group(0)[:MAX_QUOTE]}... ({len(m.group(0))}+ characters)", text)
+
+
+def _cut(x, depth: int = 0):
+    if depth > 6:
+        return "..."
+    if isinstance(x, dict):
+        return {str(k)[:64]: ([str(e)[:64] if isinstance(e, str) else e for e in v[:8]]
+                              if k == "loc" and isinstance(v, list) else _cut(v, depth + 1))
+                for k, v in list(x.items())[:20] if k not in ("input", "ctx")}
+    if isinstance(x, list):
+        return [_cut(v, depth + 1) for v in x[:20]]
+    if isinstance(x, str):
+        x = _cut_quotes(x)
+        return x if len(x) <= MAX_MSG else x[:MAX_MSG] + "..."
+    return x
+
+
+def no_echo(body: bytes) -> bytes:
+    """An error answer (4xx JSON) without the input it may repeat (docs/api.md: "the
+    input is never echoed"): FastAPI's ``input`` and ``ctx`` dropped, a quoted value in a
+    message cut to an excerpt and its length, every string at most :data:`MAX_MSG`
+    characters. Whatever raised it (a 422 of FastAPI, a tool's refusal, an
+    HTTPException): one place for all."""
+    if len(body) > 1 << 20:
+        return json.dumps({"detail": "refused (the answer repeated too much of the request)"}).encode()
+    try:
+        data = json.loads(body)
+    except ValueError:
+        return body
+    return json.dumps(_cut(data), separators=(",", ":")).encode()
 
 
 async def _too_large(send, max_bytes: int, why: str = "") -> None:
@@ -93,25 +171,115 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse({"detail": detail}, status_code=422)
 
 
-def guarded_protocol(max_connections: int, header_timeout_s: float):
-    """uvicorn's h11 protocol class with a connection cap and a header timeout."""
+def guarded_protocol(max_connections: int, header_timeout_s: float,
+                     first_byte_timeout_s: float | None = None,
+                     max_per_ip: int | None = None):
+    """uvicorn's h11 protocol class with a connection cap, a cap per client address, a
+    first-byte timeout and a header timeout (see the module doc).
+
+    A connection over a cap does not simply bounce (that let idle sockets lock everyone
+    out, issue 21): it takes the place of an *idle* connection (one that sent nothing
+    yet first, then one whose request head is still coming, then a keep-alive one
+    between requests), taken from the address holding the most connections (for the
+    per-address cap: from its own address); only when none is idle is it closed at
+    once. A connection serving a request, or a WebSocket, is never taken."""
     from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    first_byte_s = header_timeout_s if first_byte_timeout_s is None \
+        else min(float(first_byte_timeout_s), header_timeout_s)
+    by_addr: dict = {}        # client address -> {protocol: None}, oldest first
+    count = [0]               # connections counted (HTTP, and WebSockets upgraded from them)
+    stats = {"refused": 0, "evicted": 0, "silent_closed": 0, "head_timeouts": 0}
+
+    def _rank(p) -> int | None:
+        """Eviction order (lower first); None: not to be taken (busy, or a WebSocket)."""
+        if p._upgraded:
+            return None
+        if not p._got_bytes:
+            return 0                        # connected, sent nothing
+        cyc = p.cycle
+        if cyc is None:
+            return 1                        # a request head still on its way
+        if cyc.response_complete:
+            return 2                        # keep-alive, between two requests
+        return None
+
+    def _victim(addr=None):
+        """The idle connection to close for a newcomer (see above), or None."""
+        addrs = [addr] if addr is not None else \
+            sorted(by_addr, key=lambda a: len(by_addr[a]), reverse=True)
+        best = None
+        for a in addrs:
+            for p in by_addr.get(a, ()):
+                r = _rank(p)
+                if r == 0:
+                    return p
+                if r is not None and (best is None or r < best[0]):
+                    best = (r, p)
+        return None if best is None else best[1]
 
     class GuardedH11Protocol(H11Protocol):
         _head_timer = None
         _head_cycle = None      # the request cycle current when the timer started
+        _first_timer = None
+        _addr = None
+        _counted = False
+        _got_bytes = False
+        _upgraded = False
+
+        guard_stats = stats     # for tests and the log
 
         def connection_made(self, transport) -> None:
             super().connection_made(transport)
-            if len(self.connections) > max_connections:
-                _limited_log("HTTP connection refused: %d connections open (cap %d)",
-                             len(self.connections), max_connections)
-                transport.close()
-                return
+            self._addr = self.client[0] if self.client else "?"
+            if max_per_ip and len(by_addr.get(self._addr, ())) >= max_per_ip:
+                victim = _victim(self._addr)
+                if victim is None:
+                    return self._refuse(f"{max_per_ip} connections from {self._addr}")
+                victim._drop(evicted=True)
+            if count[0] >= max_connections:
+                victim = _victim()
+                if victim is None:
+                    return self._refuse(f"{count[0]} connections open (cap {max_connections})")
+                victim._drop(evicted=True)
+            by_addr.setdefault(self._addr, {})[self] = None
+            count[0] += 1
+            self._counted = True
             self._arm()
+            self._first_timer = self.loop.call_later(first_byte_s, self._silent_timeout)
+
+        def _refuse(self, why: str) -> None:
+            stats["refused"] += 1
+            _limited_log("HTTP connection refused: %s, none idle", why)
+            self.transport.abort()
+
+        def _release(self) -> None:
+            if self._counted:
+                self._counted = False
+                count[0] -= 1
+                conns = by_addr.get(self._addr)
+                if conns is not None:
+                    conns.pop(self, None)
+                    if not conns:
+                        del by_addr[self._addr]
+
+        def _drop(self, evicted: bool = False) -> None:
+            """Close this (idle) connection now; it stops counting at once."""
+            silent = not self._got_bytes or self.cycle is None
+            self._release()
+            self._disarm()
+            if evicted:
+                stats["evicted"] += 1
+            if self.transport.is_closing():
+                return
+            if silent:
+                self.transport.abort()      # nothing to flush: a reset, no TIME_WAIT here
+            else:
+                self.transport.close()
 
         def _arm(self) -> None:
-            self._disarm()
+            if self._head_timer is not None:
+                self._head_timer.cancel()
             self._head_cycle = self.cycle
             self._head_timer = self.loop.call_later(header_timeout_s, self._head_timeout)
 
@@ -119,21 +287,50 @@ def guarded_protocol(max_connections: int, header_timeout_s: float):
             if self._head_timer is not None:
                 self._head_timer.cancel()
                 self._head_timer = None
+            if self._first_timer is not None:
+                self._first_timer.cancel()
+                self._first_timer = None
+
+        def _silent_timeout(self) -> None:
+            self._first_timer = None
+            if not self._got_bytes and not self.transport.is_closing():
+                stats["silent_closed"] += 1
+                self._drop()
 
         def _head_timeout(self) -> None:
             self._head_timer = None
             # no new request head since the timer started: a slow or idle client
             if self.cycle is self._head_cycle and not self.transport.is_closing():
-                self.transport.close()
+                stats["head_timeouts"] += 1
+                self._drop()
+
+        def data_received(self, data: bytes) -> None:
+            if not self._got_bytes and data:
+                self._got_bytes = True
+                if self._first_timer is not None:
+                    self._first_timer.cancel()
+                    self._first_timer = None
+            super().data_received(data)
 
         def handle_events(self) -> None:
             super().handle_events()
             if self._head_timer is not None and self.cycle is not self._head_cycle:
-                self._disarm()      # a request head arrived in time
+                self._head_timer.cancel()       # a request head arrived in time
+                self._head_timer = None
 
         def handle_websocket_upgrade(self, event) -> None:
             self._disarm()          # the WebSocket protocol owns the connection now
+            self._upgraded = True   # still counted (its address, the cap) until it ends
             super().handle_websocket_upgrade(event)
+            ws = self.transport.get_protocol()
+            if ws is self:
+                return
+            lost = ws.connection_lost
+
+            def connection_lost(exc, _lost=lost, _http=self):
+                _http._release()
+                return _lost(exc)
+            ws.connection_lost = connection_lost
 
         def on_response_complete(self) -> None:
             if not self.transport.is_closing():
@@ -141,6 +338,7 @@ def guarded_protocol(max_connections: int, header_timeout_s: float):
             super().on_response_complete()
 
         def connection_lost(self, exc) -> None:
+            self._release()
             self._disarm()
             super().connection_lost(exc)
 

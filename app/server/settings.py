@@ -45,6 +45,10 @@ class Settings:
     max_push_bytes: int = 16 << 20   # likewise for a phone's push (a long batch of a fast phone)
     max_connections: int = 200       # HTTP connections at once; more are closed at once
     header_timeout_s: float = 10.0   # a request's headers must arrive within this
+    first_byte_timeout_s: float = 2.5   # a connection that sends nothing is closed after this
+                                     # (a browser sends its request within milliseconds)
+    max_connections_per_ip: int = 32  # HTTP connections (and WebSockets) of one address: a
+                                     # browser opens ~6 per host and one per WebSocket
     keep_alive_s: int = 5            # an idle HTTP connection is closed after this
     phone_hello_s: float = 3.0       # a phone must send a valid sample within this
     # receiver

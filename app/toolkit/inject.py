@@ -133,17 +133,28 @@ def _number(body: dict, key: str, lo: float, hi: float, default=None) -> float:
 def parse_request(body: dict[str, Any]) -> Disturbance:
     """``{"kind": "magnet", "strength_uT", "direction", "seconds", "frame"?, "ramp_s"?}`` or
     ``{"kind": "shake", "amplitude_ms2", "seconds", "frequency_hz"?, "direction"?,
-    "frame"?}`` validated; InjectError names the first bad key."""
+    "frame"?}`` validated; InjectError names the first bad key. A message quotes at most
+    a short excerpt of what was sent (docs/api.md: the input is never echoed)."""
+
+    def said(v: Any) -> str:            # a short excerpt of a value sent, for a message
+        r = repr(v)
+        return r if len(r) <= 40 else f"{r[:32]}... ({len(r)} characters)"
+
     if not isinstance(body, dict):
         raise InjectError("body", "expected a JSON object")
     kind = body.get("kind")
-    if kind not in KINDS:
-        raise InjectError("kind", f"must be one of {', '.join(KINDS)}, got {kind!r}")
+    if not isinstance(kind, str) or kind not in KINDS:
+        raise InjectError("kind", f"must be one of {', '.join(KINDS)}, got {said(kind)}")
     allowed = {"kind", "seconds", "direction", "frame", "ramp_s"}
     allowed |= {"strength_uT"} if kind == "magnet" else {"amplitude_ms2", "frequency_hz"}
     for k in body:
         if k not in allowed:
-            raise InjectError(k, f"unknown key for a {kind} (known: {', '.join(sorted(allowed))})")
+            raise InjectError(str(k)[:40], f"unknown key for a {kind} "
+                                           f"(known: {', '.join(sorted(allowed))})")
+    for k in ("strength_uT", "amplitude_ms2", "seconds", "ramp_s", "frequency_hz"):
+        v = body.get(k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise InjectError(k, f"must be a finite number, got {said(v)}")
     if kind == "magnet":
         mag = _number(body, "strength_uT", 0.0, 5000.0)
         frame = body.get("frame", "world")
@@ -152,24 +163,33 @@ def parse_request(body: dict[str, Any]) -> Disturbance:
         mag = _number(body, "amplitude_ms2", 0.0, 200.0)
         frame = body.get("frame", "sensor")
         d_default = "x"
-    if frame not in FRAMES:
-        raise InjectError("frame", f"must be one of {', '.join(FRAMES)}, got {frame!r}")
+    if not isinstance(frame, str) or frame not in FRAMES:
+        raise InjectError("frame", f"must be one of {', '.join(FRAMES)}, got {said(frame)}")
     seconds = _number(body, "seconds", 0.05, MAX_SECONDS)
     ramp = _number(body, "ramp_s", 0.0, 10.0, default=0.0 if kind == "magnet" else 0.2)
     freq = _number(body, "frequency_hz", 0.1, 25.0, default=3.0) if kind == "shake" else 3.0
     d = body.get("direction", d_default)
     if isinstance(d, str):
         if d.lower() not in DIRECTIONS:
-            raise InjectError("direction", f"a 3-vector or one of {', '.join(DIRECTIONS)}, got {d!r}")
-        vec = np.array(DIRECTIONS[d.lower()])
+            raise InjectError("direction", f"a 3-vector or one of {', '.join(DIRECTIONS)}, "
+                                           f"got {said(d)}")
+        vec = np.array(DIRECTIONS[d.lower()], dtype=float)
     else:
-        try:
-            vec = np.asarray(d, dtype=float).reshape(-1)
-        except (TypeError, ValueError):
-            raise InjectError("direction", f"a 3-vector or a name, got {d!r}") from None
-        if vec.size != 3 or not np.all(np.isfinite(vec)) or np.linalg.norm(vec) < 1e-9:
-            raise InjectError("direction", f"a non-zero finite 3-vector, got {d!r}")
-    vec = vec / np.linalg.norm(vec)
+        if isinstance(d, np.ndarray):
+            d = d.tolist()
+        if not isinstance(d, (list, tuple)) or len(d) != 3 \
+                or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in d):
+            raise InjectError("direction", f"a 3-vector or a name, got {said(d)}")
+        vec = np.array([float(x) for x in d])
+        if not np.all(np.isfinite(vec)):
+            raise InjectError("direction", f"a non-zero finite 3-vector, got {said(d)}")
+    # the length without overflow: [1e308]*3 squared is inf, and v/inf a zero vector
+    scale = float(np.max(np.abs(vec)))
+    unit = vec / scale if scale > 0 else vec
+    norm = scale * float(np.linalg.norm(unit))
+    if not norm >= 1e-9:
+        raise InjectError("direction", f"a non-zero finite 3-vector, got {said(d)}")
+    vec = unit / np.linalg.norm(unit)
     return Disturbance(kind=kind, magnitude=mag, seconds=seconds,
                        direction=tuple(float(v) for v in vec), frame=frame, ramp_s=ramp,
                        frequency_hz=freq)

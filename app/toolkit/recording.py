@@ -51,7 +51,7 @@ LOG_SUFFIX = ".txt"
 ESTIMATES_SUFFIX = ".estimates.csv"
 EVENTS_SUFFIX = ".events.jsonl"
 SIBLING_SUFFIXES = (ESTIMATES_SUFFIX, EVENTS_SUFFIX)
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}\Z")   # \Z: "$" also matches before a final "\n"
 ESTIMATE_COLUMNS = ("estimator", "tag")  # + OUTPUT_COLUMNS
 
 # ---------------------------------------------------------------- the estimates CSV format

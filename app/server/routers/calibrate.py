@@ -14,6 +14,7 @@ the phone is turned, ``GET /api/magcal`` shows the coverage and the fit,
 from __future__ import annotations
 
 import asyncio
+import math
 from typing import Any
 
 from fastapi import APIRouter, Body, Depends
@@ -33,9 +34,28 @@ def _obj(body: Any, allowed: set[str]) -> dict:
     if not isinstance(body, dict):
         raise ToolError("body", "expected a JSON object")
     unknown = set(body) - allowed
-    if unknown:
-        raise ToolError(sorted(unknown)[0], f"unknown key (known: {', '.join(sorted(allowed))})")
+    if unknown:   # the key named, cut short (the input is never echoed)
+        raise ToolError(sorted(unknown)[0][:40], f"unknown key (known: {', '.join(sorted(allowed))})")
     return body
+
+
+def _stretch(b: dict) -> tuple[str, float, float | None]:
+    """A recording's stretch (``recording``, ``from_s``, ``to_s``) checked: a name and
+    finite seconds >= 0 (a string or a list for a number was a 500 with a traceback)."""
+    name = b["recording"]
+    if not isinstance(name, str):
+        raise ToolError("recording", "must be the name of a recording (a string)")
+    out: list[float | None] = []
+    for key, default in (("from_s", 0.0), ("to_s", None)):
+        v = b.get(key, default)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                              or not math.isfinite(v) or v < 0):
+            raise ToolError(key, "must be a number of seconds from the recording's start "
+                                 "(finite, >= 0)" + (" or null" if default is None else ""))
+        out.append(None if v is None else float(v))
+    if out[1] is not None and out[1] <= out[0]:
+        raise ToolError("to_s", "must be after from_s")
+    return name, out[0], out[1]
 
 
 @router.post("/calibrate", dependencies=[Depends(require_presenter)])
@@ -45,8 +65,12 @@ async def calibrate(body: Any = Body(..., examples=[{"seconds": 10}]),
     b = _obj(body, {"seconds", "recording", "from_s", "to_s"})
     cal = tk.calibration
     if "recording" in b:
+        name, from_s, to_s = _stretch(b)
         return await asyncio.get_running_loop().run_in_executor(
-            None, lambda: cal.calibrate_recording(b["recording"], b.get("from_s", 0.0), b.get("to_s")))
+            None, lambda: cal.calibrate_recording(name, from_s, to_s))
+    if "from_s" in b or "to_s" in b:
+        raise ToolError("from_s" if "from_s" in b else "to_s", "a stretch of a recording: "
+                        "give 'recording' too (the live stream takes 'seconds')")
     if "seconds" not in b:
         raise ToolError("seconds", "required (or 'recording')")
     return await cal.calibrate(b["seconds"])
