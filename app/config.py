@@ -67,7 +67,7 @@ def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source
 TOP_LEVEL_KEYS = ("primary",)
 
 
-def _merge(base: dict, over: dict) -> dict:
+def merge(base: dict, over: dict) -> dict:
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
@@ -122,7 +122,7 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
         over = {k: translate_renamed(k, estimator_class(k).Params, v, str(path))
                 if isinstance(v, dict) and k in NAMES else v for k, v in over.items()}
         validate_config(over, str(path))
-        raw = _merge(raw, over)
+        raw = merge(raw, over)
         src = str(path)
     return validate_config(raw, src)
 

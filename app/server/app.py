@@ -28,7 +28,7 @@ from app.server.gui.main import Gui, run_gui
 from app.server.limits import BodyLimit, install_error_handlers
 from app.server.connect import Connect
 from app.server.phones import HttpPhones
-from app.sources.phyphox import PhyphoxPoller
+from app.sources.phyphox_poll import PhyphoxPoller
 from app.sources.sensorfusion_tcp import SensorFusionServer
 from app.sources.slot import PhoneSlot
 from app.server.routers import (calibrate, connect, estimators, health, params, phone, push,

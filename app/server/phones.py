@@ -25,7 +25,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.sources.phyphox import PhyphoxError, PhyphoxPoller, PhyphoxPushStream
+from app.sources.phyphox import PhyphoxError, PhyphoxPushStream
+from app.sources.phyphox_poll import PhyphoxPoller
 from app.sources.sensorlogger import SensorLoggerError, SensorLoggerStream
 from app.sources.slot import PHONE_APPS, PhoneSlot
 

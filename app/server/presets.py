@@ -30,7 +30,7 @@ import re
 import tempfile
 from pathlib import Path
 
-from app.config import DEFAULT_CONFIG, ConfigError, _merge, load_config, validate_config
+from app.config import DEFAULT_CONFIG, ConfigError, load_config, merge, validate_config
 from app.params import CONFIG_DIR, dump_toml, load_toml
 from app.live import Change, PatchError
 from app.server.engine import Engine
@@ -112,7 +112,7 @@ def config_from_text(text: str | bytes, source: str = "upload") -> dict:
         raise ConfigError(f"{source}: not valid TOML: {str(e)[:200]}") from None
     validate_config(over, source)
     raw = load_toml(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else {}
-    return validate_config(_merge(raw, over), source)
+    return validate_config(merge(raw, over), source)
 
 
 def load_preset_text(engine: Engine, text: str | bytes, source: str = "upload") -> Change:

@@ -277,7 +277,7 @@ def time_reference(events: Any) -> tuple[float, float] | None:
     return ref
 
 
-def _session_key(events: Any) -> float | None:
+def session_key(events: Any) -> float | None:
     """What identifies an experiment session in the time reference: the systemTime
     of its first START (a clear or a new experiment starts a new list)."""
     if not isinstance(events, list):
@@ -396,7 +396,7 @@ class PhyphoxPushStream:
         # ---- a new session?
         new_session = not self._started
         events = timeinfo.get("events") if timeinfo else None
-        key = _session_key(events)
+        key = session_key(events)
         if model:
             model = model[:100]
             if self.model is not None and model != self.model:
@@ -506,10 +506,3 @@ class PhyphoxPushStream:
                 "phone_now_offset_s": self.phone_now_offset_s,
                 "unix_base_s": self.unix_base_s}
 
-
-def __getattr__(name: str):
-    # the poller lives in its own module; importable from here too
-    if name == "PhyphoxPoller":
-        from app.sources.phyphox_poll import PhyphoxPoller
-        return PhyphoxPoller
-    raise AttributeError(name)

@@ -28,7 +28,7 @@ from typing import Any, Callable
 from urllib.parse import quote, urlsplit
 
 from app.sources.phyphox import (COMPONENTS, SENSOR_TAGS, PhyphoxError, Sample,
-                                 _session_key, buffers_to_samples, time_reference)
+                                 session_key, buffers_to_samples, time_reference)
 
 log = logging.getLogger(__name__)
 
@@ -477,7 +477,7 @@ class PhyphoxPoller:
         ref = time_reference(ev)
         if ref is not None:
             self.unix_base_s = ref[0] - ref[1]
-        key = _session_key(ev)
+        key = session_key(ev)
         if key is not None:
             if self._time_key is not None and abs(key - self._time_key) > 1e-3:
                 self._cleared()
