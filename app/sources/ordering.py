@@ -91,10 +91,12 @@ class StreamCounters:
     late: int = 0          # dropped: too late to be put in order
     clamped: int = 0       # released with their time clamped (slightly late)
     jumps: int = 0         # clock jumps confirmed (re-anchored)
+    forced: int = 0        # released early: the buffer was full (a clock standing still)
 
     def as_dict(self) -> dict:
         return {"malformed": dict(self.malformed), "tags": dict(self.tags),
-                "late": self.late, "clamped": self.clamped, "jumps": self.jumps}
+                "late": self.late, "clamped": self.clamped, "jumps": self.jumps,
+                "forced": self.forced}
 
 
 class SampleOrderer:
@@ -107,12 +109,15 @@ class SampleOrderer:
     ``offset_threshold`` the clock difference above which a tag gets an offset;
     ``max_pending`` how many samples may wait for the reference clock;
     ``jump_s`` the distance from the newest time beyond which a time stamp is a jump,
-    ``jump_confirm`` how many samples of a tag in a row confirm it.
+    ``jump_confirm`` how many samples of a tag in a row confirm it; ``max_buffered`` the
+    most samples the buffer holds (a clock that stands still never releases them: beyond
+    this the oldest go on, counted in ``counters.forced``).
     """
 
     def __init__(self, window: float = 0.05, *, max_delay: float = 0.5,
                  late_tolerance: float = 0.1, offset_threshold: float = 2.0,
-                 max_pending: int = 256, jump_s: float = 2.0, jump_confirm: int = 3):
+                 max_pending: int = 256, jump_s: float = 2.0, jump_confirm: int = 3,
+                 max_buffered: int = 20000):
         if not (window >= 0.0 and max_delay >= 0.0 and late_tolerance >= 0.0
                 and offset_threshold > 0.0):
             raise ValueError("window, max_delay and late_tolerance must be >= 0, "
@@ -122,6 +127,7 @@ class SampleOrderer:
         self.late_tolerance = float(late_tolerance)
         self.offset_threshold = float(offset_threshold)
         self.max_pending = int(max_pending)
+        self.max_buffered = max(1, int(max_buffered))
         self.jump_ms = float(jump_s) * 1000.0
         self.jump_confirm = max(1, int(jump_confirm))
         self.counters = StreamCounters()
@@ -309,6 +315,11 @@ class SampleOrderer:
         limit = self._release_limit()
         while self._heap and self._heap[0][0] <= limit:
             out.append(self._pop())
+        # a clock that stands still (a frozen phone clock) never moves the release limit:
+        # the buffer is bounded, its oldest samples go on in order (counted)
+        while len(self._heap) > self.max_buffered:
+            out.append(self._pop())
+            self.counters.forced += 1
         return out
 
     def _release_limit(self) -> float:

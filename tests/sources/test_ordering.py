@@ -266,3 +266,16 @@ def test_a_real_clock_jump_is_reanchored_without_loss():
         n = len(before)
         assert times(out[:n]) == sorted(times(before))
         assert times(out[n:]) == sorted(times(after))
+
+
+def test_a_frozen_clock_cannot_grow_the_buffer_without_bound():
+    """A phone whose clock stands still stamps every sample with one time: the release
+    limit never moves, so before, every sample stayed in the buffer (390 MB in 20 s of a
+    fast stream). The buffer is bounded; the samples go on in order, counted."""
+    o = SampleOrderer(window=0.05, max_buffered=1000)
+    out = []
+    for k in range(10_000):
+        out += o.push(Sample(5000, ("ACC", "GYR", "MAG")[k % 3], (0.0, 0.0, 9.81)))
+    assert o.buffered <= 1000
+    assert len(out) >= 9000 and o.counters.forced == len(out)
+    assert [s.time_ms for s in out] == sorted(s.time_ms for s in out)
