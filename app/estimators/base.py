@@ -53,6 +53,8 @@ class Reason(IntEnum):
     BIAS_RESET = 16 # gyr: the bias estimate was implausible (above bias_max) and was reset
     TURN = 17       # mag: the field (world frame) changed faster than the phone's turn explains:
                     # a magnet moving in (value: the unexplained change rate, rad/s)
+    OFFSET = 18     # mag: used, with a sensor-fixed offset removed (a magnet on the phone, a
+                    # case, a mount: tracked online; value: the offset's strength, µT)
 
     @property
     def label(self) -> str:
@@ -78,6 +80,7 @@ REASON_TEXT = {
     Reason.RECOVER: "estimate was lost: re-aligned",
     Reason.BIAS_RESET: "implausible gyroscope bias: reset",
     Reason.TURN: "field changed faster than the phone turned",
+    Reason.OFFSET: "used with a sensor-fixed offset (a magnet on the phone) removed",
 }
 
 
@@ -107,7 +110,7 @@ _TIME_ISSUES = tuple(TimeIssue)
 
 # Plain int copies of the codes for numba-compiled code (it cannot cast IntEnum to float)
 (R_USED, R_ABSENT, R_DISABLED, R_INVALID, R_NORM, R_NIS, R_DIP, R_FIELD, R_INIT, R_WAIT, R_GAP,
- R_REST, R_LATE, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET, R_TURN) = (int(r) for r in Reason)
+ R_REST, R_LATE, R_ACCEL, R_NEW_FIELD, R_RECOVER, R_BIAS_RESET, R_TURN, R_OFFSET) = (int(r) for r in Reason)
 T_OK, T_REPEATED, T_BACKWARD, T_GAP, T_FIRST = (int(x) for x in TimeIssue)
 
 # The flag record written after every row (floats so one array holds them all).
@@ -390,6 +393,12 @@ class Diagnostics:
     """Estimated gyroscope bias (rad/s, sensor frame)."""
     rest: bool | None = None
     """Standstill detected."""
+    mag_offset: tuple[float, float, float] | None = None
+    """robust: the sensor-fixed field offset (hard iron: a magnet on the phone) its online fit
+    finds, sensor frame (µT); zero before the fit has seen enough turning."""
+    mag_offset_status: str | None = None
+    """robust: "none" (no offset found), "tracking" (an offset found, not yet trusted) or
+    "applied" (removed from every field sample)."""
     # --- complementary
     alpha: float | None = None
     """Gyro weight α = τ/(τ+dt) of the last blend (NaN: none made yet; 0: compass only)."""

@@ -17,6 +17,11 @@ explained in the module that does it:
 - :mod:`.heading`: **heading only from the magnetometer**, **magnetic disturbance
   detection** (VQF's logic), **the field turn test**, **never lost** (RECOVER).
 - :mod:`.bias`: **rest detection**, **bias in motion from the correction rates**.
+- :mod:`.hardiron`: **a sensor-fixed magnetic offset tracked online** (a magnet on the
+  phone: a causal sphere fit, applied only when the corrected field is the earth's; flag
+  OFFSET, ``Diagnostics.mag_offset``); :mod:`.heading` also makes **a return to the field
+  after a refusal wait for evidence** (consistent over a quarter turn) and compensates
+  **the field's delay** (``mag_delay``).
 - **Measurement noise as densities** (``tilt_noise``, ``heading_noise`` in rad·√s):
   ``R = σ²/Δt`` per update, so the correction time constants, ``tilt_noise /
   gyr_noise`` and ``heading_noise / gyr_noise``, do not depend on the sample rates.
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 from app.estimators.robust.bias import BIAS_UPD_S, H_BIAS, heading_bias_update, motion_bias_update, rest_update
 from app.estimators.robust.estimator import RobustEKF
+from app.estimators.robust.hardiron import HI_STATUS, hard_iron, hard_iron_reset
 from app.estimators.robust.heading import heading_innovation, heading_jacobian, mag_update
 from app.estimators.robust.kernel import robust_run, robust_step
 from app.estimators.robust.params import (DERIVED, GRAVITY, NPARAM, PRM, RobustParams, derived, layout,
@@ -47,7 +53,7 @@ from app.estimators.robust.state import (DT_MAX, NSTATE, S, STATE, STATE_NAN, in
                                          rotate3, update_is_due)
 from app.estimators.robust.tilt import acc_update, tilt_innovation, tilt_jacobian
 
-__all__ = ["BIAS_UPD_S", "DERIVED", "DT_MAX", "GRAVITY", "H_BIAS", "NPARAM", "NSTATE", "PRM", "RobustEKF",
+__all__ = ["HI_STATUS", "hard_iron", "hard_iron_reset", "BIAS_UPD_S", "DERIVED", "DT_MAX", "GRAVITY", "H_BIAS", "NPARAM", "NSTATE", "PRM", "RobustEKF",
            "RobustParams", "S", "STATE", "STATE_NAN", "acc_update", "derived", "heading_bias_update",
            "heading_innovation", "heading_jacobian", "inject", "layout", "lp_coef", "mag_update",
            "motion_bias_update", "new_state", "param_vector", "rest_update", "robust_run", "robust_step",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from app.estimators.base import Diagnostics, Estimator, vec3
+from app.estimators.robust.hardiron import HI_STATUS
 from app.estimators.robust.kernel import robust_run, robust_step
 from app.estimators.robust.params import GRAVITY, RobustParams, param_vector
 from app.estimators.robust.state import S, new_state
@@ -75,4 +76,12 @@ class RobustEKF(Estimator):
             acc_lp_world=vec3(s[S.acc_lp:S.acc_lp + 3]),
             gyr_bias=vec3(s[S.bias:S.bias + 3]),
             rest=bool(s[S.rest]),
+            mag_offset=vec3(s[S.hi_o:S.hi_o + 3]),
+            mag_offset_status=HI_STATUS[int(s[S.hi_status])],
         )
+
+    @property
+    def mag_offset(self) -> tuple[np.ndarray, str]:
+        """The sensor-fixed field offset removed now (µT, sensor frame; zero unless applied)
+        and the status of its fit ("none", "tracking", "applied")."""
+        return self._s[S.hi_applied:S.hi_applied + 3].copy(), HI_STATUS[int(self._s[S.hi_status])]

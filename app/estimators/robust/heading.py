@@ -18,6 +18,13 @@
   a world-frame field changing faster than ``mag_turn_gate`` beyond ``mag_turn_rel`` ×
   the turn rate is a disturbance too (flag TURN, value: the unexplained rate), ended like
   the others after ``mag_min_undisturbed`` of a field within every gate.
+- **A magnet on the phone** (:mod:`.hardiron`): a sensor-fixed offset found by the online
+  sphere fit and judged the earth field's is removed from every sample first (flag OFFSET).
+- **The field's delay** (``mag_delay``): each sample is turned forward by the gyroscope's
+  rate × the delay (0: off).
+- **A return after a refusal needs evidence** (``PROBATION_TURN``): the heading σ grown
+  while the field was refused acts only once the field's heading has stayed consistent
+  (within ``mag_dip_gate``) over a quarter turn; until then the steady gain.
 - **Never lost.** An undisturbed field farther than ``mag_lost_angle`` from the heading
   for ``mag_lost_time`` means the estimate is wrong: the heading σ grows to the error,
   the field's heading is taken, the bias learned meanwhile is dropped (flag RECOVER);
@@ -30,13 +37,19 @@ import numpy as np
 from numba import njit
 
 from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD, R_NIS, R_NORM,
-                                R_RECOVER, R_TURN, R_USED)
+                                R_OFFSET, R_RECOVER, R_TURN, R_USED)
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_bias_update
+from app.estimators.robust.hardiron import HI_APPLIED, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import DT_MAX, S, inject, lp_coef, rotate3, update_is_due
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+
+# The turn (rad) over which a field's heading must stay consistent after a refusal before the
+# heading σ grown during the refusal is let act: a quarter turn, over which a magnet's bias on
+# the heading (near the phone or on it) changes with the attitude by most of its range
+PROBATION_TURN = 0.5 * np.pi
 
 
 @njit(cache=True)
@@ -121,7 +134,9 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         s[S.undisturbed_time] += dt
         if s[S.undisturbed_time] >= p[PRM.mag_min_undisturbed]:
             s[S.disturbed] = 0.0
-            kr = lp_coef(dt, p[PRM.mag_ref_tau]) if dt > 0 else 0.0
+            # a field with a sensor-fixed offset found in it (not yet removed) is not the
+            # earth's: it does not teach the reference
+            kr = lp_coef(dt, p[PRM.mag_ref_tau]) if dt > 0 and s[S.hi_status] != HI_TRACKING else 0.0
             s[S.ref_norm] += kr * (nf - s[S.ref_norm])
             s[S.ref_dip] += kr * (df - s[S.ref_dip])
     else:
@@ -205,16 +220,45 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     """A magnetometer sample: the turn test and the field check; a field judged usable is
     averaged in the world frame and corrects the heading at most at ``update_rate_hz``
     (and, when an undisturbed field has disagreed for long, the estimate is recovered)."""
-    mw = rotate3(s, mag)
-    n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
-    dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
     dt = t - s[S.mag_t] if np.isfinite(s[S.mag_t]) else 0.0
     dt = min(max(dt, 0.0), DT_MAX)
     s[S.mag_t] = t
+    # a sensor-fixed offset (a magnet on the phone), when one is applied, is removed first
+    mc = s[S.mag_c:S.mag_c + 3]
+    hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, mc)
+    if has_rate and p[PRM.mag_delay] != 0.0:
+        # the field lags the gyroscope by mag_delay: it was measured at t - d, when the
+        # sensor frame was turned by -ω d from now; m(t) = m(t - d) - d ω × m(t - d)
+        d = p[PRM.mag_delay]
+        wx = s[S.w_cur_x] - s[S.bias_x]
+        wy = s[S.w_cur_y] - s[S.bias_y]
+        wz = s[S.w_cur_z] - s[S.bias_z]
+        c0 = wy * mc[2] - wz * mc[1]
+        c1 = wz * mc[0] - wx * mc[2]
+        c2 = wx * mc[1] - wy * mc[0]
+        mc[0] -= d * c0
+        mc[1] -= d * c1
+        mc[2] -= d * c2
+    mw = rotate3(s, mc)
+    n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
+    dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
     f[F_MAG_VAL] = n
     f[F_MAG] = R_USED
     turn = _turn_check(s, p, mw, dt, rate, has_rate)
+    was = s[S.disturbed]
     ok = _field_check(s, p, n, dip, dt, rate, turn, f)
+    if was == 0.0 and s[S.disturbed] != 0.0:
+        s[S.p22_pre] = P[2, 2]          # the heading's σ before the refusal grows it
+        s[S.prob] = 0.0
+    elif was != 0.0 and s[S.disturbed] == 0.0 and s[S.ref_ok] != 0.0:
+        # back to the field after a refusal: evidence first (see PROBATION_TURN)
+        s[S.prob] = 1.0
+        s[S.prob_turn] = 0.0
+        s[S.prob_lo] = np.inf
+        s[S.prob_hi] = -np.inf
+    if ok and hi == HI_APPLIED and f[F_MAG] == R_USED:
+        f[F_MAG] = R_OFFSET
+        f[F_MAG_VAL] = np.sqrt(s[S.hi_applied_x] ** 2 + s[S.hi_applied_y] ** 2 + s[S.hi_applied_z] ** 2)
     scale = 1.0
     if ok:
         s[S.reject_time] = max(s[S.reject_time] - p[PRM.mag_reject_factor] * dt, 0.0)
@@ -255,6 +299,28 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     H = heading_jacobian(m_mean)
     gate = p[PRM.mag_nis_gate]
     lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]
+    if s[S.prob] != 0.0 and not has_rate:
+        s[S.prob] = 0.0     # no gyroscope heading to test the field against: the field is all
+    if s[S.prob] != 0.0 and not lost:
+        # a return after a refusal is confirmed by a consistent field over a real turn: its
+        # heading innovations stay within mag_dip_gate of each other while the phone turns
+        # by PROBATION_TURN (a magnet near or on a turning phone bends the field's heading
+        # by an amount that changes with the attitude; a chance half second "within the
+        # gates" is no evidence). Until then the correction runs at the steady gain (R
+        # scaled by the growth of the heading variance during the refusal), after it the
+        # grown σ lets it catch up at once.
+        iv = innov[0]
+        s[S.prob_lo] = min(s[S.prob_lo], iv)
+        s[S.prob_hi] = max(s[S.prob_hi], iv)
+        if s[S.prob_hi] - s[S.prob_lo] > p[PRM.mag_dip_gate]:
+            s[S.prob_lo] = iv
+            s[S.prob_hi] = iv
+            s[S.prob_turn] = 0.0
+        s[S.prob_turn] += rate * elapsed
+        if s[S.prob_turn] >= PROBATION_TURN or p[PRM.mag_dip_gate] <= 0.0:
+            s[S.prob] = 0.0
+        elif s[S.p22_pre] > 0.0 and P[2, 2] > s[S.p22_pre]:
+            Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
     if lost:
         # an undisturbed field has disagreed with the estimate for long: the estimate is
         # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
@@ -282,7 +348,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         else:
             s[S.far_time] = 0.0
     else:
-        if f[F_MAG] == R_USED:
+        if f[F_MAG] == R_USED or f[F_MAG] == R_OFFSET:
             f[F_MAG] = R_NIS
             f[F_MAG_VAL] = nis
         if ok:

@@ -37,6 +37,7 @@ from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, F_ACC, 
                                  R_ABSENT, R_BIAS_RESET, R_GAP, R_LATE, R_USED, T_BACKWARD, T_GAP, T_OK,
                                  align_step, row_prologue)
 from app.estimators.robust.bias import rest_update
+from app.estimators.robust.hardiron import hard_iron_reset
 from app.estimators.robust.heading import mag_update
 from app.estimators.robust.params import GRAVITY, PRM
 from app.estimators.robust.state import DT_MAX, S, lp_coef
@@ -80,6 +81,9 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.undisturbed_time] = 0.0
     s[S.disturbed] = 0.0
     s[S.mt_ok] = 0.0
+    hard_iron_reset(s)
+    s[S.prob] = 0.0
+    s[S.p22_pre] = 0.0
 
 
 @njit(cache=True)

@@ -137,6 +137,28 @@ class RobustParams(CommonParams):
                                 doc="the turn test's time scale: the world-frame field low-passed over "
                                     "mag_norm_dip_tau is low-passed again over this, a change at rate r "
                                     "leaves it behind by r × this; the turn rate is low-passed over it too")
+    mag_delay: float = param(0.0, unit="s", lo=-0.1, hi=0.1,
+                             doc="the magnetometer's samples lag the gyroscope's by this (its output "
+                                 "filter, a slower sampling): each field sample is turned forward by "
+                                 "the gyroscope's rate × this before use; 0: off")
+    hard_iron_window: float = param(10.0, unit="s", lo=0.0, hi=600.0,
+                                    doc="a magnet fixed to the phone (a case, a mount) is a constant offset "
+                                        "in the sensor frame: it is fitted online, the field's samples on a "
+                                        "sphere about it, over this much turning (a sample counts by its "
+                                        "duration × min(1, turn rate / mag_new_min_rate): a still phone "
+                                        "neither teaches nor forgets); 10 s of turning sees the sphere from "
+                                        "every side; 0: off")
+    hard_iron_max_std: float = param(1.0, unit="µT", lo=0.0, hi=100.0,
+                                     doc="the fitted offset is applied only when its σ (largest axis) is "
+                                         "below this: a magnetometer's noise (0.3-1 µT), so the heading "
+                                         "error it leaves is below σ/|m_h| (2-3° on a 20-25 µT horizontal "
+                                         "field)")
+    hard_iron_tol: float = param(0.05, lo=0.0, hi=1.0,
+                                 doc="the offset is applied only when the fitted sphere's radius matches "
+                                     "the learned earth field's strength to this fraction and the fit's "
+                                     "rms residual is below this fraction of it (the corrected field is "
+                                     "the earth's, to a sensor's scale error and a room's variation of "
+                                     "a few %)")
     rest_gyr_th: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s", user_scale=DEG,
                                doc="rest: gyroscope deviation from its low-pass below this")
     rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,

@@ -49,7 +49,7 @@ STATE = (
     ("mag_count", 1, "how many"),
     ("mag_upd_time", 1, "s of used magnetometer samples since the last heading update"),
     ("acc_lp_rest_t", 1, "time of the last accelerometer sample in the rest low-pass"),
-    ("w_cur", 3, "scratch: the rate integrated over the current row"),
+    ("w_cur", "xyz", "scratch: the rate integrated over the current row"),
     ("pred_T", 18, "scratch of the time update: R [Pbb | Pbt], 3x6 by rows"),
     ("seen", 1, "sensors seen at the time of the last row (bit mask)"),
     ("mag_nd", ("norm", "dip"), "low-passed field strength (µT) and dip (rad)"),
@@ -72,6 +72,28 @@ STATE = (
     ("mt_ok", 1, "1 once the field turn test's low-passes hold a value"),
     ("turn_lp", "xy", "net turn rate about the horizontal axes: the world-frame turn rate's x, y "
                       "(rad/s, bias removed) low-passed over acc_tau (gyr_scale_noise: tilt only)"),
+    ("hi_A", 16, "hard iron fit: normal matrix Σ w φ φᵀ, φ = (2m, 1) (m in units of HI_SCALE)"),
+    ("hi_b", 4, "hard iron fit: Σ w φ |m|²"),
+    ("hi_yy", 1, "hard iron fit: Σ w |m|⁴"),
+    ("hi_W", 1, "hard iron fit: Σ w (s of turning in the window)"),
+    ("hi_o", "xyz", "hard iron fit: the offset found (µT, sensor frame)"),
+    ("hi_r", 1, "hard iron fit: the sphere's radius (µT)"),
+    ("hi_rms", 1, "hard iron fit: rms residual of the field strength (µT)"),
+    ("hi_std", 1, "hard iron fit: σ of the offset, largest axis (µT)"),
+    ("hi_status", 1, "hard iron: 0 none, 1 tracking, 2 applied"),
+    ("hi_applied", "xyz", "hard iron: the offset removed from the field (µT; 0 unless applied)"),
+    ("hi_dev_raw", 1, "hard iron: low-passed (|m| - ref)² of the raw field (µT²)"),
+    ("hi_dev_cor", 1, "hard iron: likewise of the field minus the offset found"),
+    ("hi_dev_fit", 1, "hard iron: low-passed (|m - o| - r)² of new samples against the current fit (µT²)"),
+    ("hi_w_acc", 1, "hard iron: turning time (s) since the last sample fed to the fit"),
+    ("hi_feed_t", 1, "hard iron: s since the last sample fed to the fit"),
+    ("hi_solve_t", 1, "hard iron: s since the fit was last solved"),
+    ("p22_pre", 1, "heading variance when the field was last refused (the steady one)"),
+    ("prob", 1, "1 while a return to the field after a refusal awaits evidence"),
+    ("prob_lo", 1, "probation: smallest heading innovation seen (rad)"),
+    ("prob_hi", 1, "probation: largest heading innovation seen (rad)"),
+    ("prob_turn", 1, "probation: turn (rad) over which the innovations stayed consistent"),
+    ("mag_c", 3, "scratch: the field sample with the offset removed"),
 )
 # slots that start as NaN ("not yet")
 STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
@@ -85,6 +107,8 @@ def new_state() -> np.ndarray:
     for name in STATE_NAN:
         s[getattr(S, name)] = np.nan
     s[S.wait_acc:S.wait_acc + 3] = np.nan     # no accelerometer sample yet
+    s[S.hi_std] = np.inf                      # no hard iron fit yet
+    s[S.hi_rms] = np.inf
     return s
 
 

@@ -1,0 +1,268 @@
+"""A sensor-fixed magnetic offset tracked online: a magnet on the phone (a case, a mount).
+
+A magnet fixed to the phone adds a constant vector ``o`` in the *sensor* frame: the
+magnetometer reads ``m = R^T m_earth + o``. The field's strength then swings with the
+phone's attitude (``|m|`` between ``|m_earth| - |o|`` and ``|m_earth| + |o|``), its dip and
+heading are wrong, and the disturbance gates refuse it for as long as the magnet stays.
+Yet once ``o`` is removed, ``|m - o|`` is the earth's strength to the sensor's noise and
+its heading is right: the information is there.
+
+**The fit.** While the phone turns, the samples lie on a sphere of radius ``|m_earth|``
+centred on ``o``: ``|m|² = 2 m·o + (r² - |o|²)``, linear in ``θ = (o, r² - |o|²)``. A
+recursive least-squares fit with exponential forgetting keeps the normal equations
+``A = Σ w φ φᵀ``, ``b = Σ w φ y`` (``φ = (2m, 1)``, ``y = |m|²``) over a window of
+``hard_iron_window`` seconds *of turning*: a sample's weight is its duration times
+``min(1, ω / mag_new_min_rate)``, and the window forgets at the same pace, so at rest the
+fit neither learns nor forgets (a still phone shows one point of the sphere). Every
+``HI_SOLVE_S`` the 4x4 system is solved; the offset's covariance is ``σ_y² τc A⁻¹``
+(``σ_y²`` the fit's mean squared residual, ``τc = HI_CORR_S`` the time over which
+magnetometer samples are correlated: their errors are not independent sample to sample).
+Little rotation leaves ``A`` ill-conditioned and the σ large: no false offsets at rest.
+
+**Status.** ``none``: no offset distinguishable from zero (``|o| < 3σ``), or not enough
+turning seen. ``tracking``: an offset found, not (or no longer) trusted. ``applied``: the
+offset is removed from every sample before anything else looks at it, and the field is
+*used*. An offset is applied only when
+
+- the fit has seen at least half a window of turning,
+- its σ (largest axis) is below ``hard_iron_max_std`` (the sensor's noise level: then
+  the heading error it leaves is below σ/|m_h|),
+- the fitted sphere's radius matches the learned earth field's strength to
+  ``hard_iron_tol`` and the fit's rms residual (in µT) is below ``hard_iron_tol`` × it
+  (the corrected field *is* the earth's, not any sphere),
+- and the corrected field fits the learned strength better than the raw field does
+  (their low-passed squared deviations from it, over ``mag_cand_tau``), while the raw
+  field's rms deviation exceeds the strength gate (``mag_norm_gate_rel``): an offset the
+  gate accepts is the size of a calibration's residual and a room's inhomogeneity, which
+  the heading noise covers and the optical truths' magnetic north includes (on BROAD's
+  tapping and vibrating-phone trials removing one cost 0.3-0.9°).
+
+A change is detected when new samples leave the fit's sphere by more than 3 × its
+residual (and the sensor's noise), low-passed over ``mag_min_undisturbed``, or when the
+fit's residual exceeds twice ``hard_iron_tol`` (two fields mixed in the window): the fit
+starts over. An applied offset is dropped at once when the raw field fits the learned
+strength better than the corrected one (the magnet was taken off: the fit restarts), and
+goes back to ``tracking`` when the fit fails the tests above by more than a factor of two
+(hysteresis). At most ``HI_FEED_HZ`` samples a second enter the fit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from app.estimators.robust.params import PRM
+from app.estimators.robust.state import DT_MAX, S, lp_coef
+
+# How often the fit is solved (s): the offset changes over seconds
+HI_SOLVE_S = 0.1
+# Correlation time of the magnetometer's errors (s): a phone's or an IMU's magnetometer is
+# low-passed to ~10 Hz, and the field's inhomogeneity changes as fast as the phone moves, so
+# samples closer than this are not independent evidence for the fit's σ
+HI_CORR_S = 0.1
+# Most samples per second fed to the fit
+HI_FEED_HZ = 100.0
+# The fit works in units of this (µT): the normal equations stay well conditioned
+HI_SCALE = 50.0
+
+HI_NONE, HI_TRACKING, HI_APPLIED = 0.0, 1.0, 2.0
+HI_STATUS = ("none", "tracking", "applied")
+
+
+@njit(cache=True)
+def _reset_fit(s):
+    s[S.hi_A:S.hi_A + 16] = 0.0
+    s[S.hi_b:S.hi_b + 4] = 0.0
+    s[S.hi_yy] = 0.0
+    s[S.hi_W] = 0.0
+
+
+@njit(cache=True)
+def hard_iron_reset(s):
+    """Start over (alignment): no fit, nothing applied."""
+    _reset_fit(s)
+    s[S.hi_o:S.hi_o + 3] = 0.0
+    s[S.hi_applied:S.hi_applied + 3] = 0.0
+    s[S.hi_status] = HI_NONE
+    s[S.hi_std] = np.inf
+    s[S.hi_r] = 0.0
+    s[S.hi_rms] = np.inf
+    s[S.hi_dev_raw] = 0.0
+    s[S.hi_dev_cor] = 0.0
+    s[S.hi_dev_fit] = 0.0
+    s[S.hi_solve_t] = 0.0
+    s[S.hi_w_acc] = 0.0
+    s[S.hi_feed_t] = 0.0
+
+
+@njit(cache=True)
+def _solve(s, p):
+    """Solve the normal equations (Gauss-Jordan on 4x4, no pivoting needed: A is
+    positive definite once the sphere is seen); the offset, radius, residual and σ into
+    the state. Returns False when the system is (nearly) singular."""
+    W = s[S.hi_W]
+    if W <= 4.0 * HI_CORR_S:
+        return False
+    M = np.empty((4, 8))
+    for i in range(4):
+        for j in range(4):
+            M[i, j] = s[S.hi_A + 4 * min(i, j) + max(i, j)]   # only the upper triangle is kept
+            M[i, 4 + j] = 1.0 if i == j else 0.0
+    for c in range(4):
+        piv = c
+        for r in range(c + 1, 4):
+            if abs(M[r, c]) > abs(M[piv, c]):
+                piv = r
+        if abs(M[piv, c]) < 1e-12 * W:
+            return False
+        if piv != c:
+            for j in range(8):
+                M[c, j], M[piv, j] = M[piv, j], M[c, j]
+        d = 1.0 / M[c, c]
+        for j in range(8):
+            M[c, j] *= d
+        for r in range(4):
+            if r != c:
+                fct = M[r, c]
+                if fct != 0.0:
+                    for j in range(8):
+                        M[r, j] -= fct * M[c, j]
+    th = np.zeros(4)
+    for i in range(4):
+        for j in range(4):
+            th[i] += M[i, 4 + j] * s[S.hi_b + j]
+    # weighted residual sum of squares: yy - 2 θᵀb + θᵀ A θ
+    rss = s[S.hi_yy]
+    for i in range(4):
+        rss -= 2.0 * th[i] * s[S.hi_b + i]
+        for j in range(4):
+            rss += th[i] * s[S.hi_A + 4 * min(i, j) + max(i, j)] * th[j]
+    rss = max(rss, 0.0)
+    r2 = th[3] + th[0] * th[0] + th[1] * th[1] + th[2] * th[2]
+    if r2 <= 0.0:
+        return False
+    r = np.sqrt(r2)
+    var_y = rss / (W - 4.0 * HI_CORR_S)
+    sd = 0.0
+    for i in range(3):
+        sd = max(sd, np.sqrt(max(var_y * HI_CORR_S * M[i, 4 + i], 0.0)))
+    for i in range(3):
+        s[S.hi_o + i] = th[i] * HI_SCALE
+    s[S.hi_r] = r * HI_SCALE
+    # the residual of |m|² is about 2 r × the residual of |m|
+    s[S.hi_rms] = np.sqrt(rss / W) / (2.0 * r) * HI_SCALE
+    s[S.hi_std] = sd * HI_SCALE
+    return True
+
+
+@njit(cache=True)
+def hard_iron(s, p, mag, dt, rate, out):
+    """Feed one magnetometer sample (sensor frame, µT) to the fit, judge the offset, and
+    write the field to use into ``out`` (the sample, minus the offset when applied).
+    ``rate`` is the bias-corrected turn rate (rad/s), ``dt`` the time since the last
+    magnetometer sample. Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
+    win = p[PRM.hard_iron_window]
+    if win <= 0.0:
+        for i in range(3):
+            out[i] = mag[i]
+        return HI_NONE
+    dt = min(max(dt, 0.0), DT_MAX)
+    # turning time: a still phone neither teaches nor makes the fit forget
+    mr = p[PRM.mag_new_min_rate]
+    s[S.hi_w_acc] += dt * (min(1.0, rate / mr) if mr > 0.0 else 1.0)
+    # at most HI_FEED_HZ samples enter the fit, each weighted by the turning time since the
+    # last (a 285 Hz magnetometer adds no geometry over 100 Hz, only cost)
+    s[S.hi_feed_t] += dt
+    w = 0.0
+    if s[S.hi_feed_t] >= 1.0 / HI_FEED_HZ - 0.5 * dt:
+        w = s[S.hi_w_acc]
+        s[S.hi_w_acc] = 0.0
+        s[S.hi_feed_t] = 0.0
+    if w > 0.0:
+        lam = 1.0 - w / win if w < 0.1 * win else np.exp(-w / win)   # exp(-w/win), w << win
+        u0, u1, u2 = mag[0] / HI_SCALE, mag[1] / HI_SCALE, mag[2] / HI_SCALE
+        phi = (2.0 * u0, 2.0 * u1, 2.0 * u2, 1.0)
+        y = u0 * u0 + u1 * u1 + u2 * u2
+        for i in range(4):
+            wi = w * phi[i]
+            for j in range(i, 4):       # the upper triangle; mirrored when solved
+                s[S.hi_A + 4 * i + j] = lam * s[S.hi_A + 4 * i + j] + wi * phi[j]
+            s[S.hi_b + i] = lam * s[S.hi_b + i] + wi * y
+        s[S.hi_yy] = lam * s[S.hi_yy] + w * y * y
+        s[S.hi_W] = lam * s[S.hi_W] + w
+    # how well the raw and the corrected field match the learned earth field's strength
+    ref = s[S.ref_norm]
+    n_raw = np.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
+    ox, oy, oz = s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2]
+    cx, cy, cz = mag[0] - ox, mag[1] - oy, mag[2] - oz
+    n_cor = np.sqrt(cx * cx + cy * cy + cz * cz)
+    if s[S.ref_ok] != 0.0:
+        k = lp_coef(dt, p[PRM.mag_cand_tau])
+        s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
+        s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
+    status = s[S.hi_status]
+    # change detection: new samples far off the current fit's sphere (beyond 3 × its own
+    # residual and the sensor's noise) mean the offset changed (a magnet put on, taken off,
+    # moved): the window's old samples describe another field, start the fit over
+    changed = False
+    if np.isfinite(s[S.hi_std]) and s[S.hi_r] > 0.0:
+        k = lp_coef(dt, p[PRM.mag_min_undisturbed])
+        s[S.hi_dev_fit] += k * ((n_cor - s[S.hi_r]) ** 2 - s[S.hi_dev_fit])
+        lim = 3.0 * max(s[S.hi_rms], p[PRM.hard_iron_max_std])
+        changed = s[S.hi_dev_fit] > lim * lim
+    if changed or (status == HI_APPLIED and s[S.hi_dev_raw] < s[S.hi_dev_cor]):
+        # the offset changed, or the raw field fits the earth's strength better (the magnet
+        # is gone): start over
+        _reset_fit(s)
+        s[S.hi_dev_fit] = 0.0
+        s[S.hi_r] = 0.0
+        s[S.hi_o:S.hi_o + 3] = 0.0
+        s[S.hi_std] = np.inf
+        s[S.hi_rms] = np.inf
+        s[S.hi_dev_cor] = s[S.hi_dev_raw]
+        status = HI_NONE
+    else:
+        s[S.hi_solve_t] += dt
+        if s[S.hi_solve_t] >= HI_SOLVE_S:
+            s[S.hi_solve_t] = 0.0
+            if s[S.hi_W] >= 0.5 * win and _solve(s, p) and s[S.ref_ok] != 0.0:
+                on = norm3s(s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2])
+                sd, tol = s[S.hi_std], p[PRM.hard_iron_tol]
+                # hysteresis: an applied offset stays while within twice the bounds
+                f = 2.0 if status == HI_APPLIED else 1.0
+                fits = (sd <= f * p[PRM.hard_iron_max_std]
+                        and abs(s[S.hi_r] - ref) <= f * tol * ref
+                        and s[S.hi_rms] <= f * tol * ref)
+                if s[S.hi_rms] > 2.0 * tol * ref:
+                    # no sphere: the window mixes two fields (a magnet put on while the
+                    # phone turned) or the field is not homogeneous; start over
+                    _reset_fit(s)
+                    s[S.hi_o:S.hi_o + 3] = 0.0
+                    s[S.hi_std] = np.inf
+                    s[S.hi_r] = 0.0
+                    status = HI_NONE
+                elif on < 3.0 * sd:
+                    status = HI_NONE
+                elif fits and (status == HI_APPLIED or (
+                        s[S.hi_dev_cor] < s[S.hi_dev_raw]
+                        and s[S.hi_dev_raw] > (p[PRM.mag_norm_gate_rel] * ref) ** 2)):
+                    status = HI_APPLIED
+                else:
+                    status = HI_TRACKING
+            elif s[S.hi_W] < 0.5 * win and status != HI_APPLIED:
+                status = HI_NONE
+    s[S.hi_status] = status
+    if status == HI_APPLIED:
+        for i in range(3):
+            s[S.hi_applied + i] = s[S.hi_o + i]
+            out[i] = mag[i] - s[S.hi_o + i]
+    else:
+        s[S.hi_applied:S.hi_applied + 3] = 0.0
+        for i in range(3):
+            out[i] = mag[i]
+    return status
+
+
+@njit(cache=True)
+def norm3s(x, y, z):
+    return np.sqrt(x * x + y * y + z * z)

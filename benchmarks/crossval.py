@@ -1,0 +1,109 @@
+"""Cross-validation of robust's settable parameters: leave one kind out on BROAD, one phone out on the
+phones; held-out figures beside the defaults' and VQF's, per trial and as means.
+
+Data: BROAD (Laidig, Caruso, Cereatti, Seel, Data 6(7):72, 2021, CC-BY-4.0) and the smartphone
+attitude benchmark of Michel, Genevès, Fourati, Layaïda (IEEE PerCom 2017, CeCILL 2.1), read from
+``../shared/data``; their metric (total / heading / inclination RMSE per trial, degrees).
+
+For each fold, the parameters in ``GRID`` (each on its own, ×0.5 / ×1 / ×2 of its default, the
+others at their defaults: the choice a user would make by looking at the training trials) are set
+to the value with the lowest mean total error on the training trials; the held-out trials are then
+scored with them. BROAD's kinds (from ``trials.json``'s groups, ``evalkit.broad_kind``): undisturbed
+rotation, translation, with rests, tapping and vibration, stationary magnet, attached magnet (its
+own class: one of those trials moves a 17-trial mean by 0.1-0.4°). Phones: Nexus 5, iPhone 4S,
+iPhone 5. The done-when of issue 19: held-out BROAD ≤ 0.95 × VQF with inclination no worse,
+held-out phones ≤ 0.85 × VQF with no catastrophic trial (none above 2 × VQF + 5°).
+
+Usage: ``python benchmarks/crossval.py [--per-trial]`` (a few minutes on two cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import evalkit  # noqa: E402
+from app.estimators.robust import RobustParams  # noqa: E402
+
+# the parameters a fold may set (each ×0.5 / ×1 / ×2 of its default)
+GRID = ("heading_noise", "tilt_noise", "mag_norm_gate_rel", "mag_dip_gate", "hard_iron_window")
+
+
+def candidates():
+    d = RobustParams()
+    out = [("defaults", {})]
+    for k in GRID:
+        v = getattr(d, k)
+        for f in (0.5, 2.0):
+            out.append((f"{k} ×{f:g}", {k: v * f}))
+    return out
+
+
+def folds(which: str):
+    trs = evalkit.trials(which)
+    if which == "broad":
+        keys = [evalkit.broad_kind(t) for t in trs]
+        names = evalkit.KINDS
+    else:
+        keys = [t["phone"] for t in trs]
+        names = sorted(set(keys))
+    for n in names:
+        test = np.array([k == n for k in keys])
+        if test.any():
+            yield n, test
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--per-trial", action="store_true")
+    args = ap.parse_args(argv)
+    cands = candidates()
+    for which in ("broad", "phones"):
+        trs = evalkit.trials(which)
+        errs = {label: evalkit.evaluate(which, p) for label, p in cands}   # (n, 3) each
+        vqf = evalkit.vqf_errors(which)
+        base = errs["defaults"]
+        held = np.full_like(base, np.nan)
+        chosen = {}
+        print(f"\n## {which}: leave one {'kind' if which == 'broad' else 'phone'} out\n")
+        print("| held out | n | chosen on the rest | held-out | defaults | VQF |")
+        print("|---|---|---|---|---|---|")
+        for name, test in folds(which):
+            train = ~test
+            best = min(cands, key=lambda c: errs[c[0]][train, 0].mean())[0]
+            chosen[name] = best
+            held[test] = errs[best][test]
+            h, d, v = held[test].mean(0), base[test].mean(0), vqf[test].mean(0)
+            print(f"| {name} | {int(test.sum())} | {best} | {h[0]:.2f} ({h[1]:.2f}/{h[2]:.2f}) | "
+                  f"{d[0]:.2f} | {v[0]:.2f} ({v[1]:.2f}/{v[2]:.2f}) |")
+        h, d, v = held.mean(0), base.mean(0), vqf.mean(0)
+        print(f"| **all, held out** | {len(trs)} | | **{h[0]:.2f}** ({h[1]:.2f}/{h[2]:.3f}) | "
+              f"{d[0]:.2f} ({d[1]:.2f}/{d[2]:.3f}) | {v[0]:.2f} ({v[1]:.2f}/{v[2]:.3f}) |")
+        if which == "broad":
+            att = np.array([evalkit.broad_kind(t) == "attached magnet" for t in trs])
+            for lab, m in (("without attached magnet", ~att), ("attached magnet", att)):
+                a, b, c = held[m].mean(0), base[m].mean(0), vqf[m].mean(0)
+                print(f"| {lab} | {int(m.sum())} | | {a[0]:.2f} ({a[1]:.2f}/{a[2]:.2f}) | {b[0]:.2f} | "
+                      f"{c[0]:.2f} |")
+        ratio = h[0] / v[0]
+        bound = 0.95 if which == "broad" else 0.85
+        worst = np.max(held[:, 0] - (2 * vqf[:, 0] + 5.0))
+        print(f"\nheld-out / VQF: {ratio:.3f} (done-when: ≤ {bound}); inclination {h[2]:.3f} vs "
+              f"VQF {v[2]:.3f}; closest trial to 2×VQF+5°: {worst:+.2f}° "
+              f"({'none catastrophic' if worst < 0 else 'CATASTROPHIC'})")
+        if args.per_trial:
+            print("\n| trial | held-out | defaults | VQF |\n|---|---|---|---|")
+            for t, a, b, c in zip(trs, held, base, vqf):
+                print(f"| {t['name']} | {a[0]:.2f} | {b[0]:.2f} | {c[0]:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
