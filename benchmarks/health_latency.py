@@ -9,14 +9,22 @@ What it does
 - phase **flood**: a phone sends a recording as fast as TCP carries it (no pacing: the
   worst a phone, or a hostile script on the phone port, can do) for ``--seconds``;
 - meanwhile a client asks ``GET /api/health`` back to back (one at a time, 20 ms apart)
-  and sends a ``PATCH /api/params`` every 0.5 s; each request's wall time is recorded.
+  and sends a ``PATCH /api/params`` every 0.5 s; each request's wall time is recorded;
+- phase **inject**: another server, ``--source demo``, with the most virtual disturbances
+  it allows on at once (magnets and shakes, world frame, posted until one is refused, at
+  most ``--max-injections``, default 100), while the demo streams; ``/api/health`` polled
+  as above; then Ctrl-C (SIGINT) and the time the server takes to exit.
 
 What it prints
 --------------
 Per phase: the samples processed per second, and ``/api/health`` and PATCH latency
-(median, 99th percentile, max; target: health p99 < 50 ms).
+(median, 99th percentile, max; target: health p99 < 50 ms); for **inject**, how many
+disturbances were on and the seconds Ctrl-C took.
 
-Run: ``.venv/bin/python benchmarks/health_latency.py [--seconds 15]``. Loopback only.
+Run: ``.venv/bin/python benchmarks/health_latency.py [--seconds 15] [--only-inject]
+[--root TREE]`` (``--root``: serve another checkout, e.g. the committed version
+exported with ``git archive HEAD | tar -x -C /tmp/before``, for a before/after figure).
+Loopback only.
 """
 
 from __future__ import annotations
@@ -45,14 +53,16 @@ from app.sources.simulate import SimConfig, simulate, stream
 RATE_HZ = 500
 
 
-def start_server(port: int, viewer_port: int, phone_port: int, **extra) -> subprocess.Popen:
-    """``orientlab serve --source none --open`` in its own process (stdout/err dropped)."""
+def start_server(port: int, viewer_port: int, phone_port: int, root: Path = ROOT,
+                 **extra) -> subprocess.Popen:
+    """``orientlab serve --source none --open`` in its own process (stdout/err dropped),
+    from the tree ``root``."""
     kw = dict(host="127.0.0.1", port=port, viewer_port=viewer_port, phone_port=phone_port,
               config=None, source="none", open=True)
     kw.update(extra)
     code = ("import types, sys; from app.server.run import serve; "
             f"sys.exit(serve(types.SimpleNamespace(**{kw!r})))")
-    return subprocess.Popen([sys.executable, "-c", code], cwd=ROOT,
+    return subprocess.Popen([sys.executable, "-c", code], cwd=root,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
@@ -185,10 +195,75 @@ def run_phase(name: str, player, args, base: str, pport: int, http: httpx.Client
     time.sleep(1.5)   # the phone has left (the next phase's phone is not refused)
 
 
+INJECTIONS = ({"kind": "magnet", "strength_uT": 40, "direction": "east", "seconds": 600},
+              {"kind": "shake", "amplitude_ms2": 3, "seconds": 600, "frame": "world"})
+
+
+def inject_phase(args) -> None:
+    """The demo with the most disturbances allowed on: health latency, then Ctrl-C."""
+    import tempfile
+    port, vport, pport = free_port(), free_port(), free_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = start_server(port, vport, pport, root=Path(args.root), source="demo",
+                            recordings=str(Path(tmp) / "rec"))
+        base = f"http://127.0.0.1:{port}"
+        http = httpx.Client(base_url=base, timeout=60.0)
+        try:
+            wait_for(lambda: server_ok(http), 300.0, 0.2, "server start")
+            wait_for(lambda: http.get("/api/stats").json()["samples"] > 100, 60.0, 0.2, "demo")
+            on, refusal = 0, ""
+            for k in range(args.max_injections):
+                r = http.post("/api/inject", json=INJECTIONS[k % 2])
+                if r.status_code != 200:
+                    try:
+                        d = r.json().get("detail", r.text)
+                        refusal = d[0].get("msg", d) if isinstance(d, list) and d else d
+                    except ValueError:
+                        refusal = r.text
+                    break
+                on += 1
+            time.sleep(2.0)
+            s0, t0 = http.get("/api/stats").json()["samples"], time.monotonic()
+            health, patch = [], []
+            stop_poll = threading.Event()
+            poller = threading.Thread(target=poll, args=(base, stop_poll, health, patch),
+                                      daemon=True)
+            poller.start()
+            time.sleep(args.seconds)
+            stop_poll.set()
+            poller.join(60)
+            s1 = http.get("/api/stats").json()["samples"]
+            rate = (s1 - s0) / (time.monotonic() - t0)
+            print(f"  inject {on} disturbances on (the next: {f'refused, {str(refusal)[:90]!r}' if refusal else 'accepted'}); "
+                  f"demo {rate:.0f} samples/s (load average {os.getloadavg()[0]:.1f})")
+            print(f"         GET /api/health  {pct(health)}  (target p99 < 50 ms)")
+            print(f"         PATCH /api/params {pct(patch)}")
+        finally:
+            http.close()
+            t = time.monotonic()
+            proc.send_signal(signal.SIGINT)
+            try:
+                rc = proc.wait(30)
+                print(f"         Ctrl-C: exited {rc} after {time.monotonic() - t:.2f} s")
+            except subprocess.TimeoutExpired:
+                print("         Ctrl-C: still running after 30 s (killed)")
+                proc.kill()
+                proc.wait(10)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--only-inject", action="store_true", help="only the inject phase")
+    ap.add_argument("--max-injections", type=int, default=100,
+                    help="post at most this many disturbances (the server refuses beyond its cap)")
+    ap.add_argument("--root", default=str(ROOT), help="the tree to serve (default this one)")
     args = ap.parse_args()
+    if args.only_inject:
+        print(f"health latency with the most disturbances on ({args.seconds:g} s, "
+              f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}; tree {args.root})")
+        inject_phase(args)
+        return 0
     port, vport, pport = free_port(), free_port(), free_port()
     proc = start_server(port, vport, pport)
     base = f"http://127.0.0.1:{port}"
@@ -202,6 +277,7 @@ def main() -> int:
     finally:
         http.close()
         stop_server(proc)
+    inject_phase(args)
     return 0
 
 

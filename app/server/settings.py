@@ -34,6 +34,14 @@ class Settings:
     phone_port: int = 3400
     source: str = "demo"
     recordings: Path = Path("recordings")   # --recordings: the lab's recordings folder
+    # a recording stops cleanly at any of these (app/toolkit/recording.py RecordingLimits);
+    # None or 0 turns one off
+    recording_max_s: float | None = 3600.0          # duration cap (wall time)
+    recording_max_bytes: int | None = 500_000_000   # size cap (every segment's files)
+    recording_min_free_bytes: int | None = 200_000_000   # stops below this much free disk
+    recording_estimates_hz: float = 20.0   # estimates rows/s per estimator (0: every sample);
+                                           # the full rate: `orientlab estimate` on the log
+    recording_gzip: bool = True            # the estimates as .estimates.csv.gz
     config: str | None = None        # a preset file or name (configs/<name>.toml)
     preset_dir: Path = field(default_factory=user_preset_dir)   # saved presets (user folder)
     max_presets: int = 200           # saving more is refused

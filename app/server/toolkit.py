@@ -24,6 +24,7 @@ from app.toolkit.calibration import CalibrationService
 from app.toolkit.errors import ToolError
 from app.toolkit.inject import InjectionService
 from app.toolkit.magcal import MagCalService
+from app.toolkit.recording import RecordingLimits
 from app.toolkit.replay import ReplayService
 from app.toolkit.session_recorder import RecordingService
 from app.toolkit.variants import VariantService
@@ -50,7 +51,8 @@ class Toolkit:
         core = engine.core
         folder = Path(getattr(settings, "recordings", None) or "recordings")
         injection = InjectionService(core)                            # stage 1
-        recording = RecordingService(core, folder, engine.preset_parts)   # stage 2
+        recording = RecordingService(core, folder, engine.preset_parts,    # stage 2
+                                     RecordingLimits.from_settings(settings))
         magcal = MagCalService(core, (config or {}).get("magcal"))   # stage 3
         injection.mark_listeners.append(recording.note_mark)
         engine.param_listeners.append(recording.note_params)

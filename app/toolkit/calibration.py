@@ -31,6 +31,7 @@ from app import quaternion as qm
 from app.params import dump_toml
 from app.toolkit.capture import Capture, check_seconds, check_streaming
 from app.toolkit.errors import ToolError
+from app.toolkit.jobs import JobQueue
 
 # sensor -> (unit, unit of its covariance)
 UNITS = {"acc": ("m/s²", "(m/s²)²"), "gyr": ("rad/s", "(rad/s)²"), "mag": ("µT", "µT²")}
@@ -440,6 +441,8 @@ class CalibrationService:
         self.capture: Capture | None = None
         self.last: dict[str, Any] | None = None       # the last result (JSON)
         self.last_stats: CalibrationStats | None = None
+        self.applied: dict[str, Any] | None = None    # the last result applied
+        self.jobs = JobQueue("calibration of a recording")   # heavy: one at a time
         core.record_listeners.append(self.on_records)
 
     def on_records(self, session, rec) -> None:
@@ -461,6 +464,11 @@ class CalibrationService:
         return cap.result
 
     def _finish(self, cap: Capture) -> None:
+        if cap.note is not None:          # stopped at a cap: a clock not to be trusted?
+            why = cap.clock_untrusted()
+            if why is not None:
+                cap.fail(why)
+                return
         t, g, a, m = cap.arrays()
         try:
             st = calibrate(t, g, a, m)
@@ -470,13 +478,22 @@ class CalibrationService:
         except Exception as e:
             cap.fail(str(e))
             return
+        result["note"] = cap.note
         self.last, self.last_stats = result, st
         cap.succeed(result)
 
     def tick(self) -> None:
-        """Called a few times a second: give up a capture whose stream stopped."""
-        if self.capture is not None:
-            self.capture.check_stalled()
+        """Called a few times a second: end a capture past its wall-time cap (a stream
+        that stopped, or a phone clock that does not advance)."""
+        cap = self.capture
+        if cap is not None and cap.check_stalled() and cap.running:
+            self._finish(cap)
+
+    async def calibrate_recording_job(self, name: str, from_s: float = 0.0,
+                                      to_s: float | None = None) -> dict[str, Any]:
+        """:meth:`calibrate_recording` as a heavy job (:attr:`jobs`: one at a time, a
+        few waiting, more refused with 429), off the event loop."""
+        return await self.jobs.run(lambda: self.calibrate_recording(name, from_s, to_s))
 
     def calibrate_recording(self, name: str, from_s: float = 0.0,
                             to_s: float | None = None) -> dict[str, Any]:
@@ -496,17 +513,37 @@ class CalibrationService:
         self.last, self.last_stats = out, st
         return out
 
-    def change(self) -> dict[str, dict[str, Any]]:
+    def change(self, force: bool = False) -> dict[str, dict[str, Any]]:
         """What "apply" sets: per builtin estimator on the ensemble the preset values (to
-        validate as ``{"estimators": ...}``)."""
+        validate as ``{"estimators": ...}``). A calibration that does not look
+        stationary (the phone moved, too few samples...) is refused (409, the reasons in
+        words) unless ``force``: the presenter's explicit "apply anyway"."""
         if self.last is None:
             raise ToolError("calibration", "no calibration yet: POST /api/calibrate first", 409)
+        if not force:
+            why = refusal(self.last)
+            if why is not None:
+                raise ToolError("calibration", why, 409)
         names = self.core.ensemble.names
         return {k: v for k, v in self.last["apply"].items() if k in names and v}
 
+    def note_applied(self) -> None:
+        """The last calibration was applied (its report heads a preset saved next)."""
+        self.applied = self.last
+
     def preset_header(self) -> str:
-        """The comment of a preset saved after a calibration (its report)."""
+        """The comment of a preset saved after a calibration was applied (its report)."""
         header = "orientlab preset from a calibration on the page"
-        if self.last is not None:
-            header += "\n\n" + self.last["report"].rstrip("\n")
+        if self.applied is not None:
+            header += "\n\n" + self.applied["report"].rstrip("\n")
         return header
+
+
+def refusal(result: dict[str, Any]) -> str | None:
+    """Why a calibration (its JSON) is not applied without "apply anyway": None when it
+    looks stationary."""
+    if result.get("stationary", True):
+        return None
+    return ("not applied: not stationary, its bias and noise would mislead the filters "
+            "(calibrate again with the phone still, or apply anyway: force): "
+            + "; ".join(result["warnings"]))

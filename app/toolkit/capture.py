@@ -1,6 +1,13 @@
 """A stretch of the live stream collected for a calibration (still phone or turning
 phone), with its countdown; shared by :mod:`app.toolkit.calibration`'s and
-:mod:`app.toolkit.magcal`'s services."""
+:mod:`app.toolkit.magcal`'s services.
+
+A collection is bounded whatever the phone's clock does (a frozen clock never reaches
+the requested seconds, and grew memory by 390 MB in 20 s): at most :data:`MAX_ROWS`
+samples are kept and the wall time is capped at the requested seconds +
+:data:`WALL_GRACE_S`. At either cap the collection stops with a message (:meth:`Capture.capped`):
+a clock that advanced less than :data:`MIN_CLOCK_SHARE` of the wall time is refused (its
+samples' times are not to be trusted), else the samples so far are used."""
 
 from __future__ import annotations
 
@@ -14,7 +21,10 @@ import numpy as np
 
 from app.toolkit.errors import ToolError
 
-STALL_FACTOR, STALL_GRACE_S = 3.0, 10.0   # a capture gives up after 3x its seconds + 10 s
+MAX_ROWS = 60_000          # samples kept at most (~1.4 MB per sensor as float64 rows)
+WALL_GRACE_S = 5.0         # wall time allowed beyond the requested seconds
+MIN_CLOCK_SHARE = 0.5      # a stream clock slower than half the wall clock is not trusted
+STOPPED_S = 2.0            # no sample for this long at a cap: the stream stopped
 
 
 def check_seconds(seconds: Any, lo: float, hi: float) -> float:
@@ -47,6 +57,9 @@ class Capture:
     done: asyncio.Future | None = None
     result: dict | None = None
     error: str | None = None
+    rows: int = 0               # samples kept
+    last_wall: float | None = None   # wall time of the last sample offered
+    note: str | None = None     # why it stopped before its seconds (a cap), if it did
 
     @property
     def elapsed(self) -> float:
@@ -62,15 +75,52 @@ class Capture:
     def running(self) -> bool:
         return self.result is None and self.error is None
 
+    @property
+    def wall_elapsed(self) -> float:
+        return time.monotonic() - self.started_wall
+
+    def capped(self) -> str | None:
+        """None while the collection is within its bounds; else why it must stop now:
+        :data:`MAX_ROWS` samples kept, or the wall time beyond its seconds +
+        :data:`WALL_GRACE_S` (sets :attr:`note`)."""
+        wall = self.wall_elapsed
+        if self.rows >= MAX_ROWS:
+            self.note = (f"stopped at the cap of {MAX_ROWS} samples after {wall:.1f} s "
+                         f"({self.elapsed:.1f} s of the phone's clock)")
+        elif wall > self.seconds + WALL_GRACE_S:
+            self.note = (f"stopped after {wall:.1f} s (the {self.seconds:g} s asked + "
+                         f"{WALL_GRACE_S:g} s): the phone's clock advanced {self.elapsed:.1f} s")
+        else:
+            return None
+        return self.note
+
+    def clock_untrusted(self) -> str | None:
+        """Once :meth:`capped`: why the samples cannot be used (the stream stopped; a
+        clock frozen, gone back or far slower than the wall clock), or None."""
+        if self.last_wall is None or time.monotonic() - self.last_wall > STOPPED_S:
+            quiet = "" if self.last_wall is None else f" for {time.monotonic() - self.last_wall:.0f} s"
+            return (f"no samples came{quiet}: the phone stopped streaming, or its clock froze "
+                    "(samples without a new time are not used)")
+        wall = max(self.wall_elapsed, 1e-9)
+        if self.elapsed < MIN_CLOCK_SHARE * min(wall, self.seconds):
+            return (f"{self.note}: the phone's clock is frozen or far behind "
+                    f"(nothing collected is used; check the phone's time stamps)")
+        return None
+
     def add(self, t: np.ndarray, kind: np.ndarray, values: np.ndarray) -> bool:
-        """Append a chunk of rows; True when the capture has its seconds."""
+        """Append a chunk of rows (up to :data:`MAX_ROWS` in all); True when the capture
+        has its seconds or reached a cap (:meth:`capped`)."""
         if not len(t):
-            return self.elapsed >= self.seconds
+            return self.elapsed >= self.seconds or self.capped() is not None
+        self.last_wall = time.monotonic()
         if self.t0 is None:
             self.t0 = float(t[0])
         end = self.t0 + self.seconds
         sel = t <= end
         t, kind, values = t[sel], kind[sel], values[sel]
+        room = MAX_ROWS - self.rows
+        t, kind, values = t[:room], kind[:room], values[:room]
+        self.rows += len(t)
         self.t.append(t)
         for k, arr in ((0, self.gyr), (1, self.acc), (2, self.mag)):
             v = np.full((len(t), 3), np.nan)
@@ -79,7 +129,9 @@ class Capture:
             arr.append(v)
         if len(t):
             self.t_last = float(t[-1])
-        return not sel.all() or self.elapsed >= self.seconds
+        if not sel.all() or self.elapsed >= self.seconds:
+            return True
+        return self.capped() is not None     # full: rows at MAX_ROWS, said by capped()
 
     def arrays(self):
         cat = (lambda xs: np.concatenate(xs) if xs else np.zeros((0, 3)))
@@ -96,14 +148,19 @@ class Capture:
         if self.done is not None and not self.done.done():
             self.done.set_exception(ToolError("seconds", error, 409))
 
-    def check_stalled(self) -> None:
-        """Give up when the samples stopped coming (called a few times a second)."""
-        if self.running and time.monotonic() - self.started_wall > \
-                self.seconds * STALL_FACTOR + STALL_GRACE_S:
+    def check_stalled(self) -> bool:
+        """Called a few times a second: True when the wall-time cap has passed (the
+        owner ends the capture: with no sample at all, :meth:`fail` is called here)."""
+        if not self.running or self.capped() is None:
+            return False
+        if not self.rows:
             self.fail("no stream: the samples stopped coming (is the phone streaming?)")
+        return True
 
     def status(self) -> dict[str, Any]:
         n = sum(len(x) for x in self.t)
         return {"kind": self.kind, "seconds": self.seconds, "elapsed_s": round(self.elapsed, 2),
                 "remaining_s": round(self.remaining, 2), "rows": n,
-                "done": self.result is not None or self.error is not None, "error": self.error}
+                "wall_s": round(self.wall_elapsed, 2), "max_rows": MAX_ROWS,
+                "done": self.result is not None or self.error is not None, "error": self.error,
+                "note": self.note}

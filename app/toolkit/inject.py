@@ -31,6 +31,11 @@ its own clock, so its window is measured on that tag's clock) and lasts ``second
 stream time. Its start and end are marked in the stream itself by ``TXT`` lines
 (``<time_ms>\\tTXT\\torientlab: magnet ... start``), so a recording holds the marks at their
 place; :meth:`Injector.feed` also returns them for the plots.
+
+Bounded: at most :data:`MAX_ACTIVE` disturbances are on at once (:class:`InjectionService`
+refuses one more, with a message: a disturbance the class is watching never vanishes
+behind its back), and :meth:`Injector.feed` adds them all to a chunk of samples in one
+vectorised pass, so the live path's cost per sample does not grow with their number.
 """
 
 from __future__ import annotations
@@ -51,6 +56,7 @@ from app.toolkit.errors import ToolError
 KINDS = ("magnet", "shake")
 FRAMES = ("world", "sensor")
 MAX_SECONDS = 600.0
+MAX_ACTIVE = 4          # disturbances on at once; one more is refused (409), see InjectionService
 DIRECTIONS = {"east": (1.0, 0.0, 0.0), "west": (-1.0, 0.0, 0.0), "north": (0.0, 1.0, 0.0),
               "south": (0.0, -1.0, 0.0), "up": (0.0, 0.0, 1.0), "down": (0.0, 0.0, -1.0),
               "x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0),
@@ -244,61 +250,115 @@ class Injector:
     def feed(self, samples: list[Sample]) -> tuple[list[Sample], list[dict[str, Any]]]:
         """The samples with the disturbances added, and the marks made (start/end:
         ``{"event", "id", "kind", "time_ms", "text"}``); marks are also TXT samples in
-        the returned stream."""
+        the returned stream.
+
+        Vectorised over the chunk and over the disturbances: one pass over the samples
+        picks those of the tags disturbed, then one set of numpy operations on a
+        (disturbances x samples) grid adds them all (a world-frame direction is turned
+        into the sensor frame once per chunk: the orientation changes only when the
+        estimators step, after this stage). Python work per sample does not grow with the
+        number of disturbances on; only a start or an end costs a few lines more."""
         if not self.active:
             return samples, []
-        tags = {a.d.tag for a in self.active}
-        tags |= {"RAW" + t for t in tags}
-        out: list[Sample] = []
-        marks: list[dict[str, Any]] = []
-        for s in samples:
-            if s.tag not in tags:
-                out.append(s)
+        bases = {a.d.tag for a in self.active}
+        wanted = bases | {"RAW" + t for t in bases}
+        picked: dict[str, list[int]] = {b: [] for b in bases}
+        for i, s in enumerate(samples):
+            tg = s.tag
+            if tg in wanted:
+                picked[tg[3:] if tg.startswith("RAW") else tg].append(i)
+        rank = {id(a): k for k, a in enumerate(self.active)}
+        inserts: list[tuple[int, int, dict[str, Any]]] = []    # (position, active's rank, mark)
+        changed: dict[int, np.ndarray] = {}                    # position -> added vector
+        turn: list = []                                        # Q(q) of the phone, asked once
+        for base, idx in picked.items():
+            if not idx:
                 continue
-            base_tag = s.tag[3:] if s.tag.startswith("RAW") else s.tag
-            added = np.zeros(3)
-            touched = False
-            for a in list(self.active):
-                if a.d.tag != base_tag:
-                    continue
+            n = len(idx)
+            is_base = np.fromiter((samples[i].tag == base for i in idx), bool, n)
+            first = int(np.argmax(is_base)) if is_base.any() else -1
+            live: list[Active] = []
+            lo: list[int] = []
+            for a in [a for a in self.active if a.d.tag == base]:
                 if a.start_ms is None:
-                    if s.tag != base_tag:       # start on the calibrated tag's clock
-                        continue
-                    a.start_ms = s.time_ms
-                    m = self._mark(a, "start", s.time_ms)
-                    marks.append(m)
-                    out.append(m["sample"])
-                sec = (s.time_ms - a.start_ms) / 1000.0
-                if sec > a.d.seconds:
-                    if s.tag == base_tag:
-                        a.ended = True
-                        self.active.remove(a)
-                        m = self._mark(a, "end", s.time_ms)
-                        marks.append(m)
-                        out.append(m["sample"])
-                    continue
-                if sec < 0.0:
-                    continue
-                v = a.d.vector(sec)
-                if a.d.frame == "world":
+                    if first < 0:
+                        continue                    # starts on the calibrated tag's clock
+                    a.start_ms = samples[idx[first]].time_ms
+                    inserts.append((idx[first], rank[id(a)], self._mark(a, "start", a.start_ms)))
+                    lo.append(first)
+                else:
+                    lo.append(0)
+                live.append(a)
+            if not live:
+                continue
+            t = np.fromiter((samples[i].time_ms for i in idx), float, n)
+            dur = np.array([a.d.seconds for a in live])[:, None]
+            sec = (t[None, :] - np.array([a.start_ms for a in live], float)[:, None]) / 1000.0
+            pos = np.arange(n)[None, :]
+            after = pos >= np.array(lo)[:, None]
+            over = after & is_base[None, :] & (sec > dur)
+            ends = over.any(axis=1)
+            hi = np.where(ends, over.argmax(axis=1), n)[:, None]
+            for k in np.flatnonzero(ends).tolist():
+                a = live[k]
+                a.ended = True
+                self.active.remove(a)
+                j = int(hi[k, 0])
+                inserts.append((idx[j], rank[id(a)], self._mark(a, "end", samples[idx[j]].time_ms)))
+            win = after & (pos < hi) & (sec >= 0.0) & (sec <= dur)
+            if not win.any():
+                continue
+            # the envelope: raised-cosine ramps at both ends (Disturbance.envelope)
+            r = np.minimum(np.array([a.d.ramp_s for a in live])[:, None], dur / 2.0)
+            edge = np.minimum(sec, dur - sec)
+            ramped = 0.5 - 0.5 * np.cos(np.pi * np.clip(edge, 0.0, r) / np.where(r > 0.0, r, 1.0))
+            amp = np.where((r > 0.0) & (edge < r), ramped, 1.0) * win
+            amp *= np.array([a.d.magnitude for a in live])[:, None]
+            shake = np.array([a.d.kind == "shake" for a in live])
+            if shake.any():
+                f = np.array([a.d.frequency_hz for a in live])[:, None]
+                amp = np.where(shake[:, None], amp * np.sin(2.0 * np.pi * f * sec), amp)
+            dirs = np.array([a.d.direction for a in live], float)           # (K, 3)
+            world = np.array([a.d.frame == "world" for a in live])
+            if world.any():
+                if not turn:
                     q = self.orientation()
-                    if q is not None and np.all(np.isfinite(q)):
-                        v = Q(np.asarray(q, dtype=float)).T @ v
+                    ok = q is not None and np.all(np.isfinite(q))
+                    turn.append(Q(np.asarray(q, dtype=float)) if ok else None)
+                if turn[0] is not None:
+                    dirs[world] = dirs[world] @ turn[0]      # rows: (Q(q)^T d)^T
+            added = amp.T @ dirs                                             # (N, 3)
+            counts = win.sum(axis=1).tolist()
+            for k, a in enumerate(live):
+                if counts[k]:
+                    a.lines += counts[k]
+                    if a.d.frame == "world" and turn[0] is not None:
                         a.frame_used = a.frame_used or "world"
                     else:
                         a.frame_used = "sensor"
-                else:
-                    a.frame_used = "sensor"
-                added += v
-                a.lines += 1
-                touched = True
-            if not touched:
-                out.append(s)
-                continue
+            for j in np.flatnonzero(win.any(axis=0)).tolist():
+                changed[idx[j]] = added[j]
+        if not changed and not inserts:
+            return samples, []
+        out = list(samples)
+        for i, v in changed.items():
+            s = samples[i]
             vals = list(s.values)
-            for i in range(3):
-                vals[i] = float(vals[i]) + float(added[i])
-            out.append(Sample(s.time_ms, s.tag, tuple(vals)))
+            vals[0] = float(vals[0]) + float(v[0])
+            vals[1] = float(vals[1]) + float(v[1])
+            vals[2] = float(vals[2]) + float(v[2])
+            out[i] = Sample(s.time_ms, s.tag, tuple(vals))
+        inserts.sort(key=lambda x: (x[0], x[1]))
+        marks = [m for _, _, m in inserts]
+        if inserts:
+            merged: list[Sample] = []
+            prev = 0
+            for pos_, _, m in inserts:
+                merged.extend(out[prev:pos_])
+                merged.append(m["sample"])
+                prev = pos_
+            merged.extend(out[prev:])
+            out = merged
         return out, marks
 
     def _mark(self, a: Active, event: str, time_ms: int) -> dict[str, Any]:
@@ -352,8 +412,9 @@ class InjectionService:
     ``core``: the live core (its ``sample_stages``, its session, the orientation a
     world-frame magnet turns with)."""
 
-    def __init__(self, core):
+    def __init__(self, core, max_active: int = MAX_ACTIVE):
         self.core = core
+        self.max_active = max_active
         self.injector = Injector(orientation=self.orientation)
         self.marks: list[dict[str, Any]] = []      # injection marks for the plots (stream s)
         self.spans: dict[int, list] = {}           # injection id -> [session, kind, start_s, end_s]
@@ -408,6 +469,14 @@ class InjectionService:
             raise ToolError(e.field, e.reason) from None
         if self.core.session is None or not self.core.session.open:
             raise ToolError("kind", "no stream to disturb: connect the phone or run the demo", 409)
+        act = self.injector.active
+        if len(act) >= self.max_active:
+            # refused rather than replacing the oldest: a disturbance the class is watching
+            # never vanishes behind its back, and a burst of clicks changes nothing
+            raise ToolError("kind", f"at most {self.max_active} disturbances at once and "
+                                    f"{len(act)} are on: wait for one to end (each lasts its "
+                                    f"seconds; the longest {max(a.d.seconds for a in act):g} s)",
+                            409)
         a = self.injector.start(d, wall=time.time())
         return {"id": a.id, **d.as_dict(), "text": d.describe()}
 
@@ -425,5 +494,5 @@ class InjectionService:
         return 0.0
 
     def status(self) -> dict[str, Any]:
-        return {**self.injector.status(), "marks": [
+        return {**self.injector.status(), "max_active": self.max_active, "marks": [
             {k: v for k, v in m.items() if k != "line"} for m in self.marks[-20:]]}

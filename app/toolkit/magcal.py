@@ -12,7 +12,10 @@ readings lie on an ellipsoid. :func:`fit` fits that ellipsoid to the readings
 with ``W`` symmetric positive definite, scaled so the corrected field keeps the
 measured strength (the geometric mean of the ellipsoid's radii, µT). Too few directions
 covered for a full ellipsoid: a sphere (hard iron only, ``W = I``) is fitted instead and
-``model`` says so. :func:`coverage` measures how much of the sphere of directions the
+``model`` says so. A fit that would mislead is refused with its reason
+(:class:`MagCalRefused`): degenerate readings (one point: the phone lay still; a line or
+a plane: turned about one axis only), too little coverage for the model, a residual
+that does not improve, a field outside 10-200 µT. :func:`coverage` measures how much of the sphere of directions the
 readings cover (the share of 32 evenly spread directions with at least 3 readings near
 them), the number the page shows while the phone is being turned. The residual is the
 spread of |m| around the field strength before and after the correction (µT RMS).
@@ -26,12 +29,13 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from app.toolkit.capture import Capture, check_seconds, check_streaming
+from app.toolkit.capture import MAX_ROWS, Capture, check_seconds, check_streaming
 from app.toolkit.errors import ToolError
 
 log = logging.getLogger("orientlab.magcal")
@@ -39,11 +43,43 @@ log = logging.getLogger("orientlab.magcal")
 N_DIRECTIONS = 32
 MIN_PER_DIRECTION = 3
 MIN_SAMPLES = 30
-MIN_COVERAGE_ELLIPSOID = 0.5   # share of directions needed for a full ellipsoid fit
+# The coverage each model needs, from the geometry. (The measure counts a direction once
+# 3 readings fall nearest to it, so a cap of a share f of the sphere reads about
+# f + 0.15: the cells along its rim count too; a hemisphere reads 0.6-0.7.)
+# - a sphere (4 unknowns: the offset and the radius) is pinned by a cap of directions
+#   whose sag is a good part of the radius: a cap of half-angle 60° (a quarter of the
+#   sphere, reading 0.35-0.45) sags R/2, so the offset along the cap's axis is known to
+#   about twice the noise; a smaller cap lets the noise slide the offset freely.
+# - an ellipsoid (9 unknowns: also a gain per axis and their cross terms) must tell an
+#   axis's gain from the offset along it, which takes readings at both ends of every
+#   axis: more than a hemisphere (a hemisphere leaves one end of its axis unseen).
+MIN_COVERAGE_SPHERE = 0.35
+MIN_COVERAGE_ELLIPSOID = 0.7
+# Degenerate readings (no fit says anything about the phone):
+MIN_SPREAD_UT = 3.0        # a point: the readings' largest spread (σ, µT) below this:
+                           # the phone lay still (turning it 20° in a 25 µT field already
+                           # moves the reading ~5 µT)
+MIN_FLATNESS = 0.2         # a line or a plane: the smallest spread below 0.2 of the
+                           # largest (a cap of a quarter of the sphere gives 0.3; a circle,
+                           # turned about one axis, gives the noise)
+MIN_IMPROVEMENT = 0.9      # the residual after must be below 90 % of the one before:
+                           # a fit that changes nothing has nothing to correct
+FIELD_MIN_UT, FIELD_MAX_UT = 10.0, 200.0   # a plausible fitted field: the Earth's is
+                           # 25-65 µT; indoors steel bends it, not beyond these
 
 
 class MagCalError(ValueError):
     pass
+
+
+class MagCalRefused(MagCalError):
+    """A fit refused as misleading (``reason`` in words); ``cal``: the fit computed, if
+    one was (shown, never applicable)."""
+
+    def __init__(self, reason: str, cal: "MagCalibration | None" = None):
+        super().__init__(reason)
+        self.reason = reason
+        self.cal = cal
 
 
 @dataclass(frozen=True)
@@ -184,15 +220,60 @@ def _fit_ellipsoid(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return mu + ctr * s, W, R * s
 
 
-def fit(m: np.ndarray, model: str = "auto") -> MagCalibration:
+def degenerate(m: np.ndarray) -> str | None:
+    """Why readings ``m`` (N, 3, finite) cannot be fitted at all, in words: a point (the
+    phone lay still), a line or a plane (turned about one axis only); None if they
+    spread in three dimensions. From the principal spreads (σ along the principal axes)."""
+    sd = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(m, rowvar=False)), 0.0))[::-1]
+    if not sd[0] >= MIN_SPREAD_UT:
+        return (f"the readings are one point (spread {sd[0]:.2g} µT < {MIN_SPREAD_UT:g}): "
+                "the phone lay still; turn it slowly in all directions")
+    if sd[1] < MIN_FLATNESS * sd[0]:
+        return (f"the readings lie on a line (spreads {sd[0]:.1f}, {sd[1]:.2g}, {sd[2]:.2g} µT): "
+                "the field changed in one direction only; turn the phone in all directions")
+    if sd[2] < MIN_FLATNESS * sd[0]:
+        return (f"the readings lie in a plane (spreads {sd[0]:.1f}, {sd[1]:.1f}, {sd[2]:.2g} µT): "
+                "the phone was turned about one axis only; turn it about the others too")
+    return None
+
+
+def refusal(cal: MagCalibration) -> str | None:
+    """Why a computed fit would mislead, in words (None: applicable): too little
+    coverage for its model, an implausible field, a residual that does not improve
+    (every reason that applies, joined by "; ")."""
+    why = []
+    need = MIN_COVERAGE_ELLIPSOID if cal.model == "ellipsoid" else MIN_COVERAGE_SPHERE
+    if not cal.coverage >= need:
+        why.append(f"coverage {100 * cal.coverage:.0f} % of directions is too low for the "
+                   f"{cal.model} model (at least {100 * need:.0f} %): turn the phone in more "
+                   "directions")
+    if not math.isfinite(cal.field_uT) or not FIELD_MIN_UT <= cal.field_uT <= FIELD_MAX_UT:
+        why.append(f"the fitted field {cal.field_uT:.3g} µT is implausible (the Earth's is "
+                   f"25-65 µT; accepted {FIELD_MIN_UT:g}-{FIELD_MAX_UT:g} µT): a magnet or "
+                   "steel nearby?")
+    if not cal.residual_after_uT < MIN_IMPROVEMENT * cal.residual_before_uT:
+        worse = cal.residual_after_uT > cal.residual_before_uT
+        why.append(f"the residual does not improve ({cal.residual_before_uT:.2f} -> "
+                   f"{cal.residual_after_uT:.2f} µT): the correction would "
+                   + ("make the field worse" if worse else "change nothing worth applying"))
+    return "; ".join(why) or None
+
+
+def fit(m: np.ndarray, model: str = "auto", check: bool = True) -> MagCalibration:
     """Fit the correction to readings ``m`` (N, 3) µT (NaN rows ignored). ``model``:
     ``"auto"`` (ellipsoid if the coverage allows, else sphere), ``"ellipsoid"`` or
-    ``"sphere"``. MagCalError when there are too few readings or no fit."""
+    ``"sphere"``. MagCalError when there are too few readings or no fit;
+    MagCalRefused (``check``) when the readings are degenerate (:func:`degenerate`) or
+    the fit would mislead (:func:`refusal`; the fit in ``.cal``)."""
     m = _finite_rows(m)
     if m.shape[0] < MIN_SAMPLES:
         raise MagCalError(f"only {m.shape[0]} magnetometer readings (at least {MIN_SAMPLES} needed)")
     if model not in ("auto", "ellipsoid", "sphere"):
         raise MagCalError(f"model must be auto, ellipsoid or sphere, got {model!r}")
+    if check:
+        why = degenerate(m)
+        if why is not None:
+            raise MagCalRefused(why)
     b_s, R_s = _fit_sphere(m)
     cov, _ = coverage(m, b_s)
     if model == "ellipsoid" or (model == "auto" and cov >= MIN_COVERAGE_ELLIPSOID):
@@ -209,9 +290,14 @@ def fit(m: np.ndarray, model: str = "auto") -> MagCalibration:
                          coverage=coverage(m, b)[0])
     before = _residual(m)
     after = _residual(cal.apply(m), R)
-    return MagCalibration(offset=b, matrix=W, field_uT=R, model=kind, n=cal.n,
-                          coverage=cal.coverage, residual_before_uT=before,
-                          residual_after_uT=after)
+    cal = MagCalibration(offset=b, matrix=W, field_uT=R, model=kind, n=cal.n,
+                         coverage=cal.coverage, residual_before_uT=before,
+                         residual_after_uT=after)
+    if check:
+        why = refusal(cal)
+        if why is not None:
+            raise MagCalRefused(why, cal)
+    return cal
 
 
 def correct_values(cal: MagCalibration, values: tuple) -> tuple:
@@ -252,34 +338,54 @@ class MagCalService:
                 log.warning("preset: %s", e)
         self.capture: Capture | None = None
         self.result: MagCalibration | None = None
+        self.refused: MagCalRefused | None = None   # the last fit refused, and why
         self.listeners: list = []
-        self._raw: list[np.ndarray] = []
+        self._raw = np.empty((0, 3))                 # MAX_ROWS rows at most
         core.sample_stages.append(self.stage)
 
     def stage(self, session, samples: list) -> list:
         """The sample stage: the raw field collected, then the correction applied."""
-        if self.capture is not None and self.capture.result is None:
+        if self.capture is not None and self.capture.running:
             self._collect(samples)
         if self.applied is not None:
             samples = correct_samples(self.applied, samples)
         return samples
 
     def _collect(self, samples: list) -> None:
+        """The MAG samples' readings kept (at most :data:`MAX_ROWS`); the fit once the
+        phone's clock has the seconds, or at a cap (samples or wall time: a frozen
+        clock never gets there)."""
         cap = self.capture
-        for s in samples:
-            if s.tag != "MAG":
-                continue
-            t = s.time_ms / 1000.0
+        mag = [s for s in samples if s.tag == "MAG"]
+        if mag:
+            cap.last_wall = time.monotonic()
             if cap.t0 is None:
-                cap.t0 = t
-            cap.t_last = t
-            self._raw.append(np.array(s.values[:3], dtype=float))
-        if cap.elapsed >= cap.seconds:
-            try:
-                self.result = fit(np.array(self._raw).reshape(-1, 3))
-                cap.result = self.result.as_dict()
-            except MagCalError as e:
-                cap.error = str(e)
+                cap.t0 = mag[0].time_ms / 1000.0
+            end = cap.t0 + cap.seconds
+            keep = [s for s in mag if s.time_ms / 1000.0 <= end][:MAX_ROWS - cap.rows]
+            if keep:
+                cap.t_last = keep[-1].time_ms / 1000.0
+                self._raw[cap.rows:cap.rows + len(keep)] = [s.values[:3] for s in keep]
+                cap.rows += len(keep)
+            if len(keep) < len(mag) and cap.rows < MAX_ROWS:   # past its seconds
+                cap.t_last = max(cap.t_last or end, end)
+        if cap.elapsed >= cap.seconds or cap.capped() is not None:
+            self._finish(cap)
+
+    def _finish(self, cap: Capture) -> None:
+        if cap.note is not None:
+            why = cap.clock_untrusted()
+            if why is not None:
+                cap.error = why
+                return
+        try:
+            self.result = fit(self._raw[:cap.rows])
+            cap.result = self.result.as_dict()
+        except MagCalRefused as e:
+            self.refused = e
+            cap.error = "fit refused: " + e.reason
+        except MagCalError as e:
+            cap.error = str(e)
 
     def on_change(self, ch) -> None:
         """A preset loaded (page or API; the engine's change listener): its magnetometer
@@ -295,36 +401,46 @@ class MagCalService:
         return {} if self.applied is None else {"magcal": self.applied.preset()}
 
     def tick(self) -> None:
-        """Called a few times a second: give up a collection whose stream stopped."""
-        if self.capture is not None:
-            self.capture.check_stalled()
+        """Called a few times a second: end a collection past its wall-time cap (a
+        stream that stopped, or a phone clock that does not advance)."""
+        cap = self.capture
+        if cap is not None and cap.check_stalled() and cap.running:
+            self._finish(cap)
 
     def start(self, seconds: float) -> dict[str, Any]:
         seconds = check_seconds(seconds, MAGCAL_MIN_S, MAGCAL_MAX_S)
         check_streaming(self.core)
-        self.capture = Capture("magcal", seconds)
-        self._raw = []
+        self._raw = np.empty((MAX_ROWS, 3))
         self.result = None
+        self.refused = None
+        self.capture = Capture("magcal", seconds)
         return self.status()
 
     def status(self) -> dict[str, Any]:
         cap = self.capture
         out: dict[str, Any] = {"applied": None if self.applied is None else self.applied.as_dict()}
         if cap is None:
-            return {**out, "capture": None}
-        m = np.array(self._raw).reshape(-1, 3)
+            return {**out, "capture": None, "result": None, "refused": None}
+        m = self._raw[:cap.rows]
         cov, counts = coverage(m) if len(m) else (0.0, [0] * N_DIRECTIONS)
         out["capture"] = {**cap.status(), "coverage": cov, "per_direction": [int(c) for c in counts],
                           "samples": int(len(m))}
         out["result"] = None if self.result is None else self.result.as_dict()
+        r = self.refused
+        out["refused"] = None if r is None else {
+            "reason": r.reason, "fit": None if r.cal is None else r.cal.as_dict()}
         return out
 
     def apply(self, clear: bool = False) -> dict[str, Any]:
-        """Correct every MAG sample with the fit (``clear``: stop correcting)."""
+        """Correct every MAG sample with the fit (``clear``: stop correcting). A refused
+        fit is never applied (409, its reason)."""
         if clear:
             self.applied = None
         else:
             if self.result is None:
+                if self.refused is not None:
+                    raise ToolError("magcal", "the fit was refused, nothing applied: "
+                                              + self.refused.reason, 409)
                 raise ToolError("magcal", "no fit yet: turn the phone in all directions first", 409)
             self.applied = self.result
         for cb in self.listeners:

@@ -12,11 +12,15 @@ A recording named ``NAME`` in the recordings folder is three files:
     estimation. When disturbances are injected, the log holds the lines as the estimators
     got them (the injected field or acceleration included), so a re-run or a replay
     shows the same disturbance.
-``NAME.estimates.csv``
-    One row per processed sample and estimator: ``estimator,tag,`` followed by the
-    columns of ``orientlab estimate`` (``t,qw,qx,qy,qz,gyr,acc,acc_value,...``, see
-    :mod:`app.cli`). ``t`` is on the stream's reference clock (s). A session with a known
-    truth (the demo) adds rows of the estimator ``truth``.
+``NAME.estimates.csv.gz``
+    gzip-compressed CSV: ``estimator,tag,`` followed by the columns of ``orientlab
+    estimate`` (``t,qw,qx,qy,qz,gyr,acc,acc_value,...``, see :mod:`app.cli`). ``t`` is on
+    the stream's reference clock (s). Compact: at most ``estimates_hz`` rows a second per
+    estimator (the display rate, 20 by default; 0: every processed sample), the same
+    rows for every estimator. The full rate is reproducible from the log by ``orientlab
+    estimate`` (the log holds every line). A session with a known truth (the demo) adds
+    rows of the estimator ``truth``, at the full rate (the what-if compares with it). An
+    older recording's plain ``NAME.estimates.csv`` is read alike.
 ``NAME.events.jsonl``
     One JSON object per line: ``{"kind": "start", "params": {...}}`` with every
     estimator's parameters in force, then ``{"kind": "params", "t": ..., "params": ...}``
@@ -25,18 +29,27 @@ A recording named ``NAME`` in the recordings folder is three files:
 
 A stream ends the segment: if the phone disconnects while recording, the files are
 closed cleanly (``end`` says why); when a stream starts again, the recording goes on in
-a new segment ``NAME_2`` (a new clock, so a new log). A write that fails (full disk,
-folder removed or not writable) stops the recording with :attr:`Recorder.error`
-saying why; it never raises into the live path.
+a new segment ``NAME_2`` (a new clock, so a new log). A segment that got no sample (a
+recording started as the stream ended) is removed, files and all: no empty log is left
+or listed. A write that fails (full disk, folder removed or not writable) stops the
+recording with :attr:`Recorder.error` saying why; it never raises into the live path.
+
+Bounded (:class:`RecordingLimits`): the recording stops cleanly, with the reason in its
+``end`` event and :attr:`Recorder.stop_reason`, at a duration cap (wall time), a size
+cap (the bytes of every segment's files) or when the recordings' disk has less free
+space than a floor. Its size and rate (bytes, bytes/s) are in :meth:`Recorder.summary`.
 """
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
 import re
+import shutil
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -48,9 +61,11 @@ from app.sources.sensorfusion import format_line
 from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST, F_TIME
 
 LOG_SUFFIX = ".txt"
-ESTIMATES_SUFFIX = ".estimates.csv"
+ESTIMATES_SUFFIX = ".estimates.csv.gz"
+PLAIN_ESTIMATES_SUFFIX = ".estimates.csv"      # recordings made before the gzip
 EVENTS_SUFFIX = ".events.jsonl"
-SIBLING_SUFFIXES = (ESTIMATES_SUFFIX, EVENTS_SUFFIX)
+SIBLING_SUFFIXES = (ESTIMATES_SUFFIX, PLAIN_ESTIMATES_SUFFIX, EVENTS_SUFFIX)
+CHECK_EVERY_S = 1.0      # the duration cap and the free space are checked this often
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}\Z")   # \Z: "$" also matches before a final "\n"
 ESTIMATE_COLUMNS = ("estimator", "tag")  # + OUTPUT_COLUMNS
 
@@ -131,6 +146,46 @@ def _finite(x):
     return x
 
 
+@dataclass(frozen=True)
+class RecordingLimits:
+    """A recording's bounds and its estimates' density (``orientlab serve``'s settings
+    ``recording_*``): it stops at ``max_seconds`` (wall time) or ``max_bytes`` (every
+    segment's files), or when the folder's disk has less than ``min_free_bytes`` free;
+    ``estimates_hz`` rows a second per estimator (0: every sample), gzip-compressed
+    unless ``compress`` is False. None or 0 turns a cap off."""
+    max_seconds: float | None = 3600.0
+    max_bytes: int | None = 500_000_000
+    min_free_bytes: int | None = 200_000_000
+    estimates_hz: float = 20.0
+    compress: bool = True
+
+    @classmethod
+    def from_settings(cls, settings) -> "RecordingLimits":
+        d = cls()
+        return cls(max_seconds=getattr(settings, "recording_max_s", d.max_seconds),
+                   max_bytes=getattr(settings, "recording_max_bytes", d.max_bytes),
+                   min_free_bytes=getattr(settings, "recording_min_free_bytes", d.min_free_bytes),
+                   estimates_hz=getattr(settings, "recording_estimates_hz", d.estimates_hz),
+                   compress=getattr(settings, "recording_gzip", d.compress))
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"max_seconds": self.max_seconds, "max_bytes": self.max_bytes,
+                "min_free_bytes": self.min_free_bytes, "estimates_hz": self.estimates_hz,
+                "compressed": self.compress}
+
+
+def free_bytes(folder: Path) -> int | None:
+    """Free space (bytes) for a non-root user on the disk of ``folder``; None if unknown."""
+    try:
+        return int(shutil.disk_usage(folder).free)
+    except OSError:
+        return None
+
+
+def _mb(n: float) -> str:
+    return f"{n / 1e6:.1f} MB" if n < 1e9 else f"{n / 1e9:.2f} GB"
+
+
 @dataclass
 class Segment:
     """One stream's part of a recording: a log and its sibling files."""
@@ -144,6 +199,9 @@ class Segment:
     started: float = field(default_factory=time.time)
     ended: float | None = None
     end_reason: str = ""
+    written: int = 0            # samples written to the log (marks not counted)
+    bytes: int = 0              # its files' bytes (counted while open, measured at close)
+    removed: bool = False       # it got no sample: its files were removed
 
     @property
     def seconds(self) -> float:
@@ -154,7 +212,8 @@ class Segment:
     def summary(self) -> dict[str, Any]:
         return {"name": self.name, "path": str(self.path), "seconds": round(self.seconds, 3),
                 "samples": self.samples, "lines": self.lines, "source": self.label,
-                "started": self.started, "ended": self.ended, "end_reason": self.end_reason}
+                "bytes": self.bytes, "started": self.started, "ended": self.ended,
+                "end_reason": self.end_reason}
 
 
 class Recorder:
@@ -168,17 +227,28 @@ class Recorder:
     """
 
     def __init__(self, folder: str | Path, name: str | None = None,
-                 clock: Callable[[], float] = time.time, flush_every_s: float = 1.0):
+                 clock: Callable[[], float] = time.time, flush_every_s: float = 1.0,
+                 limits: RecordingLimits | None = None,
+                 free_space: Callable[[Path], int | None] = free_bytes):
         self.folder = Path(folder)
         self.base = check_name(name) if name else default_name(clock())
         self.clock = clock
         self.flush_every_s = flush_every_s
+        self.limits = limits or RecordingLimits()
+        self.free_space = free_space
         self.segments: list[Segment] = []
         self.error: str | None = None
+        self.stop_reason: str | None = None    # the cap or floor that stopped it
         self.active = False
         self._log = self._est = self._events = None
+        self._est_raw = None                   # the gzip's file (its bytes on disk)
         self._last_flush = 0.0
         self._params: dict[str, Any] = {}
+        self._started = clock()
+        self._last_check = -math.inf
+        self._rate: deque = deque(maxlen=8)    # (clock, bytes) at each check: the rate
+        self._est_last: dict[str, float] = {}  # estimator -> last decimation bin written
+        self._seg_bytes = 0                    # the open segment's log and events bytes
 
     # ----------------------------------------------------------------- life
     def start(self, params: dict[str, Any], label: str = "",
@@ -194,7 +264,11 @@ class Recorder:
             raise RecordingError(f"the recordings folder {self.folder} is not writable")
         if (self.folder / (self.base + LOG_SUFFIX)).exists():
             raise RecordingError(f"a recording named {self.base!r} exists already")
+        low = self._low_space()
+        if low:
+            raise RecordingError(low)
         self._params = params
+        self._started = self.clock()
         self.active = True
         try:
             return self._open_segment(label, phone)
@@ -203,7 +277,7 @@ class Recorder:
             raise RecordingError(_os_message(self.folder / self.base, e)) from None
 
     def _segment_name(self) -> str:
-        k = len(self.segments) + 1
+        k = sum(not s.removed for s in self.segments) + 1
         name = self.base if k == 1 else f"{self.base}_{k}"
         while (self.folder / (name + LOG_SUFFIX)).exists():
             k += 1
@@ -215,10 +289,19 @@ class Recorder:
         seg = Segment(name=name, path=self.folder / (name + LOG_SUFFIX), label=label,
                       started=self.clock())
         self._log = open(seg.path, "wb")
-        self._est = open(self.folder / (name + ESTIMATES_SUFFIX), "w", newline="")
+        head = ",".join(ESTIMATE_COLUMNS + OUTPUT_COLUMNS) + "\n"
+        if self.limits.compress:
+            self._est_raw = open(self.folder / (name + ESTIMATES_SUFFIX), "wb")
+            self._est = gzip.GzipFile(fileobj=self._est_raw, mode="wb", compresslevel=6,
+                                      filename="", mtime=0)
+        else:
+            self._est_raw = None
+            self._est = open(self.folder / (name + PLAIN_ESTIMATES_SUFFIX), "wb")
         self._events = open(self.folder / (name + EVENTS_SUFFIX), "w")
         self.segments.append(seg)
-        self._est.write(",".join(ESTIMATE_COLUMNS + OUTPUT_COLUMNS) + "\n")
+        self._seg_bytes = 0
+        self._est_last = {}
+        self._est.write(head.encode())
         # the phone: its app, platform and sign convention, as the source detected them
         self._event({"kind": "start", "source": label, "phone": phone or None,
                      "params": self._params})
@@ -237,7 +320,8 @@ class Recorder:
         self._guard(lambda: self._open_segment(label, phone), self.folder / self.base)
 
     def end_segment(self, reason: str) -> None:
-        """The stream ended (phone disconnected, end of log): close the files cleanly."""
+        """The stream ended (phone disconnected, end of log): close the files cleanly;
+        a segment that got no sample is removed (no empty log is left)."""
         seg = self.segment
         if seg is None:
             return
@@ -246,22 +330,117 @@ class Recorder:
         self._event({"kind": "end", "reason": reason, "seconds": round(seg.seconds, 3),
                      "samples": seg.samples, "lines": seg.lines})
         self._close_files()
+        if seg.written == 0 and self.error is None:
+            self._remove(seg)
+        else:
+            seg.bytes = sum(_size(p) for p in self._files(seg))
+
+    def _files(self, seg: Segment) -> list[Path]:
+        return [seg.path] + [self.folder / (seg.name + sfx) for sfx in SIBLING_SUFFIXES]
+
+    def _remove(self, seg: Segment) -> None:
+        for p in self._files(seg):
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError:
+                return
+        seg.removed, seg.bytes = True, 0
 
     def stop(self, reason: str = "stopped") -> dict[str, Any]:
-        """End the recording: ``{name, path, seconds, samples, segments: [...], error}``
-        (name/path of the first segment; seconds and samples over all segments)."""
+        """End the recording: ``{name, path, seconds, samples, bytes, segments: [...],
+        error, stop_reason}`` (name/path of the first segment kept; seconds, samples and
+        bytes over all segments; ``empty`` when no segment got a sample)."""
         if self.segment is not None:
             self.end_segment(reason)
         self.active = False
         return self.summary()
 
+    # ----------------------------------------------------------------- size and limits
+    @property
+    def bytes(self) -> int:
+        """The recording's bytes so far: closed segments as on disk, the open one as
+        written (the gzip's bytes as it has handed them to its file)."""
+        done = sum(s.bytes for s in self.segments if s is not self.segment)
+        return done + self._open_bytes()
+
+    def _open_bytes(self) -> int:
+        if self.segment is None:
+            return 0
+        est = 0
+        try:
+            if self._est_raw is not None:
+                est = self._est_raw.tell()
+            elif self._est is not None:
+                est = self._est.tell()
+        except (OSError, ValueError):
+            pass
+        return self._seg_bytes + est
+
+    @property
+    def elapsed_s(self) -> float:
+        end = self.segments[-1].ended if (not self.active and self.segments) else None
+        return max(0.0, (end if end is not None else self.clock()) - self._started)
+
+    def bytes_per_s(self) -> float:
+        """The write rate over the last few seconds (bytes/s)."""
+        if len(self._rate) >= 2 and self._rate[-1][0] > self._rate[0][0]:
+            (t0, b0), (t1, b1) = self._rate[0], self._rate[-1]
+            return (b1 - b0) / (t1 - t0)
+        el = self.elapsed_s
+        return self.bytes / el if el > 0 else 0.0
+
+    def _low_space(self) -> str | None:
+        floor = self.limits.min_free_bytes
+        if not floor:
+            return None
+        free = self.free_space(self.folder)
+        if free is not None and free < floor:
+            return (f"free space low: {_mb(free)} left on the recordings' disk "
+                    f"(the floor is {_mb(floor)})")
+        return None
+
+    def check(self, force: bool = False) -> str | None:
+        """Stop at a cap or a low disk (at most every :data:`CHECK_EVERY_S`, the size at
+        every call): the reason, also in :attr:`stop_reason` and the ``end`` event."""
+        if not self.active:
+            return self.stop_reason
+        lim = self.limits
+        size = self.bytes
+        reason = None
+        if lim.max_bytes and size >= lim.max_bytes:
+            reason = f"size cap reached: {_mb(size)} (the cap is {_mb(lim.max_bytes)})"
+        now = self.clock()
+        if reason is None and (force or now - self._last_check >= CHECK_EVERY_S):
+            self._last_check = now
+            self._rate.append((now, size))
+            if lim.max_seconds and now - self._started >= lim.max_seconds:
+                reason = f"duration cap reached: {lim.max_seconds:g} s"
+            else:
+                reason = self._low_space()
+        if reason is not None:
+            self.stop_reason = reason
+            self.end_segment(reason)
+            self.active = False
+        return reason
+
     def summary(self) -> dict[str, Any]:
-        segs = [s.summary() for s in self.segments]
-        first = segs[0] if segs else {"name": self.base, "path": str(self.folder / (self.base + LOG_SUFFIX))}
+        kept = [s for s in self.segments if not s.removed]
+        segs = [s.summary() for s in kept]
+        if segs:
+            first = segs[0]
+        else:   # nothing kept (yet): the name it has or would have
+            first = {"name": self.base,
+                     "path": str(self.folder / (self.base + LOG_SUFFIX)) if self.active else None}
         return {"name": first["name"], "path": first["path"],
-                "seconds": round(sum(s.seconds for s in self.segments), 3),
-                "samples": sum(s.samples for s in self.segments),
-                "recording": self.active, "segments": segs, "error": self.error}
+                "seconds": round(sum(s.seconds for s in kept), 3),
+                "samples": sum(s.samples for s in kept),
+                "bytes": self.bytes, "bytes_per_s": round(self.bytes_per_s(), 1),
+                "elapsed_s": round(self.elapsed_s, 3),
+                "empty": not any(s.written for s in kept),
+                "recording": self.active, "segments": segs, "error": self.error,
+                "stop_reason": self.stop_reason, "limits": self.limits.as_dict()}
 
     # ----------------------------------------------------------------- writing
     def write_samples(self, samples: list) -> None:
@@ -274,7 +453,10 @@ class Recorder:
                 + "\n").encode()
         if self._guard(lambda: self._log.write(data), seg.path):
             seg.lines += len(samples)
+            seg.written += len(samples)
+            self._seg_bytes += len(data)
             self._maybe_flush()
+            self.check()
 
     def write_estimates(self, name: str, t: np.ndarray, tags: list[str] | str,
                         q: np.ndarray, flags: np.ndarray | None = None) -> None:
@@ -286,6 +468,21 @@ class Recorder:
             return
         from app.estimators import FLAG_COLUMNS
         q = np.asarray(q, dtype=float).reshape(-1, 4)
+        hz = self.limits.estimates_hz
+        if hz and hz > 0 and name != "truth":
+            # the first row of each 1/hz bin not written yet: the same rows for every
+            # estimator of a chunk (they share t)
+            b = np.floor(t * hz)
+            prev = np.maximum.accumulate(np.concatenate(([self._est_last.get(name, -np.inf)], b[:-1])))
+            keep = b > prev
+            if not keep.any():
+                return
+            self._est_last[name] = float(max(prev[-1], b[-1]))
+            t, q = t[keep], q[keep]
+            if flags is not None:
+                flags = np.asarray(flags, dtype=float)[keep]
+            if not isinstance(tags, str):
+                tags = [tg for tg, k in zip(tags, keep.tolist()) if k]
         if flags is None:  # no flag record (truth, phone): empty flag cells
             blank = "," * len(FLAG_COLUMNS)
             text = "".join(f"{a:.6f},{b:.9f},{c:.9f},{d:.9f},{e:.9f}{blank}\n"
@@ -295,7 +492,7 @@ class Recorder:
         if isinstance(tags, str):
             tags = [tags] * t.size
         rows = text.splitlines()
-        out = "".join(f"{name},{tg},{r}\n" for tg, r in zip(tags, rows))
+        out = "".join(f"{name},{tg},{r}\n" for tg, r in zip(tags, rows)).encode()
         self._guard(lambda: self._est.write(out), self.folder / (seg.name + ESTIMATES_SUFFIX))
 
     def count_samples(self, t: np.ndarray) -> None:
@@ -325,13 +522,15 @@ class Recorder:
             line = f"{int(ms)}\tTXT\torientlab: {text}".replace("\n", " ").encode()
             if self._guard(lambda: self._log.write(line + b"\n"), seg.path):
                 seg.lines += 1
+                self._seg_bytes += len(line) + 1
 
     def _event(self, obj: dict[str, Any]) -> None:
         obj = {**obj, "wall": round(self.clock(), 3)}
         text = json.dumps(_finite(obj), default=_json_default) + "\n"
         seg = self.segments[-1] if self.segments else None
         path = self.folder / ((seg.name if seg else self.base) + EVENTS_SUFFIX)
-        self._guard(lambda: self._events.write(text), path)
+        if self._guard(lambda: self._events.write(text), path):
+            self._seg_bytes += len(text.encode())
 
     # ----------------------------------------------------------------- failures
     def _guard(self, fn: Callable[[], Any], path: Path) -> bool:
@@ -354,12 +553,12 @@ class Recorder:
         now = self.clock()
         if now - self._last_flush >= self.flush_every_s:
             self._last_flush = now
-            for fh in (self._log, self._est, self._events):
-                if fh is not None and not self._guard(fh.flush, Path(fh.name)):
+            for fh in (self._log, self._est, self._est_raw, self._events):
+                if fh is not None and not self._guard(fh.flush, _path_of(fh)):
                     return
 
     def _close_files(self, quiet: bool = False) -> None:
-        for attr in ("_log", "_est", "_events"):
+        for attr in ("_log", "_est", "_est_raw", "_events"):   # the gzip before its file
             fh = getattr(self, attr)
             setattr(self, attr, None)
             if fh is None:
@@ -368,8 +567,24 @@ class Recorder:
                 fh.close()
             except OSError as e:  # the last flush failed (disk full)
                 if not quiet and self.error is None:
-                    self.error = _os_message(Path(fh.name), e)
+                    self.error = _os_message(_path_of(fh), e)
                     self.active = False
+            except ValueError:    # the gzip's file closed first after a failure
+                pass
+
+
+def _path_of(fh) -> Path:
+    name = getattr(fh, "name", None)
+    if not isinstance(name, str) or not name:
+        name = getattr(getattr(fh, "fileobj", None), "name", "") or "?"
+    return Path(name)
+
+
+def _size(p: Path) -> int:
+    try:
+        return p.stat().st_size
+    except OSError:
+        return 0
 
 
 # ---------------------------------------------------------------- the folder
@@ -387,9 +602,18 @@ def recording_files(folder: str | Path, name: str) -> dict[str, Path | None]:
             break
     if log is None:
         raise RecordingError(f"no recording named {name!r} in {folder}")
-    est, ev = folder / (name + ESTIMATES_SUFFIX), folder / (name + EVENTS_SUFFIX)
-    return {"log": log, "estimates": est if est.is_file() else None,
+    ev = folder / (name + EVENTS_SUFFIX)
+    return {"log": log, "estimates": estimates_file(folder, name),
             "events": ev if ev.is_file() else None}
+
+
+def estimates_file(folder: str | Path, name: str) -> Path | None:
+    """The estimates file of recording ``name`` (gzip, or an older plain CSV), or None."""
+    for sfx in (ESTIMATES_SUFFIX, PLAIN_ESTIMATES_SUFFIX):
+        p = Path(folder) / (name + sfx)
+        if p.is_file():
+            return p
+    return None
 
 
 def read_events(path: str | Path | None) -> list[dict[str, Any]]:
@@ -407,8 +631,9 @@ def read_events(path: str | Path | None) -> list[dict[str, Any]]:
 
 def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
     """Every recording in ``folder``, newest first: our own (log + siblings) and any app
-    log, CSV or npz dropped in it (name = file stem). ``seconds``/``samples`` come from the
-    events file when there is one (else None: the log is not read here)."""
+    log, CSV or npz dropped in it (name = file stem); never an empty (0-byte) file.
+    ``seconds``/``samples`` come from the events file when there is one (else None: the
+    log is not read here)."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
@@ -423,13 +648,18 @@ def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
         name = p.stem
         if not NAME_RE.match(name):
             continue
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        if st.st_size == 0:     # nothing in it (a recording started as a stream ended)
+            continue
         ev = folder / (name + EVENTS_SUFFIX)
         events = read_events(ev) if ev.is_file() else []
         end = next((e for e in reversed(events) if e.get("kind") == "end"), None)
-        st = p.stat()
         out.append({"name": name, "path": str(p), "bytes": st.st_size, "modified": st.st_mtime,
                     "orientlab": bool(events),
-                    "has_estimates": (folder / (name + ESTIMATES_SUFFIX)).is_file(),
+                    "has_estimates": estimates_file(folder, name) is not None,
                     "seconds": end.get("seconds") if end else None,
                     "samples": end.get("samples") if end else None,
                     "end_reason": end.get("reason") if end else None,
@@ -438,25 +668,50 @@ def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
     return out
 
 
+def _estimate_lines(path: Path):
+    """The text lines of an estimates file, gzip or plain; a gzip still being written
+    (or cut short) gives the lines up to where it was flushed."""
+    with open(path, "rb") as fh:
+        gz = fh.read(2) == b"\x1f\x8b"
+    if not gz:
+        with open(path, newline="") as fh:
+            yield from fh
+        return
+    rest = b""
+    with gzip.open(path, "rb") as fh:
+        while True:
+            try:
+                block = fh.read(1 << 16)
+            except (EOFError, gzip.BadGzipFile, OSError):
+                block = b""
+            if not block:
+                break
+            lines = (rest + block).split(b"\n")
+            rest = lines.pop()
+            for ln in lines:
+                yield ln.decode("utf-8", "replace") + "\n"
+    # a last line without its newline was cut short: dropped
+
+
 def read_estimates(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
-    """A recording's estimates file: per estimator ``{"t": (N,), "q": (N, 4)}``."""
+    """A recording's estimates file (``.estimates.csv.gz`` or an older plain
+    ``.estimates.csv``): per estimator ``{"t": (N,), "q": (N, 4)}``."""
     import csv
     per: dict[str, tuple[list, list]] = {}
-    with open(path, newline="") as fh:
-        rd = csv.reader(fh)
-        header = next(rd, None)
-        if not header:
-            return {}
-        ix = {c: i for i, c in enumerate(header)}
-        it, iq = ix["t"], [ix[c] for c in ("qw", "qx", "qy", "qz")]
-        ie = ix["estimator"]
-        for row in rd:
-            try:
-                tt = float(row[it])
-                q = [float(row[i]) for i in iq]
-            except (ValueError, IndexError):
-                continue
-            ts, qs = per.setdefault(row[ie], ([], []))
-            ts.append(tt)
-            qs.append(q)
+    rd = csv.reader(_estimate_lines(Path(path)))
+    header = next(rd, None)
+    if not header:
+        return {}
+    ix = {c: i for i, c in enumerate(header)}
+    it, iq = ix["t"], [ix[c] for c in ("qw", "qx", "qy", "qz")]
+    ie = ix["estimator"]
+    for row in rd:
+        try:
+            tt = float(row[it])
+            q = [float(row[i]) for i in iq]
+        except (ValueError, IndexError):
+            continue
+        ts, qs = per.setdefault(row[ie], ([], []))
+        ts.append(tt)
+        qs.append(q)
     return {k: {"t": np.array(v[0]), "q": np.array(v[1]).reshape(-1, 4)} for k, v in per.items()}

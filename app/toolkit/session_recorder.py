@@ -4,6 +4,11 @@ stream ends and another starts) and feeds it from the live core's hooks: the sam
 the estimators get them (a sample stage after the injection's, before the magnetometer
 calibration's), every estimator's estimates (a record listener), the parameters at each
 change and the injections' marks. The files' format is :mod:`app.toolkit.recording`'s.
+
+Bounded by ``limits`` (:class:`~app.toolkit.recording.RecordingLimits`, from ``orientlab
+serve``'s settings): at a cap or a low disk the recording stops cleanly, and
+:meth:`RecordingService.status` says why (``last.stop_reason``); while it runs, the status
+holds its size and rate (``bytes``, ``bytes_per_s``).
 """
 
 from __future__ import annotations
@@ -16,7 +21,8 @@ import numpy as np
 
 from app.params import to_dict
 from app.toolkit.errors import ToolError
-from app.toolkit.recording import Recorder, RecordingError, list_recordings, recording_files
+from app.toolkit.recording import (Recorder, RecordingError, RecordingLimits, list_recordings,
+                                   recording_files)
 
 log = logging.getLogger("orientlab.recording")
 
@@ -36,9 +42,11 @@ class RecordingService:
     """See the module doc. ``core``: the live core; ``folder``: the recordings folder;
     ``parts``: more tables of the parameters in force (``engine.preset_parts``)."""
 
-    def __init__(self, core, folder: str | Path, parts: list[Callable[[], dict]] | None = None):
+    def __init__(self, core, folder: str | Path, parts: list[Callable[[], dict]] | None = None,
+                 limits: RecordingLimits | None = None):
         self.core = core
         self.folder = Path(folder)
+        self.limits = limits or RecordingLimits()
         self.parts = parts if parts is not None else []
         self.recorder: Recorder | None = None
         self.last: dict[str, Any] | None = None      # the last recording's summary
@@ -105,28 +113,38 @@ class RecordingService:
         if self.recorder is not None and s is not None and not s.open \
                 and self.recorder.segment is not None:
             self.recorder.end_segment(s.close_reason or "end of stream")
+        if self.recorder is not None:
+            self.recorder.check()       # the duration cap and the disk, with no stream too
         self._check()
 
     def _check(self) -> None:
         rec = self.recorder
-        if rec is not None and rec.error is not None:
+        if rec is None:
+            return
+        if rec.error is not None:
             self.last = rec.stop("write failed")
             self.recorder = None
             self._session = None
             log.error("recording stopped: %s", self.last["error"])
+        elif rec.stop_reason is not None:
+            self.last = rec.stop(rec.stop_reason)
+            self.recorder = None
+            self._session = None
+            log.warning("recording %r stopped: %s", rec.base, rec.stop_reason)
 
     # ----------------------------------------------------------------- the requests
     def start(self, name: str | None = None) -> dict[str, Any]:
         if self.recorder is not None:
             raise ToolError("recording", f"already recording {self.recorder.base!r}", 409)
         try:
-            rec = Recorder(self.folder, name)
+            rec = Recorder(self.folder, name, limits=self.limits)
             s = self.core.session
             rec.start(self.params_in_force(), label="" if s is None else f"{s.kind} {s.label}",
                       phone=None if s is None else s.describe())
         except RecordingError as e:
-            raise ToolError("name" if "name" in str(e) else "folder", str(e),
-                            409 if "exists" in str(e) else 422) from None
+            msg = str(e)
+            status = 409 if "exists" in msg else 507 if msg.startswith("free space") else 422
+            raise ToolError("name" if "name" in msg else "folder", msg, status) from None
         self.recorder = rec
         self._session = self.core.session
         return rec.summary()
@@ -142,9 +160,12 @@ class RecordingService:
         return self.last
 
     def status(self) -> dict[str, Any]:
+        """While recording: its summary (``bytes``, ``bytes_per_s``, ``elapsed_s``,
+        ``limits``, ...); else ``{"recording": False, "last"}`` (``last.stop_reason``:
+        the cap that stopped it, if one did)."""
         if self.recorder is not None:
             return {**self.recorder.summary(), "recording": True}
-        return {"recording": False, "last": self.last}
+        return {"recording": False, "last": self.last, "limits": self.limits.as_dict()}
 
     def recordings(self) -> list[dict[str, Any]]:
         return list_recordings(self.folder)

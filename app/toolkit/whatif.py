@@ -14,7 +14,16 @@ run it returns
 - the share of accelerometer and magnetometer samples refused by a gate (of those
   present and valid);
 - decimated time series for the page to overlay: error to the phone (or truth), yaw,
-  pitch and roll (degrees, the manual's ``q2euler``).
+  pitch and roll (degrees, the manual's ``q2euler``);
+- ``change_deg``: how far the patch moves the estimate (the angle between before and
+  after; the only figure when the log has neither truth nor ORI);
+- ``live``: the error of what the live filter showed over the same rows (the recording's
+  estimates file), and ``note``: why the re-run differs from it, when it does by more than
+  :data:`AGREE_DEG` / :data:`AGREE_REL`. The re-run starts cold at the recording's first
+  sample (gyroscope bias and field learned again) while the live filter had run before:
+  on the demo (gyroscope bias ~3°/s) a recording begun mid-motion re-runs at ~9° RMS where
+  the live filter showed ~1°; begun at rest, the two agree. ``notes`` (top level): what the
+  error is measured against, in words (the page shows them under the table).
 
 An estimator is described by a *spec* ``(base, params)``: ``base`` the estimator class
 name (``robust``, ``lab``, ...) and ``params`` its parameter dict, so variants
@@ -24,7 +33,6 @@ The ``phone`` estimator is the reference itself (the held ORI): it is scored, no
 
 from __future__ import annotations
 
-import asyncio
 import math
 import time
 from pathlib import Path
@@ -38,6 +46,7 @@ from app.params import ParamError, to_dict
 from app.quaternion import error_angles, q2euler_many
 from app.sources.readers import LogData, read_log_data
 from app.toolkit.errors import ToolError
+from app.toolkit.jobs import JobQueue, run_in_chunks
 
 MAX_POINTS = 1500
 _REJ = np.array(sorted(int(r) for r in REJECTIONS))
@@ -123,7 +132,7 @@ def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | 
              phone_ref: np.ndarray | None) -> tuple[dict[str, Any], float]:
     est = make_estimator(base, params)
     t0 = time.perf_counter()
-    res = est.run(rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)
+    res = run_in_chunks(est, rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)   # the loop keeps its turns
     spent = time.perf_counter() - t0
     start = _aligned_from(res.flags)
     out: dict[str, Any] = {
@@ -151,6 +160,7 @@ def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | 
     out["series"] = {"yaw_deg": _clean(eul[:, 0]), "pitch_deg": _clean(eul[:, 1]),
                      "roll_deg": _clean(eul[:, 2]),
                      "error_deg": None if err_series is None else _clean(np.degrees(err_series[idx]))}
+    out["_q"], out["_start"] = res.q, start    # for rerun's comparisons; popped before JSON
     return out, spent
 
 
@@ -186,13 +196,96 @@ def _clean(x: np.ndarray) -> list[float | None]:
     return [float(v) if math.isfinite(v) else None for v in np.round(x, 4).tolist()]
 
 
+AGREE_DEG = 0.3     # the re-run "agrees" with the live filter within this (degrees RMS)...
+AGREE_REL = 0.15    # ... or this share of the live filter's RMS error, the larger
+
+
+def _score(q: np.ndarray, start: int, phone: np.ndarray | None,
+           truth: np.ndarray | None) -> dict[str, Any]:
+    """The errors of estimates ``q`` (one per row) to the phone and to the truth, from row
+    ``start`` on, like a re-run's."""
+    out: dict[str, Any] = {}
+    for key, r in (("error_to_phone_deg", phone), ("error_to_truth_deg", truth)):
+        if r is None:
+            out[key] = None
+            continue
+        ok = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(q), axis=1)
+        ok[:start] = False
+        out[key] = _stats_deg(error_angles(q[ok], r[ok])[0]) if ok.any() else _stats_deg(np.zeros(0))
+    return out
+
+
+def _key(ref_kind: str | None) -> str | None:
+    return {"truth": "error_to_truth_deg", "phone": "error_to_phone_deg"}.get(ref_kind or "")
+
+
+def _why_differs(before: dict[str, Any], live: dict[str, Any], ref_kind: str | None,
+                 q_rerun: np.ndarray, q_live: np.ndarray, start: int,
+                 t: np.ndarray) -> str | None:
+    """Why the re-run's error (parameters in force now, from a cold start at the
+    recording's first row) differs from the live filter's over the same rows, or None
+    when they agree (within :data:`AGREE_DEG` or :data:`AGREE_REL`)."""
+    key = _key(ref_kind)
+    if key is None or before.get(key) is None or live.get(key) is None:
+        return None
+    b, lv = before[key]["rms"], live[key]["rms"]
+    if b is None or lv is None or abs(b - lv) <= max(AGREE_DEG, AGREE_REL * lv):
+        return None
+    ok = np.all(np.isfinite(q_live), axis=1)
+    ok[:start] = False
+    d = np.full(len(t), np.nan)
+    if ok.any():
+        d[ok] = np.degrees(error_angles(q_rerun[ok], q_live[ok])[0])
+    t_rel = t - t[0]
+    first = ok & (t_rel < t_rel[-1] / 3.0)
+    rest = ok & ~first
+    rms = (lambda m: float(np.sqrt(np.mean(d[m] ** 2))) if m.any() else float("nan"))
+    what = "better" if b < lv else "worse"
+    return (f"re-run {b:.1f}°, live {lv:.1f}°: the re-run starts cold at the recording's first "
+            f"sample (gyroscope bias and field learned again), the live filter had been running "
+            f"before it; {what} by {abs(b - lv):.1f}°. The two estimates differ by "
+            f"{rms(first):.1f}° RMS in the first {t_rel[-1] / 3.0:.0f} s, {rms(rest):.1f}° after")
+
+
+def _notes(ref_kind: str | None, have_live: bool) -> list[str]:
+    """What the reported error is, in words (the page shows them beside the numbers)."""
+    ref = {"truth": "to the truth (the demo's simulated orientation), as the live read-out's "
+                    "\"error to truth\"",
+           "phone": "to the phone's own estimate (its ORI), not to the truth: the phone's own "
+                    "errors count too"}.get(ref_kind or "")
+    out = [f"RMS error {ref}, over the whole recording from each filter's alignment on; the "
+           "live read-out shows the error at one instant" if ref else
+           "no reference in this log (no truth, no ORI): no error can be scored; \"change\" is "
+           "how far the change moves each estimate (RMS)"]
+    if have_live:
+        out.append("live: the error of what the live filters showed during the recording, "
+                   "over the same rows")
+    return out
+
+
+def first_suggestion(specs: dict[str, tuple[str, dict[str, Any]]],
+                     primary: str) -> tuple[str, str, Any]:
+    """The change a first what-if is pre-filled with: one that shows on any recording
+    with a magnetometer (the heading then follows the gyroscope alone and drifts with its
+    bias): ``(estimator, parameter, value)``."""
+    name = primary if primary in specs else next(
+        (n for n, (b, _) in specs.items() if b != "phone"), primary)
+    params = specs.get(name, ("", {}))[1]
+    if params.get("use_mag", True):
+        return name, "use_mag", False
+    return name, "use_acc", not params.get("use_acc", True)
+
+
 def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, Any]]],
           patch: dict[str, dict[str, Any]] | None = None,
           truth: dict[str, np.ndarray] | None = None,
-          max_points: int = MAX_POINTS) -> dict[str, Any]:
+          max_points: int = MAX_POINTS,
+          recorded: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
     """Re-run a recording (a path or a read :class:`LogData`) through every estimator
     of ``specs`` (``{name: (base, params)}``), before and after ``patch``
-    (``{name: {key: value}}``); see the module doc for what comes back.
+    (``{name: {key: value}}``); see the module doc for what comes back. ``recorded``:
+    the recording's estimates file (:func:`app.toolkit.recording.read_estimates`), what the
+    live filters showed: each estimator's ``live`` error over the same rows beside the re-run's.
     WhatIfError for a patch naming an unknown estimator or a refused value (nothing run)."""
     patch = patch or {}
     for name, changes in patch.items():
@@ -232,18 +325,29 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
             continue
         before, s1 = _one_run(base, params, rec, None, ref_kind, tq, idx, phone)
         cpu += s1
+        q_before, start = before.pop("_q"), before.pop("_start")
         entry = {"base": base, "before": before, "changed": name in after_params,
-                 "patch": patch.get(name) or {}}
+                 "patch": patch.get(name) or {}, "after": None, "change_deg": None,
+                 "live": None, "note": None}
         if name in after_params:
             after, s2 = _one_run(base, after_params[name], rec, None, ref_kind, tq, idx, phone)
             cpu += s2
+            q_after, start_a = after.pop("_q"), after.pop("_start")
             entry["after"] = after
-        else:
-            entry["after"] = None
+            s0 = max(start, start_a)
+            entry["change_deg"] = _stats_deg(error_angles(q_before[s0:], q_after[s0:])[0]) \
+                if s0 < n else None
+        live = truth_at(rec.t, (recorded or {}).get(name))
+        if live is not None and np.isfinite(live).all(axis=1).any():
+            entry["live"] = _score(live, start, phone, tq)
+            entry["note"] = _why_differs(before, entry["live"], ref_kind, q_before, live, start,
+                                         rec.t)
         results[name] = entry
     return {"rows": n, "duration_s": duration, "read_s": read_s, "estimate_s": cpu,
             "realtime_ratio": (duration / cpu) if cpu > 0 else None,
             "reference": ref_kind, "has_phone": phone is not None, "has_truth": tq is not None,
+            "notes": _notes(ref_kind, recorded is not None and any(
+                e.get("live") for e in results.values())),
             "t": _clean(rec.t[idx] - (rec.t[0] if n else 0.0)) if n else [],
             "estimators": results, "counts": _json_counts(rec.counts)}
 
@@ -265,7 +369,8 @@ def _json_counts(c: dict) -> dict:
 class WhatIfService:
     """What-if on the live server: re-run a recording of the folder through every
     estimator on the ensemble, with the parameters in force before and ``patch`` after, in
-    a worker thread (the live stream goes on meanwhile).
+    a worker thread (the live stream goes on meanwhile): one re-run at a time, two more
+    waiting, more refused with 429 (:attr:`jobs`, :class:`app.toolkit.jobs.JobQueue`).
 
     ``core``: the live core (its ensemble's instances); ``files(name)``: a recording's
     files (ToolError if none)."""
@@ -274,7 +379,8 @@ class WhatIfService:
         self.core = core
         self.files = files
         self.last: dict[str, Any] | None = None
-        self._cache: dict = {}
+        self._cache: dict = {}                  # touched by the one running job only
+        self.jobs = JobQueue("what-if re-run")
 
     def specs(self) -> dict[str, tuple[str, dict[str, Any]]]:
         b = self.core.ensemble
@@ -285,15 +391,18 @@ class WhatIfService:
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")
-        truth = None
-        if files["estimates"] is not None:
-            truth = read_estimates(files["estimates"]).get("truth")
         specs = self.specs()
 
-        def run():
-            return rerun(self._read_cached(files["log"]), specs, patch, truth)
+        def run():   # in the job's thread: reading the files too (never on the loop)
+            recorded = None    # what the live filters showed (and the demo's truth)
+            if files["estimates"] is not None:
+                recorded = read_estimates(files["estimates"])
+            return rerun(self._read_cached(files["log"]), specs, patch,
+                         (recorded or {}).get("truth"), recorded=recorded)
         try:
-            out = await asyncio.get_running_loop().run_in_executor(None, run)
+            out = await self.jobs.run(run)
+        except ToolError:        # busy (429): as it is
+            raise
         except WhatIfError as e:
             raise ToolError(e.field, e.reason) from None
         except ValueError as e:  # a file that cannot be read

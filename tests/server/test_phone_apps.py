@@ -231,3 +231,23 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
             assert page2.locator("img.qr[src]").count() == 0
         finally:
             ctx.close()
+
+
+@pytest.mark.shared
+def test_serve_with_a_phyphox_source_polls_it_from_the_start(shared_dir):
+    """``orientlab serve --source phyphox:http://PHONE:PORT``: no demo, the phone is polled
+    at once; a phone that is not there yet is a status with retries, then streams."""
+    from fake_phyphox import FakePhyphox
+    from test_phyphox import _fake_sensors
+    from tyrex_phyphox import load_trial
+    from harness import free_port
+    trial = load_trial(_trial(shared_dir, IPHONE), seconds=10.0)
+    fake = FakePhyphox(_fake_sensors(trial), speed=2.0)
+    fake.port = free_port()
+    with running_server(source=f"phyphox:http://127.0.0.1:{fake.port}") as srv:
+        hp = srv.app.state.http_phones
+        wait_for(lambda: hp.status()["poll"]["state"] == "unreachable", 20, what="unreachable")
+        assert _state(srv)["source"] == "none"          # no demo meanwhile
+        with fake:
+            wait_for(lambda: _state(srv)["counts"]["samples"] > 500, 30, what="polled samples")
+        assert srv.app.state.slot.status()["holder"]["app"] == "phyphox-poll"

@@ -128,7 +128,7 @@ def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
         kinds = [e["kind"] for e in ev]
         assert kinds[0] == "start" and "params" in kinds and kinds[-1] == "end"
         assert "disconnect" in ev[-1]["reason"] or "closed" in ev[-1]["reason"] or ev[-1]["reason"]
-        est = read_estimates(rec_dir / "lesson.estimates.csv")
+        est = read_estimates(rec_dir / "lesson.estimates.csv.gz")
         assert {"robust", "lab", "complementary", "phone"} <= set(est)
         listed = api.get("/api/recordings").json()
         assert "lesson" in [x["name"] for x in listed["recordings"]]
@@ -177,7 +177,7 @@ def test_magnet_injected_into_a_real_stream_primary_rides_it_out(tmp_path, still
         assert [m["event"] for m in marks] == ["start", "end"]
         t_on, t_off = marks[0]["t"], marks[1]["t"]
         assert t_off - t_on == pytest.approx(5.0, abs=0.05)
-        est = read_estimates(rec_dir / "magnet.estimates.csv")
+        est = read_estimates(rec_dir / "magnet.estimates.csv.gz")
         body = (rec_dir / "magnet.txt").read_bytes()
         assert body.count(b"\tTXT\torientlab: magnet 50 uT") == 2        # marked in the recording
         assert summary["samples"] > 5000

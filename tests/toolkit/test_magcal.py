@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.toolkit.magcal import IDENTITY, MagCalError, correct_samples, coverage, fit, from_preset
+from app.toolkit.magcal import (IDENTITY, MIN_COVERAGE_ELLIPSOID, MIN_COVERAGE_SPHERE, MagCalError,
+    correct_samples, coverage, fit, from_preset)
 from app.sources.sensorfusion import parse_line
 
 
@@ -40,9 +41,11 @@ def test_recovers_a_synthetic_offset_and_scale():
 
 
 def test_poor_coverage_gives_hard_iron_only_and_says_so():
-    raw = _turned(cap=0.6) + np.array([5.0, 5.0, 5.0])
+    # a cap of 35 % of the directions: enough for a sphere, too little for an ellipsoid
+    # (a smaller one is refused: test_magcal_refusals.py)
+    raw = _turned(n=1500, cap=0.3) + np.array([5.0, 5.0, 5.0])
     frac, counts = coverage(raw, np.array([5.0, 5.0, 5.0]))
-    assert frac < 0.5 and counts.sum() == len(raw)
+    assert MIN_COVERAGE_SPHERE <= frac < MIN_COVERAGE_ELLIPSOID and counts.sum() == len(raw)
     cal = fit(raw)
     assert cal.model == "sphere"
     np.testing.assert_allclose(cal.matrix, np.eye(3))

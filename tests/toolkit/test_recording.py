@@ -13,7 +13,7 @@ from app.cli import main as cli_main
 from app.estimators import make_estimator
 from app.sources.readers import read_log_data
 from app.sources.sensorfusion import decode_lines
-from app.toolkit.recording import (Recorder, RecordingError, list_recordings, read_estimates,
+from app.toolkit.recording import (Recorder, RecordingError, RecordingLimits, list_recordings, read_estimates,
     read_events, recording_files)
 
 LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
@@ -26,7 +26,7 @@ def _samples(lines):
 def test_the_log_is_the_stream_and_reads_like_the_original(tmp_path, shared_dir):
     src = shared_dir / "data" / "sensorfusion-app" / LOG
     lines = src.read_bytes().splitlines()
-    rec = Recorder(tmp_path, "take1")
+    rec = Recorder(tmp_path, "take1", limits=RecordingLimits(estimates_hz=0))
     rec.start({"robust": {"gyr_noise": 0.005}}, label="phone")
     for i in range(0, len(lines), 97):
         rec.write_samples(_samples(lines[i:i + 97]))
@@ -51,7 +51,7 @@ def test_the_log_is_the_stream_and_reads_like_the_original(tmp_path, shared_dir)
         np.testing.assert_array_equal(getattr(r1, k), getattr(r0, k))
     # the CLI reads it as any app log
     assert cli_main(["estimate", str(log), "--out", str(tmp_path / "o.csv"), "-q"]) == 0
-    est = read_estimates(tmp_path / "take1.estimates.csv")
+    est = read_estimates(tmp_path / "take1.estimates.csv.gz")
     np.testing.assert_allclose(est["robust"]["q"], res.q, atol=1e-8)
     assert len(est["truth"]["t"]) == 10
     ev = read_events(tmp_path / "take1.events.jsonl")
@@ -89,6 +89,7 @@ def test_an_unwritable_folder_is_a_clear_error(tmp_path):
         Recorder(blocker / "recordings", "a").start({})
     rec = Recorder(tmp_path, "dup")
     rec.start({})
+    rec.write_samples(_samples([b"1000\tACC\t0\t0\t9.81"]))     # an empty one is removed
     rec.stop()
     with pytest.raises(RecordingError, match="exists already"):
         Recorder(tmp_path, "dup").start({})
@@ -97,8 +98,8 @@ def test_an_unwritable_folder_is_a_clear_error(tmp_path):
 
 
 def test_a_full_disk_stops_the_recording_with_a_message_and_raises_nothing(tmp_path):
-    # the estimates file goes to /dev/full: writes fail with ENOSPC as on a full disk
-    os.symlink("/dev/full", tmp_path / "full.estimates.csv")
+    # the estimates file (gzip) goes to /dev/full: writes fail with ENOSPC as on a full disk
+    os.symlink("/dev/full", tmp_path / "full.estimates.csv.gz")
     rec = Recorder(tmp_path, "full", flush_every_s=0.0)
     rec.start({})
     for k in range(200):

@@ -19,7 +19,6 @@ refreshes the read-outs and plots a few times a second.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import math
 from typing import Any, Callable
@@ -33,6 +32,7 @@ from app.server.gui.scene import set_wxyz
 from app.server.toolkit import Toolkit
 from app.toolkit.errors import ToolError
 from app.toolkit.inject import InjectionService
+from app.toolkit.whatif import first_suggestion
 
 log = logging.getLogger("orientlab.toolkit_tab")
 
@@ -233,6 +233,13 @@ class ToolkitTab:
             ab = gui.add_button("Apply to the estimators",
                                 hint="noise levels, gyroscope bias, g0, m0 (formula 7)")
             ab.on_click(lambda ev: self._call(self._apply_calibration, ev))
+            # shown only when the calibration does not look stationary: applying it
+            # anyway is a separate, explicit choice (POST /api/calibrate/apply {force})
+            self.cal_force = gui.add_button("Apply anyway (the phone moved)", color="orange",
+                                            visible=False,
+                                            hint="the bias and noise of a phone that moved "
+                                                 "mislead the filters: only if you know why")
+            self.cal_force.on_click(lambda ev: self._call(self._apply_calibration, ev, True))
             self.cal_preset = gui.add_text("Preset name", "calibrated")
             spb = gui.add_button("Save as preset")
             spb.on_click(lambda ev: self._do(ev, self._save_calibration_preset, "Preset saved"))
@@ -244,7 +251,8 @@ class ToolkitTab:
                 float(self.mc_seconds.value)), "Turn the phone"))
             self.mc_bar = gui.add_progress_bar(0.0)
             self.mc_md = gui.add_markdown("")
-            mab = gui.add_button("Apply the fit")
+            mab = self.mc_apply = gui.add_button("Apply the fit", disabled=True,
+                                                 hint="only a fit that was not refused")
             mab.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.apply(False), "Applied"))
             mcb = gui.add_button("Clear (no correction)")
             mcb.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.apply(True), "Cleared"))
@@ -270,11 +278,25 @@ class ToolkitTab:
             self.rp_md = gui.add_markdown("")
         with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
             self.wi_name = gui.add_dropdown("Recording ", ("(none)",))
-            self.wi_est = gui.add_dropdown("Estimator", tuple(self.core.ensemble.names),
-                                           initial_value=self.core.ensemble.primary)
-            self.wi_patch = gui.add_text("Change (JSON)", '{"mag_norm_gate_rel": 0}',
-                                         hint="parameters of that estimator, e.g. {\"acc_std\": 0.3}")
-            wb = gui.add_button("Re-run before/after")
+            # estimator, parameter and value from lists, the value in the unit shown
+            # (the API takes the same change as JSON: POST /api/recordings/{name}/rerun)
+            est0, par0, val0 = first_suggestion(self.tk.whatif.specs(), self.core.ensemble.primary)
+            self.wi_est = gui.add_dropdown("Estimator", self._wi_estimators(), initial_value=est0)
+            self._wi_rows: dict[str, dict[str, Any]] = {}
+            labels = self._wi_param_labels(est0)
+            self.wi_param = gui.add_dropdown(
+                "Parameter", labels, initial_value=next(
+                    (lab for lab, r in self._wi_rows.items() if r["name"] == par0), labels[0]))
+            self.wi_value = gui.add_number("Value", 0.0, step=0.001,
+                                           hint="the new value, in the unit of the parameter's name")
+            self.wi_choice = gui.add_dropdown("Value ", ("off", "on"), initial_value="off",
+                                              hint="the new setting")
+            self.wi_now_md = gui.add_markdown("")
+            self._wi_show_value(suggested=val0)
+            self.wi_est.on_update(lambda ev: ev.client is not None and self._call(self._wi_pick_estimator))
+            self.wi_param.on_update(lambda ev: ev.client is not None and self._call(self._wi_show_value))
+            wb = gui.add_button("Re-run before/after",
+                                hint="POST /api/recordings/{name}/rerun {patch: {estimator: {param: value}}}")
             wb.on_click(self._rerun)
             self.wi_md = gui.add_markdown("")
             self.p_wi_err = self._plot("error [deg] before (solid) vs after (dashed)",
@@ -403,33 +425,119 @@ class ToolkitTab:
                 self._notify(ev, "Calibration", e.reason)
         self._call(run)
 
-    async def _apply_calibration(self, ev) -> None:
+    async def _apply_calibration(self, ev, force: bool = False) -> None:
+        """"Apply to the estimators" (a calibration over a phone that moved is refused,
+        with its reasons) or, ``force``, "Apply anyway (the phone moved)"."""
         try:
-            params = self.tk.calibration.change()
+            params = self.tk.calibration.change(force=force)
             change = self.core.validate({"estimators": params})
-        except (ToolError, PatchError) as e:
+        except ToolError as e:
+            self._notify(ev, "Not applied", e.reason)
+            return
+        except PatchError as e:
             self._notify(ev, "Not applied", str(e))
             return
-        await self._post(ev, change, "calibration applied: " + ", ".join(
-            f"{n}: {', '.join(p)}" for n, p in params.items()))
+        done = self.loop.create_future()
+        self.tk.engine.post(change, done)
+        try:
+            await asyncio.wait_for(done, 5.0)
+        except Exception as e:
+            self._notify(ev, "Refused", str(e))
+            return
+        self.tk.calibration.note_applied()
+        self._notify(ev, "Done", ("applied anyway: " if force else "calibration applied: ") + ", ".join(
+            f"{n}: {', '.join(p)}" for n, p in params.items()), color="green" if not force else "orange")
+
+    # ----------------------------------------------------------------- what-if
+    def _wi_estimators(self) -> tuple[str, ...]:
+        """The estimators a change can go to (the phone's own estimate is the reference)."""
+        b = self.core.ensemble
+        return tuple(n for n in b.names if b.base_of(n) != "phone") or tuple(b.names)
+
+    def _wi_param_labels(self, est: str) -> tuple[str, ...]:
+        """``est``'s tunable parameters with a single value (a switch, a choice, a number)
+        as ``name [unit shown]``; fills ``_wi_rows`` (label -> its row of ``describe``)."""
+        from app.params import describe
+        p = self.core.ensemble.params_of(est)
+        self._wi_rows = {}
+        for row in describe(type(p)):
+            v = getattr(p, row["name"])
+            if not row["tunable"] or v is None or isinstance(v, (tuple, list)):
+                continue
+            unit = row["user_unit"] or ""
+            plain = isinstance(v, bool) or row["choices"] or not unit
+            self._wi_rows[row["name"] if plain else f"{row['name']} [{unit}]"] = {**row, "now": v}
+        return tuple(self._wi_rows) or ("(none)",)
+
+    def _wi_pick_estimator(self) -> None:
+        name = self.wi_param.value.split(" [")[0]
+        labels = self._wi_param_labels(self.wi_est.value)
+        self.wi_param.options = labels
+        self.wi_param.value = next((lab for lab, r in self._wi_rows.items() if r["name"] == name),
+                                   labels[0])
+        self._wi_show_value()
+
+    def _wi_show_value(self, suggested: Any = None) -> None:
+        """The value controls for the picked parameter: its current value (or the
+        suggestion), in the unit shown; a switch or a choice as a dropdown."""
+        from app.server.gui.controls import fmt, precision_for
+        row = self._wi_rows.get(self.wi_param.value)
+        if row is None:
+            self.wi_value.visible = self.wi_choice.visible = False
+            self.wi_now_md.content = ""
+            return
+        try:    # the value in force now (the Tuning tab or the API may have changed it)
+            row["now"] = getattr(self.core.ensemble.params_of(self.wi_est.value), row["name"])
+        except (KeyError, AttributeError):
+            pass
+        now = row["now"]
+        new = now if suggested is None else suggested
+        unit = row["user_unit"] or ""
+        if isinstance(now, bool) or row["choices"]:
+            opts = ("off", "on") if isinstance(now, bool) else tuple(str(c) for c in row["choices"])
+            show = (lambda v: ("on" if v else "off")) if isinstance(now, bool) else str
+            self.wi_choice.options = opts
+            self.wi_choice.value = show(new)
+            self.wi_choice.visible, self.wi_value.visible = True, False
+            txt = f"now: **{show(now)}**"
+        else:
+            scale = float(row["user_scale"] or 1.0)
+            v = float(new) * scale
+            p = 0 if row["integer"] else precision_for(v)
+            self.wi_value.precision = p
+            self.wi_value.step = 10.0 ** -p
+            self.wi_value.value = v
+            self.wi_value.visible, self.wi_choice.visible = True, False
+            txt = f"now: **{fmt(float(now) * scale)} {unit}**".rstrip()
+        if suggested is not None:
+            txt += " -- suggested first try: switch the magnetometer off (heading from the " \
+                   "gyroscope alone)" if row["name"] == "use_mag" else " -- suggested first try"
+        self.wi_now_md.content = txt
+
+    def _wi_change(self) -> dict[str, Any]:
+        """The change the controls show, as the API's patch of one estimator (SI)."""
+        row = self._wi_rows.get(self.wi_param.value)
+        if row is None:
+            raise ToolError("param", "pick a parameter")
+        now = row["now"]
+        if isinstance(now, bool):
+            return {row["name"]: self.wi_choice.value == "on"}
+        if row["choices"]:
+            choices = tuple(row["choices"])
+            return {row["name"]: choices[[str(c) for c in choices].index(self.wi_choice.value)]}
+        v = float(self.wi_value.value) / float(row["user_scale"] or 1.0)
+        return {row["name"]: int(round(v)) if row["integer"] else v}
 
     def _rerun(self, ev) -> None:
         async def run():
             try:
-                patch_text = self.wi_patch.value.strip()
-                changes = json.loads(patch_text) if patch_text else {}
-                if not isinstance(changes, dict):
-                    raise ToolError("patch", "a JSON object of parameter changes")
-            except json.JSONDecodeError as e:
-                self._notify(ev, "What-if", f"the change is not JSON: {e}")
-                return
+                changes = self._wi_change()
             except ToolError as e:
                 self._notify(ev, "What-if", e.reason)
                 return
             self.wi_md.content = "re-running..."
             try:
-                out = await self.tk.whatif.rerun(self.wi_name.value,
-                                           {self.wi_est.value: changes} if changes else None)
+                out = await self.tk.whatif.rerun(self.wi_name.value, {self.wi_est.value: changes})
             except ToolError as e:
                 self.wi_md.content = ""
                 self._notify(ev, "What-if", f"{e.field}: {e.reason}")
@@ -440,29 +548,45 @@ class ToolkitTab:
 
     # ----------------------------------------------------------------- drawing
     def _draw_rerun(self) -> None:
+        """The what-if's table: one short row per estimator (units in the header, numbers
+        rounded to 0.1°), what the numbers are and why the re-run and the live filter
+        differ, in words below it."""
         out = self._rerun_result
         if out is None:
             return
-        ref = out["reference"] or "none"
-        key = "error_to_truth_deg" if ref == "truth" else "error_to_phone_deg"
-        rows = [f"**{out['name']}**: {out['rows']} rows, {out['duration_s']:.1f} s, re-run in "
-                f"{out['estimate_s']:.2f} s ({(out['realtime_ratio'] or 0):.0f}x real time); error to the {ref}",
-                "", "| estimator | RMS error before | after | mag refused before | after |",
-                "|---|---|---|---|---|"]
+        ref = out["reference"]
+        key = {"truth": "error_to_truth_deg", "phone": "error_to_phone_deg"}.get(ref or "")
+        ests = out["estimators"]
+        live = key is not None and any((e.get("live") or {}).get(key) for e in ests.values())
 
-        def f(run, k):
-            if run is None or run.get(k) is None:
-                return "-"
-            return f"{run[k]['rms']:.2f}°" if run[k].get("rms") is not None else "-"
+        def deg(x):
+            return "-" if x is None else (f"{x:.0f}" if abs(x) >= 100 else f"{x:.1f}")
 
-        def r(run):
-            if run is None or run["rejected"]["mag"] is None:
-                return "-"
-            return f"{100 * run['rejected']['mag']:.1f} %"
-        for name, e in out["estimators"].items():
-            rows.append(f"| {name} | {f(e['before'], key)} | {f(e['after'], key)} | "
-                        f"{r(e['before'])} | {r(e['after'])} |")
-        self.wi_md.content = "\n".join(rows)
+        def rms(run, k=key):
+            return None if run is None or k is None or run.get(k) is None else run[k].get("rms")
+        what = {"truth": "to truth", "phone": "to phone's own"}.get(ref or "", "")
+        rows = [f"**{out['name']}**: {out['duration_s']:.0f} s re-run in {out['estimate_s']:.1f} s", ""]
+        if key is None:
+            rows += ["| estimator | change [°] |", "|---|---|"]
+            rows += [f"| {n} | {deg((e.get('change_deg') or {}).get('rms'))} |"
+                     for n, e in ests.items() if not e.get("reference")]
+        else:
+            rows[0] += f"; RMS error {what} [°]:"
+            rows += ["| estimator |" + (" live |" if live else "") + " before | after |",
+                     "|---|" + ("---|" if live else "") + "---|---|"]
+            for n, e in ests.items():
+                cells = [n] + ([deg(rms(e.get("live")))] if live else []) + \
+                    [deg(rms(e["before"])), deg(rms(e["after"]))]
+                rows.append("| " + " | ".join(cells) + " |")
+        sel = ests.get(self.wi_est.value)
+        if sel is not None and sel.get("before") and sel["before"]["rejected"]["mag"] is not None:
+            b = 100 * sel["before"]["rejected"]["mag"]
+            a = sel["after"]["rejected"]["mag"] if sel.get("after") else None
+            rows += ["", f"{self.wi_est.value}: magnetometer refused {b:.0f} %"
+                     + ("" if a is None else f" before, {100 * a:.0f} % after")]
+        words = [f"*{x}.*" for x in out.get("notes", [])]
+        words += [f"*{n}: {e['note']}.*" for n, e in ests.items() if e.get("note")]
+        self.wi_md.content = "\n\n".join(["\n".join(rows)] + words)
         e = out["estimators"].get(self.wi_est.value)
         t = np.array(out["t"], dtype=float)
         if e is None or e["before"] is None:
@@ -482,6 +606,8 @@ class ToolkitTab:
         if res is None or (res is self._cal_shown and not force):
             return
         self._cal_shown = res
+        if self.cal_force.visible != (not res["stationary"]):
+            self.cal_force.visible = not res["stationary"]
         name = self.cal_sensor.value
         s = res["sensors"].get(name)
         lines = [f"{res['n_rows']} rows over {res['duration_s']:.1f} s; "
@@ -495,7 +621,9 @@ class ToolkitTab:
             lines.append(f"- **{ss['title']}** [{ss['unit']}]: mean ({mean}), σ ({std}), "
                          f"drift/min ({drift}), normal at 5 %: {normal}")
         if res.get("m0"):
-            lines.append(f"- g0 = {res['g0']}, m0 (formula 7) = ({', '.join(f'{v:.2f}' for v in res['m0'])}) µT")
+            # rounded to what the sensors tell (g0 was printed with 16 digits)
+            lines.append(f"- g0 = ({', '.join(f'{v:.2f}' for v in res.get('g0') or ())}) m/s², "
+                         f"m0 (formula 7) = ({', '.join(f'{v:.1f}' for v in res['m0'])}) µT")
         self.cal_md.content = "\n".join(lines)
         if s is None:
             return
@@ -514,15 +642,38 @@ class ToolkitTab:
         tk.tick()
         # recordings
         st = tk.recording.status()
+        folder = tk.recording.folder        # every viewer sees this tab: no paths in it
+
+        def size(n) -> str:
+            n = float(n or 0)
+            return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.0f} kB"
+
+        def bare(text: str) -> str:
+            for f in {str(folder.resolve()), str(folder)} - {".", "/", ""}:
+                text = text.replace(f, folder.name or "recordings")
+            return text
         if st["recording"]:
             seg = st["segments"][-1] if st["segments"] else {}
-            self.rec_md.content = (f"**recording** `{seg.get('name', st['name'])}`: "
-                                   f"{st['seconds']:.1f} s, {st['samples']} samples")
+            lim = st.get("limits") or {}
+            caps = [f"{lim['max_seconds'] / 60:g} min" if lim.get("max_seconds") else "",
+                    size(lim["max_bytes"]) if lim.get("max_bytes") else ""]
+            caps = [c for c in caps if c]
+            self.rec_md.content = (
+                f"**recording** `{seg.get('name', st['name'])}`: {st['seconds']:.1f} s, "
+                f"{st['samples']} samples, {size(st.get('bytes'))} at "
+                f"{size(st.get('bytes_per_s'))}/s" + (f" (stops at {' or '.join(caps)})" if caps else ""))
         else:
             last = st["last"]
-            self.rec_md.content = "not recording" + (
-                "" if last is None else f"; last: `{last['name']}` {last['seconds']:.1f} s, "
-                f"{last['samples']} samples" + (f" -- **{last['error']}**" if last.get("error") else ""))
+            if last is None:
+                self.rec_md.content = "not recording"
+            elif last.get("empty"):
+                self.rec_md.content = f"not recording; last: `{last['name']}` got no sample: nothing kept"
+            else:
+                why = last.get("error") or last.get("stop_reason")
+                self.rec_md.content = bare(
+                    f"not recording; last: `{last['name']}` {last['seconds']:.1f} s, "
+                    f"{last['samples']} samples, {size(last.get('bytes'))}"
+                    + (f" -- **stopped: {why}**" if why else ""))
         names = tuple(r["name"] for r in tk.recording.recordings()) or ("(none)",)
         if names != self._known_recordings:
             self._known_recordings = names
@@ -548,12 +699,20 @@ class ToolkitTab:
         if c is not None:
             self.mc_bar.value = 100.0 * c["coverage"]
             res = ms.get("result")
+            refused = ms.get("refused")
             txt = [f"coverage {100 * c['coverage']:.0f} % of directions, {c['samples']} samples, "
-                   f"{c['remaining_s']:.0f} s left" + (f" -- **{c['error']}**" if c.get("error") else "")]
-            if res:
-                txt.append(f"fit ({res['model']}): offset ({', '.join(f'{v:.1f}' for v in res['offset_uT'])}) µT, "
-                           f"field {res['field_uT']:.1f} µT; residual {res['residual_before_uT']:.2f} -> "
-                           f"{res['residual_after_uT']:.2f} µT")
+                   f"{c['remaining_s']:.0f} s left"
+                   + (f" -- **{c['error']}**" if c.get("error") and not refused else "")
+                   + (f" ({c['note']})" if c.get("note") else "")]
+            shown = res or (refused or {}).get("fit")
+            if shown:
+                txt.append(f"fit ({shown['model']}): offset ({', '.join(f'{v:.1f}' for v in shown['offset_uT'])}) µT, "
+                           f"field {shown['field_uT']:.1f} µT; residual {shown['residual_before_uT']:.2f} -> "
+                           f"{shown['residual_after_uT']:.2f} µT")
+            if refused:     # shown with its reason, never applicable
+                txt.append(f"**fit refused, not applicable**: {refused['reason']}")
+            if self.mc_apply.disabled != (res is None):   # sent to every viewer: on change only
+                self.mc_apply.disabled = res is None
             txt.append("applied: " + ("none" if ms["applied"] is None else "yes"))
             self.mc_md.content = "\n\n".join(txt)
         # replay
@@ -573,12 +732,18 @@ class ToolkitTab:
         if tuple(self.var_remove.options) != variants:
             self.var_remove.options = variants
         self.var_md.content = self._readouts()
-        if tuple(self.wi_est.options) != tuple(b.names):
-            self.wi_est.options = tuple(b.names)
+        if tuple(self.wi_est.options) != self._wi_estimators():
+            picked = self.wi_est.value
+            self.wi_est.options = self._wi_estimators()
+            if picked not in self.wi_est.options:     # a variant removed: its parameters go
+                self.wi_est.value = self.wi_est.options[0]
+                self._wi_pick_estimator()
         # disturbances and the monitor
         act = tk.injection.injector.active
-        self.inject_md.content = ("active: " + "; ".join(a.d.describe() for a in act)) if act \
-            else "no disturbance active"
+        cap = tk.injection.max_active
+        self.inject_md.content = (f"active ({len(act)} of at most {cap}): "
+                                  + "; ".join(a.d.describe() for a in act)) if act \
+            else f"no disturbance active (at most {cap} at once)"
         self._draw_monitor()
 
     def _readouts(self) -> str:

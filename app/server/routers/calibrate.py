@@ -5,15 +5,18 @@ magnetometer's hard and soft iron.
 statistics (per sensor mean, covariance, σ, normality test, drift per minute, histograms
 with the fitted Gaussian, time plots; g0, gyroscope bias and m0 by formula (7)); with
 ``{"recording": NAME, "from_s"?, "to_s"?}`` a stretch of a recording instead.
-``POST /api/calibrate/apply {"save_as"?}`` sets the noise levels, bias, g0 and m0 in the
-estimators (and saves a preset). ``POST /api/magcal {"seconds"}`` collects the field while
-the phone is turned, ``GET /api/magcal`` shows the coverage and the fit,
-``POST /api/magcal/apply {"clear"?, "save_as"?}`` applies it to every MAG sample.
+``POST /api/calibrate/apply {"save_as"?, "force"?}`` sets the noise levels, bias, g0 and m0
+in the estimators (and saves a preset); a calibration over a phone that moved is refused
+(409, the reasons) unless ``"force": true`` (the presenter's "apply anyway"). A
+recording's stretch is a heavy job: one at a time, two waiting, more refused (429).
+``POST /api/magcal {"seconds"}`` collects the field while the phone is turned (at most
+60,000 samples and the seconds + 5 s of wall time), ``GET /api/magcal`` shows the
+coverage and the fit, or why it was refused; ``POST /api/magcal/apply {"clear"?,
+"save_as"?}`` applies it to every MAG sample (a refused fit: 409, its reason).
 """
 
 from __future__ import annotations
 
-import asyncio
 import math
 from typing import Any
 
@@ -66,8 +69,7 @@ async def calibrate(body: Any = Body(..., examples=[{"seconds": 10}]),
     cal = tk.calibration
     if "recording" in b:
         name, from_s, to_s = _stretch(b)
-        return await asyncio.get_running_loop().run_in_executor(
-            None, lambda: cal.calibrate_recording(name, from_s, to_s))
+        return await cal.calibrate_recording_job(name, from_s, to_s)
     if "from_s" in b or "to_s" in b:
         raise ToolError("from_s" if "from_s" in b else "to_s", "a stretch of a recording: "
                         "give 'recording' too (the live stream takes 'seconds')")
@@ -86,16 +88,22 @@ async def calibration(tk: Toolkit = Depends(get_toolkit)) -> dict:
 @router.post("/calibrate/apply", dependencies=[Depends(require_presenter)])
 async def apply_calibration(body: Any = Body(None), tk: Toolkit = Depends(get_toolkit)) -> dict:
     """Set the calibration's noise levels, gyroscope bias, g0 and m0 in the estimators
-    (validated; nothing applied if any is refused); ``save_as`` also writes a preset."""
-    b = _obj(body, {"save_as"})
-    params = tk.calibration.change()
+    (validated; nothing applied if any is refused); ``save_as`` also writes a preset. A
+    calibration that does not look stationary (the phone moved) is refused with its
+    reasons (409) unless ``force`` is true: applying it anyway is the presenter's call."""
+    b = _obj(body, {"save_as", "force"})
+    force = b.get("force", False)
+    if not isinstance(force, bool):
+        raise ToolError("force", "must be true or false")
+    params = tk.calibration.change(force=force)
     try:
         change = tk.engine.core.validate({"estimators": params})
     except PatchError as e:
         raise ToolError(".".join(map(str, e.loc)), e.reason) from None
     if b.get("save_as"):
         tk.check_preset_name(b["save_as"])    # a refused preset name applies nothing
-    out = {"applied": params, "params": await tk.post(change)}
+    out = {"applied": params, "params": await tk.post(change), "forced": force}
+    tk.calibration.note_applied()
     if b.get("save_as"):
         out["preset"] = str(tk.save_preset(b["save_as"]))
     return out

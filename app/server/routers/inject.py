@@ -1,7 +1,9 @@
 """Disturbance injection: ``POST /api/inject {"kind": "magnet", "strength_uT", "direction",
 "seconds", "frame"?}`` or ``{"kind": "shake", "amplitude_ms2", "seconds", "frequency_hz"?}``
-adds a virtual magnet or shake to the stream on show (phone, demo or replay); ``GET
-/api/inject`` lists the active ones and the marks (see :mod:`app.toolkit.inject`)."""
+adds a virtual magnet or shake to the stream on show (phone, demo or replay); at most
+``max_active`` (4) are on at once, one more is refused (409, the message says why and how
+long the longest lasts); ``GET /api/inject`` lists the active ones, the cap and the marks
+(see :mod:`app.toolkit.inject`)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,11 @@
 """Recordings: start/stop from the page or a script, list, download, re-run (what-if).
 
 ``POST /api/recordings/start`` ``{"name"?}`` and ``POST /api/recordings/stop`` -> ``{name,
-path, seconds, samples, segments, error}``; ``GET /api/recordings`` lists the folder
-(``--recordings DIR``: our recordings and any app log dropped in it) with the recorder's
-state; ``GET /api/recordings/{name}/log`` downloads the log (the app's format);
+path, seconds, samples, bytes, segments, error, stop_reason}``; ``GET /api/recordings``
+lists the folder (``--recordings DIR``: our recordings and any app log dropped in it, never
+an empty file) with the recorder's state (its size ``bytes`` and rate ``bytes_per_s``
+while it runs, the cap that stopped it); a watcher (no token) gets names, sizes and times,
+never the presenter's file paths (no ``path``, the folder by its name only); ``GET /api/recordings/{name}/log`` downloads the log (the app's format);
 ``POST /api/recordings/{name}/rerun`` ``{"patch"?: {estimator: {param: value}}}`` re-runs
 it through every estimator (:mod:`app.toolkit.whatif`).
 """
@@ -12,7 +14,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Body, Depends
+from pathlib import Path
+
+from fastapi import APIRouter, Body, Depends, Request
 from fastapi.responses import FileResponse
 
 from app.server.access import require_presenter
@@ -34,11 +38,32 @@ def _body(body: Any, allowed: set[str]) -> dict:
     return body
 
 
+def without_paths(x: Any, folder: Path) -> Any:
+    """``x`` for a watcher: no ``path`` keys, the folder's absolute path in any text (an
+    error message) replaced by its name."""
+    full = {str(folder), str(folder.resolve())}
+    if isinstance(x, dict):
+        return {k: without_paths(v, folder) for k, v in x.items() if k != "path"}
+    if isinstance(x, list):
+        return [without_paths(v, folder) for v in x]
+    if isinstance(x, str):
+        for f in sorted(full, key=len, reverse=True):
+            if f and f not in (".", "/") and f in x:
+                x = x.replace(f, folder.name or "recordings")
+        return x
+    return x
+
+
 @router.get("")
-async def recordings(tk: Toolkit = Depends(get_toolkit)) -> dict:
-    """The recordings folder and what the recorder is doing."""
+async def recordings(request: Request, tk: Toolkit = Depends(get_toolkit)) -> dict:
+    """The recordings folder and what the recorder is doing (paths for the presenter
+    only)."""
     rs = tk.recording
-    return {"folder": str(rs.folder), "status": rs.status(), "recordings": rs.recordings()}
+    out = {"folder": str(rs.folder), "status": rs.status(), "recordings": rs.recordings()}
+    if not request.app.state.access.is_presenter(request):
+        out = without_paths(out, rs.folder)
+        out["folder"] = rs.folder.name or "recordings"
+    return out
 
 
 @router.post("/start", dependencies=[Depends(require_presenter)])
@@ -62,11 +87,12 @@ async def download_log(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileRes
 
 @router.get("/{name}/estimates")
 async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
-    """The estimates recorded beside the log (CSV)."""
+    """The estimates recorded beside the log (CSV, gzip-compressed for a recent one)."""
     path = tk.recording.files(name)["estimates"]
     if path is None:
         raise ToolError("name", f"{name!r} has no estimates file (an app log dropped in?)", 404)
-    return FileResponse(path, media_type="text/csv", filename=path.name)
+    media = "application/gzip" if path.name.endswith(".gz") else "text/csv"
+    return FileResponse(path, media_type=media, filename=path.name)
 
 
 @router.post("/{name}/rerun", dependencies=[Depends(require_presenter)])
