@@ -1,6 +1,7 @@
 # Two commands do all the set-up on a fresh machine:
-#   make run    creates .venv, installs orientlab, compiles its filters (numba, once),
-#               starts the dashboard with the demo source
+#   make run    creates .venv, installs orientlab, starts the dashboard with the demo
+#               source (the page answers at once; the filters compile in the background,
+#               once, and the page says which are ready)
 #   make test   creates .venv, installs the test dependencies, runs the whole suite
 PYTHON ?= python3
 VENV   := .venv
@@ -34,7 +35,7 @@ $(VENV)/.compiled: $(VENV)/.installed $(shell find app -name '*.py' 2>/dev/null)
 
 install: $(VENV)/.compiled
 
-run: $(VENV)/.compiled
+run: $(VENV)/.installed
 	$(BIN)/orientlab serve --source demo $(ARGS)
 
 test: $(VENV)/.installed-test $(VENV)/.compiled

@@ -27,18 +27,24 @@
     refused updates, and as the last line ``N samples in S s (R samples/s)`` (S counts
     the estimation only, not reading or writing). ``--quiet`` keeps only that last line.
 
-``orientlab calibrate INPUT --out PRESET.toml``
+``orientlab calibrate INPUT --out PRESET.toml [--force]``
     Statistics of a stationary recording (lab manual exercise 2, :mod:`app.toolkit.calibration`):
-    prints the report and writes a preset for ``--config``.
+    prints the report and writes a preset for ``--config``. A recording that does not
+    look stationary (the phone moved...) writes no preset: the reasons on stderr, exit
+    status 1; ``--force`` writes it anyway.
 
 ``orientlab serve``
     The live dashboard (:mod:`app.server.run`). A taken port gives one line naming it
-    and its option, exit status 1.
+    and its option, exit status 1. The page answers at once; on a cold numba cache the
+    filters compile in the background (one process each), said on stderr with a line
+    per filter as it becomes ready, shown by ``/api/health`` and the page.
 
 ``orientlab compile``
     Compile every estimator now (numba's on-disk cache, :mod:`app.warmup`), so the
     first ``serve`` or ``estimate`` does not wait for it; ``make run`` does this once
-    after installing. ``serve`` and ``estimate`` say so when they compile.
+    after installing. ``serve`` and ``estimate`` say so when they compile. Whether
+    stderr is a terminal or not, a line per estimator when it is ready and a progress
+    line at least every 10 s between.
 
 Exit status: 0 on success, 2 on a usage error, an unreadable input, or a refused
 parameter or preset (one line on stderr says which).
@@ -135,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("input", metavar="INPUT", help="stationary recording (log, CSV or npz)")
     c.add_argument("--out", "-o", required=True, metavar="PRESET.toml",
                    help="where to write the preset")
+    c.add_argument("--force", action="store_true",
+                   help="write the preset even if the recording does not look stationary "
+                        "(its bias and noise would then mislead the filters)")
     c.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser(
@@ -325,6 +334,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     sys.stdout.write(format_report(stats))
     for line in input_summary(rec.counts):
         print(f"{PROG}: {line}", file=sys.stderr)
+    if not stats.stationary:
+        reasons = "; ".join(stats.warnings)
+        if not args.force:
+            print(f"{PROG}: not writing {args.out}: the recording does not look stationary "
+                  f"({reasons}); its bias and noise would mislead the filters. Record the "
+                  "phone lying still, or write it anyway with --force", file=sys.stderr)
+            return 1
+        print(f"{PROG}: writing {args.out} anyway (--force), though the recording does not "
+              f"look stationary ({reasons})", file=sys.stderr)
     text = to_preset(stats)
     try:
         Path(args.out).write_text(text, encoding="utf-8")

@@ -8,7 +8,15 @@ for the cold runs and the same directory again for the warm ones:
 - ``orientlab serve --source demo`` on free loopback ports, until the page answers
   (``GET /`` and ``/api/state`` with samples), then Ctrl-C (SIGINT);
 - ``orientlab compile`` (what ``make run`` does once after installing: every filter,
-  one process per core), then ``serve`` once more.
+  one process per core), then ``serve`` once more;
+- ``--only clone``: from a fresh clone to the first page, as a new user gets there:
+  ``git clone`` (or, with ``--worktree``, a copy of this checkout's files as they are,
+  uncommitted changes included), a new venv with ``pip install -e .`` (``make run``'s
+  install step), then ``orientlab serve`` at once on the cold cache (until ``GET /``
+  answers, then until every filter is ready and the demo's samples are filtered), and
+  ``make run``'s order: ``orientlab compile``, then ``serve`` until ``GET /`` answers.
+  pip installs from this machine's package index and caches: a first download adds
+  its own time.
 
 Prints wall time and the CPU time of the child processes (user + system, all cores;
 for serve, what it used until the page answered),
@@ -17,6 +25,7 @@ time grows with the load, the CPU time much less.
 
     python benchmarks/startup.py            # all of it (~2-4 min on 2 idle cores)
     python benchmarks/startup.py --only estimate
+    python benchmarks/startup.py --only clone [--worktree]    # ~3 min on 2 idle cores
 """
 
 from __future__ import annotations
@@ -144,14 +153,136 @@ def time_serve(cache: Path, work: Path, timeout: float = 900.0) -> tuple[float, 
     return ready, (cpu_ready if cpu_ready is not None else cpu), stop
 
 
+# ---------------------------------------------------------------- from a fresh clone
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _health(port: int) -> dict | None:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=2) as r:
+            return json.loads(r.read())
+    except (OSError, ValueError):
+        return None
+
+
+def _page(port: int) -> bool:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+            return r.status == 200
+    except OSError:
+        return False
+
+
+def serve_milestones(python: Path, cwd: Path, env: dict[str, str], until_ready: bool,
+                     timeout: float = 900.0) -> dict[str, float]:
+    """``orientlab serve --source demo`` of that venv: seconds until ``GET /`` answers
+    and, with ``until_ready``, until /api/health says every filter is ready and until
+    the demo's samples are counted; then Ctrl-C."""
+    port = free_port()
+    t0 = time.perf_counter()
+    p = subprocess.Popen([str(python), "-m", "app.cli", "serve", "--host", "127.0.0.1",
+                          "--port", str(port), "--viewer-port", str(free_port()),
+                          "--phone-port", str(free_port()), "--source", "demo"],
+                         cwd=cwd, env=env, stdin=subprocess.DEVNULL,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out: dict[str, float] = {}
+    try:
+        while True:
+            if p.poll() is not None:
+                raise SystemExit(f"serve exited with {p.returncode}")
+            if time.perf_counter() - t0 > timeout:
+                raise SystemExit(f"serve: no answer in {timeout:.0f} s ({out})")
+            if "page" not in out and _page(port):
+                out["page"] = time.perf_counter() - t0
+                h = _health(port) or {}
+                out["ready_at_page"] = sum(s == "ready" for s in h.get("filters", {}).values())
+                if not until_ready:
+                    break
+            # (a server without the "ready" field compiled before it answered)
+            if "page" in out and "ready" not in out and (_health(port) or {}).get("ready", True):
+                out["ready"] = time.perf_counter() - t0
+            if "ready" in out and _answers(port):
+                out["samples"] = time.perf_counter() - t0
+                break
+            time.sleep(0.1)
+    finally:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            try:
+                p.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    return out
+
+
+def clone_to_page(worktree: bool, line) -> None:
+    base = getattr(sys, "_base_executable", None) or sys.executable
+    with tempfile.TemporaryDirectory(prefix="orientlab-clone-") as d:
+        clone = Path(d) / "orientlab"
+        t0 = time.perf_counter()
+        if worktree:   # this checkout's files as they are (tracked and untracked, not ignored)
+            files = subprocess.run(["git", "ls-files", "-z", "--cached", "--others",
+                                    "--exclude-standard"], cwd=REPO, check=True,
+                                   capture_output=True).stdout.decode().split("\0")
+            for f in filter(None, files):
+                src = REPO / f
+                if src.is_file():
+                    (clone / f).parent.mkdir(parents=True, exist_ok=True)
+                    (clone / f).write_bytes(src.read_bytes())
+        else:
+            subprocess.run(["git", "clone", "-q", str(REPO), str(clone)], check=True)
+        t_clone = time.perf_counter() - t0
+        line("git clone" if not worktree else "copy of the checkout (--worktree)", t_clone, None)
+        # make run's install step: a venv, pip upgraded, the package with its dependencies
+        c0, t0 = child_cpu(), time.perf_counter()
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "NUMBA_DISABLE_JIT")}
+        venv = clone / ".venv"
+        subprocess.run([base, "-m", "venv", str(venv)], check=True, cwd=clone, env=env)
+        py = venv / "bin" / "python"
+        for cmd in (["install", "-q", "--upgrade", "pip"], ["install", "-q", "-e", "."]):
+            subprocess.run([str(py), "-m", "pip", *cmd], check=True, cwd=clone, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        t_install = time.perf_counter() - t0
+        line("venv + pip install -e . (make run's install step)", t_install, child_cpu() - c0)
+        # orientlab serve at once, on a cold numba cache
+        cold = dict(env, NUMBA_CACHE_DIR=str(Path(d) / "cold-cache"))
+        m = serve_milestones(py, clone, cold, until_ready=True)
+        line("serve on a cold cache: GET / answers", m["page"], None)
+        print(f"{'  (filters ready then: ' + str(m['ready_at_page']) + ')':<52}")
+        line("serve on a cold cache: every filter ready", m["ready"], None)
+        line("serve on a cold cache: demo samples filtered", m["samples"], None)
+        first_page = t_clone + t_install + m["page"]
+        # make run's order: compile ahead (into the clone's __pycache__), then serve
+        c0, t0 = child_cpu(), time.perf_counter()
+        subprocess.run([str(py), "-m", "app.cli", "compile"], check=True, cwd=clone, env=env,
+                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL)
+        t_compile = time.perf_counter() - t0
+        line("orientlab compile (make run, cold)", t_compile, child_cpu() - c0)
+        w = serve_milestones(py, clone, env, until_ready=False)
+        line("serve after compile: GET / answers", w["page"], None)
+        print()
+        print(f"fresh clone to the first page, serve at once:      {first_page:6.1f} s "
+              f"(filters ready at {t_clone + t_install + m['ready']:.1f} s)")
+        print(f"fresh clone to the first page, make run's order:   "
+              f"{t_clone + t_install + t_compile + w['page']:6.1f} s")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--only", choices=("estimate", "serve", "compile"), action="append")
+    ap.add_argument("--only", choices=("estimate", "serve", "compile", "clone"), action="append")
+    ap.add_argument("--worktree", action="store_true",
+                    help="clone: copy this checkout's files (uncommitted changes too) "
+                         "instead of git clone")
     args = ap.parse_args()
     only = set(args.only or ("estimate", "serve", "compile"))
     print(f"orientlab start-up, {os.cpu_count()} cores, python {sys.version.split()[0]}")
     print(f"{'what':<52} {'wall s':>8} {'cpu s':>8}   machine")
-    line = lambda what, wall, cpu: print(f"{what:<52} {wall:8.1f} {cpu:8.1f}   {load()}", flush=True)  # noqa: E731
+    line = lambda what, wall, cpu: print(f"{what:<52} {wall:8.1f} "   # noqa: E731
+                                         f"{'' if cpu is None else f'{cpu:.1f}':>8}   {load()}", flush=True)
     with tempfile.TemporaryDirectory(prefix="orientlab-startup-") as d:
         work = Path(d)
         src = work / "in.csv"
@@ -173,6 +304,8 @@ def main() -> int:
             ready, cpu, _ = time_serve(cache, work)
             line("serve until the page answers, after compile", ready, cpu)
             line("estimate 3000 rows, after compile", *time_estimate(src, cache, work))
+    if "clone" in only:
+        clone_to_page(args.worktree, line)
     return 0
 
 

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from app.jitcache import ensure_fresh
+
+ensure_fresh()   # before base.py, which runs compiled code on import (see app.jitcache)
+
 from app.estimators.base import (ALERTS, AVERAGED_IN, BatchResult, Diagnostics, Estimator, FLAG_COLUMNS, Reason, REASON_TEXT,
                    REJECTIONS, StepFlags, TimeIssue, count_flags, is_rejected)
 

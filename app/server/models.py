@@ -18,6 +18,11 @@ class Health(BaseModel):
     source: str
     estimators: list[str]
     primary: str
+    filters: dict[str, str] = Field(default_factory=dict, description=
+                                    "each filter's readiness: 'ready', 'compiling' (numba, "
+                                    "after an install or an update), 'waiting' (its turn to "
+                                    "compile) or 'failed'; samples are filtered once all are ready")
+    ready: bool = Field(True, description="every filter is ready (compiled or loaded)")
 
 
 class Info(BaseModel):

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import logging
 import socket
 import sys
+import threading
 
 import uvicorn
 
@@ -15,23 +17,51 @@ from app.server.limits import guarded_protocol, install_log_limits
 from app.server.settings import Settings
 
 
+def _quiet_cancelled(loop, context) -> None:
+    """The loop's exception handler: a CancelledError reaching a callback is the end of a
+    task at shutdown, not an error. (Python 3.11's ``asyncio.start_server`` calls
+    ``task.exception()`` on its connection task when it is done: for a phone connection
+    cancelled by Ctrl-C during a full-speed stream that raised CancelledError in the
+    callback and printed a traceback.) Everything else goes to the default handler."""
+    if isinstance(context.get("exception"), asyncio.CancelledError):
+        logging.getLogger("orientlab").debug("a task was cancelled at shutdown: %s",
+                                             context.get("message"))
+        return
+    loop.default_exception_handler(context)
+
+
+class Server(uvicorn.Server):
+    """uvicorn's server with :func:`_quiet_cancelled` on its event loop."""
+
+    async def serve(self, sockets=None) -> None:
+        asyncio.get_running_loop().set_exception_handler(_quiet_cancelled)
+        await super().serve(sockets)
+
+
 def make_server(settings: Settings, log_level: str = "warning") -> uvicorn.Server:
     """A uvicorn server for the dashboard (not started)."""
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
                             timeout_graceful_shutdown=0.5, ws_ping_interval=None,
-                            # bounded resources (app/server/limits.py): a connection cap,
-                            # a header timeout, idle keep-alive connections closed
+                            # bounded resources (app/server/limits.py): a connection cap
+                            # and one per address (a newcomer takes an idle connection's
+                            # place), a first-byte and a header timeout, idle keep-alive
+                            # connections closed
                             http=guarded_protocol(settings.max_connections,
-                                                  settings.header_timeout_s),
-                            limit_concurrency=settings.max_connections,
+                                                  settings.header_timeout_s,
+                                                  settings.first_byte_timeout_s,
+                                                  settings.max_connections_per_ip),
+                            # uvicorn answers 503 when its connection table (idle ones
+                            # included, and those closing) reaches this: above the cap
+                            # the guard keeps, so it only bounds requests in flight
+                            limit_concurrency=2 * settings.max_connections,
                             timeout_keep_alive=settings.keep_alive_s,
                             ws_max_size=1 << 16,
                             # /ws/state carries small JSON batches on a LAN: compressing
                             # them for every subscriber costs more CPU than it saves
                             ws_per_message_deflate=False)
     install_log_limits()   # after uvicorn has configured its loggers
-    return uvicorn.Server(config)
+    return Server(config)
 
 
 #: the three listening ports: Settings attribute, the option that sets it
@@ -87,16 +117,39 @@ def check_ports(settings: Settings) -> None:
                             f"{e.strerror or e}; choose another with {opt} N") from None
 
 
+def raise_fd_limit(want: int = 8192) -> None:
+    """Raise this process's open-file limit (soft, within the hard one) to ``want``: the
+    viewer's server (viser) and the phone receiver have no connection cap of ours, and
+    a desktop's default of 1024 descriptors is what one laptop's idle sockets would
+    exhaust first (then every port stops accepting)."""
+    try:
+        import resource
+    except ImportError:       # not on this system
+        return
+    try:
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if soft == resource.RLIM_INFINITY or soft >= want:
+            return
+        new = want if hard == resource.RLIM_INFINITY else min(want, hard)
+        if new > soft:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
+    except (OSError, ValueError):
+        pass
+
+
 def serve(args) -> int:
     """Run with settings from ``args`` (host, port, viewer_port, phone_port, config,
     source). Returns the exit code: 0 after Ctrl-C, 2 for bad settings, 1 when a port
     cannot be opened (one line naming the port and its option, no traceback).
 
-    The ports are checked before and again after the filters are compiled (numba,
-    :func:`app.warmup.prepare`: it says so when that takes more than a moment)."""
-    from app.warmup import prepare
+    The page answers at once: the filters are compiled (numba) in the background
+    (:class:`app.warmup.Warmup`: it says so, one line per filter when it is ready;
+    ``/api/health`` and the page say which are); the streams' samples wait until all
+    are. A filter that cannot be compiled stops the server, exit status 1."""
+    from app.warmup import Warmup
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    raise_fd_limit()
     logging.getLogger("orientlab").setLevel(logging.INFO)
     try:
         settings = Settings.from_args(args)
@@ -108,12 +161,25 @@ def serve(args) -> int:
     except (ConfigError, FileNotFoundError, ValueError) as e:
         print(f"orientlab serve: {e}", file=sys.stderr)
         return 2
-    prepare(prog="orientlab serve")
-    try:
-        check_ports(settings)   # taken while numba compiled?
-    except PortError as e:
-        print(f"orientlab serve: {e}", file=sys.stderr)
-        return 1
+    failed: list[str] = []
+
+    def on_failure(text: str) -> None:   # from the warm-up's thread
+        failed.append(text)
+        server.should_exit = True
+
+    warmup = Warmup(prog="orientlab serve", on_failure=on_failure,
+                    note="the page answers meanwhile and says which filters are ready")
+    server.config.app.state.warmup = warmup    # the lifespan, /api/health
+
+    def start_when_serving() -> None:
+        # the server's start-up (imports, the 3D scene's few compiled helpers) first:
+        # the page answers sooner, the filters follow a moment later
+        while not server.started and not warmup.done.wait(0.05):
+            if server.should_exit:
+                return
+        warmup.start()
+
+    threading.Thread(target=start_when_serving, name="orientlab-warmup-start", daemon=True).start()
     try:
         server.run()
     except SystemExit as e:  # uvicorn exits when it cannot bind its port
@@ -121,4 +187,6 @@ def serve(args) -> int:
     except OSError as e:
         print(f"orientlab serve: {e}", file=sys.stderr)
         return 1
-    return 0 if server.started else 1
+    finally:
+        warmup.stop()
+    return 0 if server.started and not failed else 1

@@ -11,10 +11,15 @@ router = APIRouter(prefix="/api", tags=["health"])
 
 @router.get("/health", response_model=Health)
 async def health(request: Request, engine: Engine = Depends(get_engine)) -> Health:
-    """Is the filter task running?"""
+    """Is the filter task running, and which filters are ready (``orientlab serve``
+    compiles them in the background: the page answers meanwhile)?"""
     h = engine.health(request.app.state.tasks.get("engine"))
-    return Health(**h, source=engine.core.source_kind(), estimators=engine.core.ensemble.names,
-                  primary=engine.core.ensemble.primary)
+    warmup = getattr(request.app.state, "warmup", None)
+    names = engine.core.ensemble.names
+    filters = warmup.status() if warmup is not None else dict.fromkeys(names, "ready")
+    return Health(**h, source=engine.core.source_kind(), estimators=names,
+                  primary=engine.core.ensemble.primary, filters=filters,
+                  ready=warmup is None or warmup.ready)
 
 
 @router.get("/info", response_model=Info)
