@@ -251,3 +251,37 @@ def test_serve_with_a_phyphox_source_polls_it_from_the_start(shared_dir):
         with fake:
             wait_for(lambda: _state(srv)["counts"]["samples"] > 500, 30, what="polled samples")
         assert srv.app.state.slot.status()["holder"]["app"] == "phyphox-poll"
+
+
+@pytest.mark.shared
+def test_a_recording_of_a_sensor_logger_iphone_is_the_same_replayable_log(shared_dir, tmp_path):
+    """Recorded from Sensor Logger (an iPhone, Standardise off): the log is the app log
+    format with the phone's own orientation, its events name the app and the platform,
+    and ``orientlab estimate`` and the re-run read it unchanged."""
+    import subprocess
+    import sys
+    from tyrex_sensorlogger import messages_ios
+    from app.sources.readers import read_log_data
+    from app.toolkit.recording import read_events
+    path = _trial(shared_dir, IPHONE)
+    bodies = messages_ios(path, 1.0, standardise=False, seconds=20)
+    rec_dir = tmp_path / "rec"
+    with running_server(recordings=rec_dir) as srv, _client(srv) as phone:
+        assert phone.post("/sensorlogger", content=bodies[0]).status_code == 200
+        wait_for(lambda: srv.engine.core.session is not None, 10, what="the stream")
+        assert phone.post("/api/recordings/start", json={"name": "iphone"}).status_code == 200
+        for b in bodies[1:]:
+            assert phone.post("/sensorlogger", content=b).status_code == 200
+        wait_for(lambda: _state(srv)["counts"]["samples"] > 1500, 20, what="samples")
+        assert phone.post("/api/recordings/stop").status_code == 200
+        r = phone.post("/api/recordings/iphone/rerun", json={"changes": {}})
+        assert r.status_code in (200, 422), r.text     # no truth: the change alone is reported
+    log = rec_dir / "iphone.txt"
+    data = read_log_data(log)
+    assert len(data) > 1500 and data.ori is not None and np.isfinite(data.ori).any()
+    start = read_events(rec_dir / "iphone.events.jsonl")[0]
+    assert start["phone"]["app"] == "sensorlogger" and start["phone"]["platform"] == "ios"
+    out = subprocess.run([sys.executable, "-m", "app.cli", "estimate", str(log), "-o",
+                          str(tmp_path / "est.csv")], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert len((tmp_path / "est.csv").read_text().splitlines()) > 1500
