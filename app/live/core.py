@@ -33,6 +33,7 @@ from app.live.ensemble import Ensemble, Records
 from app.live.changes import Change, apply_change, change_from_config, common_names, validate_patch
 from app.live.history import History
 from app.live.session import Session, Totals
+from app.sources.slot import PHONE_APPS
 
 log = logging.getLogger("orientlab.live")
 
@@ -219,9 +220,13 @@ class LiveCore:
             return "demo: simulated phone (a phone that connects takes over)"
         if s.kind == "replay":
             return f"replaying log {s.label}" + ("" if s.open else " (ended)")
+        # the phone's address is the presenter's business (GET /api/connect), not every
+        # watcher's: the status names its app only
+        app = PHONE_APPS.get(s.phone_app, "")
+        who = f"phone ({app})" if app else "phone"
         if s.open:
-            return f"phone {s.label} streaming"
-        return (f"phone {s.label} disconnected ({s.close_reason}): showing its last state; "
+            return f"{who} streaming"
+        return (f"{who} disconnected ({s.close_reason}): showing its last state; "
                 "waiting for a phone")
 
     def counts(self) -> dict[str, Any]:

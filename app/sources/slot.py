@@ -98,7 +98,8 @@ class PhoneSlot:
             self.holder.last_valid = now
             return None
         if self.holder is not None:
-            self._drop(f"silent for {self.idle_s:g} s, taken over by {label}")
+            self._drop(f"silent for {self.idle_s:g} s, taken over by another phone "
+                       f"({PHONE_APPS.get(phone_app, phone_app)})")
         self.holder = Holder(phone_app, key, label, now, now, on_release)
         return None
 
