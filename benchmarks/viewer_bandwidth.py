@@ -3,10 +3,12 @@
 What it does
 ------------
 - **30 viewers**: starts ``orientlab serve --source demo --open`` (the default view: the
-  demo phone) as a separate process and connects ``--viewers`` (30) viser WebSocket
-  clients (what a browser tab of the page opens); after a 5 s warm-up each one's bytes
-  are counted for ``--seconds`` (20); the filter's throughput is read from
-  ``/api/stats`` before and with the viewers (the filter must be unaffected);
+  demo phone) as a separate process and connects ``--viewers`` (30) viewers, each what a
+  browser tab of the page opens: a viser WebSocket client (the 3D view and controls) and
+  a WS /ws/plots client (the page's live plots, new points 20 times a second); after a
+  5 s warm-up each one's bytes are counted for ``--seconds`` (20); the filter's
+  throughput is read from ``/api/stats`` before and with the viewers (the filter must be
+  unaffected);
 - **breakdown**: the same server in this process with one viewer; every message queued
   for the viewers is serialised and its size added up per message type (what is
   queued: viser merges some pose updates before sending, so the total is an upper
@@ -15,10 +17,16 @@ What it does
 
 What it prints
 --------------
-kB/s per viewer (median, min, max; target <= 50 kB/s), the samples/s processed without
-and with the viewers, the server's CPU, and the breakdown by message type.
+kB/s per viewer (median, min, max; target <= 50 kB/s; the 3D view's and the plots' part),
+the plots' messages a second (each one redraws every chart: target >= 10), the
+samples/s processed without and with the viewers, the server's CPU, and the breakdown
+by message type.
 
-Run: ``.venv/bin/python benchmarks/viewer_bandwidth.py [--viewers 30] [--seconds 20]``.
+- **redraws** (``--browser``): the page in headless Chromium (``/usr/bin/chromium``), the
+  demo streaming: how many times a second each chart gets new data and is redrawn in
+  the same canvas (target >= 10).
+
+Run: ``.venv/bin/python benchmarks/viewer_bandwidth.py [--viewers 30] [--seconds 20] [--browser]``.
 """
 
 from __future__ import annotations
@@ -49,10 +57,27 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def many_viewers(url: str, n: int, counters: list, stop_flag: threading.Event) -> threading.Thread:
+async def _plots(url: str, counter: list, stop: asyncio.Event) -> None:
+    """A WS /ws/plots client (the page's live plots): counter[0] bytes, counter[1] messages."""
+    import websockets
+    origin = url.replace("ws://", "http://").rsplit("/ws/", 1)[0]
+    async with websockets.connect(url, origin=origin, max_size=None) as ws:
+        while not stop.is_set():
+            try:
+                msg = await asyncio.wait_for(ws.recv(), 0.5)
+            except asyncio.TimeoutError:
+                continue
+            counter[0] += len(msg)
+            counter[1] += 1
+
+
+def many_viewers(url: str, n: int, counters: list, stop_flag: threading.Event,
+                 plots_url: str | None = None, plot_counters: list | None = None) -> threading.Thread:
     async def main():
         stop = asyncio.Event()
         tasks = [asyncio.create_task(_viewer(url, c, stop)) for c in counters[:n]]
+        if plots_url is not None:
+            tasks += [asyncio.create_task(_plots(plots_url, c, stop)) for c in plot_counters[:n]]
         while not stop_flag.is_set():
             await asyncio.sleep(0.1)
         stop.set()
@@ -75,18 +100,28 @@ def viewers_run(n: int, seconds: float) -> None:
     http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0)
     try:
         wait_for(lambda: server_ok(http), 300.0, 0.2, "server start")
+        # the page answers while the filters still compile (a fresh numba cache): the
+        # demo streams once they are ready
+        wait_for(lambda: http.get("/api/stats").json()["samples"] > 0, 600.0, 0.5,
+                 "the demo streaming")
         time.sleep(3.0)
         alone = rate(http, 5.0)
         counters = [[0] for _ in range(n)]
+        plot_counters = [[0, 0] for _ in range(n)]
         stop = threading.Event()
-        th = many_viewers(f"ws://127.0.0.1:{vport}", n, counters, stop)
+        th = many_viewers(f"ws://127.0.0.1:{vport}", n, counters, stop,
+                          f"ws://127.0.0.1:{port}/ws/plots", plot_counters)
         time.sleep(5.0)
         c0 = [c[0] for c in counters]
+        p0 = [list(c) for c in plot_counters]
         cpu0, t0 = cpu_s(proc.pid), time.monotonic()
         with_viewers = rate(http, seconds)
         wall = time.monotonic() - t0
         cpu = 100 * (cpu_s(proc.pid) - cpu0) / wall
-        per = np.array([(c[0] - b) / wall / 1e3 for c, b in zip(counters, c0)])
+        view = np.array([(c[0] - b) / wall / 1e3 for c, b in zip(counters, c0)])
+        plots = np.array([(c[0] - b[0]) / wall / 1e3 for c, b in zip(plot_counters, p0)])
+        plot_msgs = np.array([(c[1] - b[1]) / wall for c, b in zip(plot_counters, p0)])
+        per = view + plots
         stop.set()
         th.join(10)
     finally:
@@ -96,6 +131,10 @@ def viewers_run(n: int, seconds: float) -> None:
           f"(load average {os.getloadavg()[0]:.1f})")
     print(f"  per viewer       median {np.median(per):.1f} kB/s, min {per.min():.1f}, max {per.max():.1f} "
           f"(target <= 50 kB/s); all {per.sum():.0f} kB/s")
+    print(f"    of which       3D view and controls {np.median(view):.1f} kB/s, "
+          f"live plots {np.median(plots):.1f} kB/s")
+    print(f"  plots            {np.median(plot_msgs):.1f} messages/s per viewer, min {plot_msgs.min():.1f} "
+          f"(each redraws every chart: target >= 10)")
     print(f"  filter           {alone:.0f} samples/s alone, {with_viewers:.0f} samples/s with the viewers")
     print(f"  server CPU       {cpu:.0f} % of one core with the viewers")
 
@@ -180,13 +219,61 @@ def breakdown(seconds: float) -> None:
               f"{bz / wall / 1e3:8.1f} kB/s")
 
 
+REDRAWS_JS = """(ms) => new Promise((done) => {
+  const charts = window.orientlabPlots.charts, keys = Object.keys(charts);
+  const canvas0 = Object.fromEntries(keys.map(k => [k, charts[k].u.root.querySelector('canvas')]));
+  const last = {}, changes = Object.fromEntries(keys.map(k => [k, 0]));
+  const t0 = performance.now();
+  const tick = () => {
+    for (const k of keys) {
+      const x = charts[k].u.data[0], v = x.length ? x[x.length - 1] + ':' + x.length : null;
+      if (v !== last[k]) { if (k in last) changes[k]++; last[k] = v; }
+    }
+    if (performance.now() - t0 < ms) setTimeout(tick, 5);
+    else done({s: (performance.now() - t0) / 1000, changes,
+               same: keys.every(k => charts[k].u.root.querySelector('canvas') === canvas0[k])});
+  };
+  tick();
+})"""
+
+
+def browser_redraws(seconds: float = 5.0) -> None:
+    """The page in headless Chromium (the demo streaming): how often each chart of the
+    Plots tab gets new data and is redrawn, and whether its canvas stays the same one."""
+    from harness import CHROMIUM, CHROMIUM_ARGS, running_server
+    if CHROMIUM is None:
+        print("  redraws          no Chromium: not measured")
+        return
+    import tempfile
+    from playwright.sync_api import sync_playwright
+    with running_server(source="demo") as srv, sync_playwright() as pw, \
+            tempfile.TemporaryDirectory() as profile:
+        ctx = pw.chromium.launch_persistent_context(
+            profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
+            viewport={"width": 1600, "height": 900})
+        page = ctx.new_page()
+        page.goto(srv.url + "/")
+        page.locator("#panel-plots").wait_for(state="visible", timeout=60_000)
+        page.wait_for_timeout(3000)
+        got = page.evaluate(REDRAWS_JS, seconds * 1000)
+        ctx.close()
+    rates = {k: v / got["s"] for k, v in got["changes"].items()}
+    print("  redraws (Chromium, 1600x900, the demo) per chart per second: "
+          + ", ".join(f"{k} {v:.1f}" for k, v in rates.items())
+          + f" (target >= 10); canvas kept: {got['same']}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--viewers", type=int, default=30)
     ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--browser", action="store_true",
+                    help="also measure the live plots' redraws per second in headless Chromium")
     args = ap.parse_args()
     viewers_run(args.viewers, args.seconds)
     breakdown(min(args.seconds, 10.0))
+    if args.browser:
+        browser_redraws()
     return 0
 
 

@@ -6,8 +6,8 @@ over TCP at the log's own pace (a thread plays the phone), opens the page in Deb
 headless Chromium (Playwright with ``executable_path``; no browser download) at
 1600x900, and saves:
 
-- ``docs/dashboard.png``: the page while the log streams (plots panel, 3D view, the
-  control panel on its Tuning tab);
+- ``docs/dashboard.png``: the page while the log streams (3D view, the control panel on
+  its Tuning tab, the page's Plots tab);
 - ``docs/dashboard-demo.png`` (with ``--demo``): the built-in demo at its magnet.
 
 Run: ``.venv/bin/python docs/make_screenshot.py [--log PATH] [--seconds 8] [--demo]``.

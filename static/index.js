@@ -1,5 +1,6 @@
-// Embed the viser viewer (same host, its own port); the Connect tab (presenter only):
-// how each app reaches this PC, with QR codes, and the phone's status.
+// Embed the viser viewer (same host, its own port); the Plots tab (static/plots.js); the
+// Connect tab (presenter only): how each app reaches this PC, with QR codes, and the
+// phone's status.
 let presenter = false;
 const $ = (id) => document.getElementById(id);
 
@@ -17,7 +18,7 @@ async function init() {
   $("viewer-link").href = url;
   $("watch-note").hidden = presenter;
   $("presenter-connect").hidden = !presenter;
-  tabs(".tabs [role=tab]", (b) => { for (const p of document.querySelectorAll("aside > section")) p.hidden = p.id !== b.dataset.panel; });
+  tabs(".tabs [role=tab]", (b) => { tabPicked = true; showPanel(b); });
   tabs(".apps [role=tab]", (b) => { for (const a of document.querySelectorAll(".app")) a.hidden = a.id !== "app-" + b.dataset.app; });
   if (presenter) {
     for (const img of document.querySelectorAll("img.qr")) img.src = `/api/connect/qr/${img.dataset.qr}.svg`;
@@ -28,6 +29,14 @@ async function init() {
     connect();
   }
   poll();
+}
+
+// The aside's tabs: Connect first while nothing streams; once a stream is on, the
+// Plots tab (static/plots.js), unless a tab was picked by hand.
+let tabPicked = false;
+function showPanel(b) {
+  for (const o of document.querySelectorAll(".tabs [role=tab]")) o.setAttribute("aria-selected", String(o === b));
+  for (const p of document.querySelectorAll("aside > section")) p.hidden = p.id !== b.dataset.panel;
 }
 
 function tabs(selector, show) {
@@ -126,6 +135,13 @@ async function poll() {
     const st = await (await fetch("/api/state")).json();
     badge.textContent = st.status;
     badge.className = "badge" + (st.source === "phone" ? " phone" : st.source === "phone-disconnected" ? " warn" : "");
+    if (!tabPicked && st.t !== null && st.t !== undefined && $("tab-plots").getAttribute("aria-selected") !== "true") showPanel($("tab-plots"));
+    if (!poll.ready) {  // the first start compiles the filters: which are ready
+      const h = await (await fetch("/api/health")).json();
+      poll.ready = h.ready !== false;
+      $("filters").textContent = "filters: " + Object.entries(h.filters || {}).map(([n, s]) => `${n} ${s}${s === "ready" || s === "failed" ? "" : "…"}`).join(", ");
+      $("filters").hidden = poll.ready;
+    }
   } catch (e) {
     badge.textContent = "server not reachable";
     badge.className = "badge warn";

@@ -100,7 +100,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         loop = asyncio.get_running_loop()
         engine = Engine(settings, config)
         engine.bind(loop)
-        await loop.run_in_executor(None, engine.warm_up)
+        warmup = getattr(app.state, "warmup", None)   # serve: compiling in the background
+        if warmup is None:
+            await loop.run_in_executor(None, engine.warm_up)
         st.engine = engine
         st.tasks = {}
         st.viewer = viser.ViserServer(host=settings.viewer_bind, port=settings.viewer_port,
@@ -123,7 +125,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.lan_ip = st.connect.host()
             if settings.phyphox_url is not None:
                 st.http_phones.start_poll(settings.phyphox_url)
-            st.tasks["engine"] = asyncio.create_task(engine.run(), name="engine")
+            st.tasks["engine"] = asyncio.create_task(engine.run_when_ready(warmup), name="engine")
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
             st.toolkit = Toolkit.build(engine, settings, config, st.tasks)   # the lab's tools
             st.gui.injections = st.toolkit.injection.injected_spans   # marked in the Plots panel
@@ -175,6 +177,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if access.token_ok(token):
                 resp.set_cookie(COOKIE, token, httponly=True, samesite="strict")
             return resp
-        return FileResponse(STATIC_DIR / "index.html")
+        # its own agent cluster: Chromium gives the page a process of its own, so the 3D
+        # view (the iframe, same site) cannot hold up the live plots' redraws
+        return FileResponse(STATIC_DIR / "index.html", headers={"Origin-Agent-Cluster": "?1"})
 
     return app

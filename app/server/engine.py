@@ -14,8 +14,9 @@ moves work onto the event loop and results off it:
   change is in effect from the next sample on), then hands each chunk of samples to
   :meth:`LiveCore.process` (one batch run per estimator), and **publishes**: the primary's
   pose to the scene after every batch (that moment ends the latency measurement), the
-  rest of the scene at most ``scene_hz`` and the WebSocket subscribers at most ``ws_hz``
-  times a second (:class:`Throttle`, in their own loop turns).
+  rest of the scene at most ``scene_hz``, the WebSocket subscribers at most ``ws_hz``
+  times a second and the live plots' (WS /ws/plots: only the new points) at most
+  :data:`PLOT_HZ` (:class:`Throttle`, in their own loop turns).
 - **it cannot die**: an exception in a step is caught by the ensemble (the sample is logged,
   counted and skipped); anything else failing on an item is logged and counted
   (``loop_errors``) and the loop goes on; a supervisor restarts the task if it ever ends
@@ -53,6 +54,7 @@ from app.sources.samples import Sample
 log = logging.getLogger("orientlab.engine")
 SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the loop
 
+PLOT_HZ = 20.0                # WS /ws/plots messages a second at most (the plots redraw as often)
 SUBSCRIBER_BACKLOG = 200      # WS messages (20 s at 10 Hz) waiting for one client: dropped
 RESTART_PAUSE_S = 0.1
 _JSON = msgspec.json.Encoder()
@@ -100,13 +102,14 @@ class Throttle:
 
 
 class Subscriber:
-    """One WS /ws/state client's outbox: bounded; a client this far behind is dropped
+    """One WS /ws/state (or /ws/plots) client's outbox: bounded; a client this far behind is dropped
     (:attr:`dropped`), never blocking or failing the publisher."""
 
     def __init__(self, backlog: int = SUBSCRIBER_BACKLOG):
         self.backlog = backlog
         self.msgs: deque[str] = deque()
         self.dropped = False
+        self.closed = False         # the client went (not dropped for falling behind)
         self._ready = asyncio.Event()
 
     def offer(self, msg: str) -> bool:
@@ -122,6 +125,7 @@ class Subscriber:
 
     def close(self) -> None:
         self.dropped = True
+        self.closed = True
         self._ready.set()
 
     async def next(self) -> str | None:
@@ -154,6 +158,8 @@ class Engine:
         self.param_listeners: list[Callable[[], None]] = []         # after every change
         self.preset_parts: list[Callable[[], dict]] = []            # more tables for a saved preset
         self.subscribers: set[Subscriber] = set()                   # WS /ws/state
+        self.plot_subscribers: set[Subscriber] = set()              # WS /ws/plots
+        self.plot_feed = None       # the plots' feed (app.server.gui.plots.PlotFeed), set by the GUI
         # the viewer's grouping (viser's ``server.atomic``): the scene's listeners' updates
         # go out together, waking viser's sender once per refresh instead of once each
         self.atomic: Callable[[], Any] = contextlib.nullcontext
@@ -168,13 +174,14 @@ class Engine:
         self._scene_timer = Throttle(1.0 / settings.scene_hz, self._draw_scene,
                                      lag=self.latency.loop_lag)
         self._ws_timer = Throttle(1.0 / settings.ws_hz, self._flush_ws, lag=self.latency.loop_lag)
+        self._plot_timer = Throttle(1.0 / PLOT_HZ, self._flush_plots, lag=self.latency.loop_lag)
 
     # ----------------------------------------------------------------- lifecycle
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         """Attach to the running loop (called in the FastAPI lifespan)."""
         self.loop = loop
         self.inbox = asyncio.Queue()
-        self._scene_timer.loop = self._ws_timer.loop = loop
+        self._scene_timer.loop = self._ws_timer.loop = self._plot_timer.loop = loop
         self.background_allowed = asyncio.Event()
         self.background_allowed.set()
 
@@ -197,6 +204,20 @@ class Engine:
             est.diagnostics()
             est.attitude_cov()
         core.ensemble.reset()
+
+    async def run_when_ready(self, warmup=None) -> None:
+        """:meth:`run`, once every filter is compiled or loaded (``warmup``: an
+        :class:`app.warmup.Warmup` working in the background while the page already
+        answers; None: :meth:`warm_up` was done before). Until then nothing is filtered:
+        a stream's samples wait in the inbox, in order, and every filter processes all
+        of them once ready (a second or so of catching up), so the filters' comparisons
+        start from the same first sample. A failed warm-up leaves it waiting (the
+        server is being stopped)."""
+        if warmup is not None:
+            if not await warmup.wait_ready():
+                await asyncio.Event().wait()
+            self.warm_up()   # all loaded by now: milliseconds, and no thread races the streams
+        await self.run()
 
     # ----------------------------------------------------------------- sessions
     def open_session(self, kind: str, label: str, truth=None, phone_app: str = "",
@@ -273,6 +294,7 @@ class Engine:
         finally:  # nothing is drawn after the task has stopped (viser stops next)
             self._scene_timer.cancel()
             self._ws_timer.cancel()
+            self._plot_timer.cancel()
 
     async def _loop_forever(self) -> None:
         inbox = self.inbox
@@ -346,6 +368,8 @@ class Engine:
         self._scene_timer.poke()
         if self._ws_pending:
             self._ws_timer.poke()
+        if self.plot_subscribers:
+            self._plot_timer.poke()
 
     def _draw_scene(self) -> None:
         """Everything else in the scene (cones, arrows, other phones, indicators)."""
@@ -390,6 +414,40 @@ class Engine:
                 self.subscribers.discard(sub)
                 self.dropped_subscribers += 1
                 log.warning("a /ws/state client fell %d messages behind: dropped", sub.backlog)
+
+    def subscribe_plots(self) -> Subscriber:
+        """A WS /ws/plots client: its first message is the plots' whole window, then
+        only new points (:class:`app.server.gui.plots.PlotFeed`). On the loop."""
+        sub = Subscriber(self.subscriber_backlog)
+        if self.plot_feed is not None:
+            self._flush_plots(always=True)      # the others get what is new first
+            sub.offer(self.plot_feed.snapshot().decode())
+        self.plot_subscribers.add(sub)
+        return sub
+
+    def unsubscribe_plots(self, sub: Subscriber) -> None:
+        self.plot_subscribers.discard(sub)
+        sub.close()
+
+    def _flush_plots(self, always: bool = False) -> None:
+        """The plots' new points since the last flush, one message encoded once for
+        every /ws/plots client (a client too far behind is dropped); ``always``: read
+        the rings even without a client (one is about to join)."""
+        feed = self.plot_feed
+        if feed is None or not (self.plot_subscribers or always):
+            return
+        raw = feed.delta()
+        if raw is None:
+            return
+        msg = raw.decode()
+        for sub in list(self.plot_subscribers):
+            if sub.closed:                      # gone: its handler unsubscribes it
+                self.plot_subscribers.discard(sub)
+                continue
+            if not sub.offer(msg):
+                self.plot_subscribers.discard(sub)
+                self.dropped_subscribers += 1
+                log.warning("a /ws/plots client fell %d messages behind: dropped", sub.backlog)
 
     # ----------------------------------------------------------------- read-outs
     def health(self, task: asyncio.Task | None) -> dict[str, Any]:

@@ -82,30 +82,28 @@ def test_loading_a_preset_from_the_page_applies_its_magnetometer_calibration(tmp
 
 
 def test_an_injected_magnet_and_shake_are_marked_in_the_plots_panel(tmp_path):
-    """While a virtual magnet (shake) is on, the Plots panel's |mag| (|acc|) chart draws
+    """While a virtual magnet (shake) is on, the page's Plots tab's |mag| (|acc|) chart draws
     its samples over again in red: the disturbance is marked where it shows, not only in
     the Lab tab and the recording."""
     sync_api = pytest.importorskip("playwright.sync_api")
-    from test_plots_browser import MIN_PIXELS, drawn, open_page, viewer_frame, wait_drawn
+    from test_plots_browser import COUNT_JS, MIN_PIXELS, open_page, wait_drawn
     with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
             sync_api.sync_playwright() as pw:
-        gui = srv.app.state.gui
-        ctx, page, _ = open_page(pw, srv, tmp_path)
+        ctx, page = open_page(pw, srv, tmp_path)     # the page's Plots tab
         try:
-            frame = viewer_frame(page)
-            before = wait_drawn(frame, gui, {"mag": ["|mag|"], "acc": ["|acc|"]}, timeout=60.0)
-            assert before["mag"]["magnet injected"] < MIN_PIXELS
-            assert before["acc"]["shake injected"] < MIN_PIXELS
+            before = wait_drawn(page, {"mag": ["|mag|"], "acc": ["|acc|"]}, timeout=60.0)
+            assert before["mag"]["counts"]["magnet injected"] < MIN_PIXELS
+            assert before["acc"]["counts"]["shake injected"] < MIN_PIXELS
             r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 50, "seconds": 8})
             assert r.status_code == 200, r.text
             r = api.post("/api/inject", json={"kind": "shake", "amplitude_ms2": 8, "seconds": 8})
             assert r.status_code == 200, r.text
-            wait_drawn(frame, gui, {"mag": ["|mag|", "magnet injected"],
-                                    "acc": ["|acc|", "shake injected"]}, timeout=30.0)
+            wait_drawn(page, {"mag": ["|mag|", "magnet injected"],
+                              "acc": ["|acc|", "shake injected"]}, timeout=30.0)
             page.screenshot(path=str(ARTIFACTS / "plots_injected.png"))
             # the mark covers the injection only: the chart's own line still draws the rest
-            d = drawn(frame, gui)
-            assert d["mag"]["|mag|"] >= MIN_PIXELS
+            d = page.evaluate(COUNT_JS)
+            assert d["mag"]["counts"]["|mag|"] >= MIN_PIXELS
         finally:
             ctx.close()

@@ -1,5 +1,7 @@
-"""What the plots put on the wire (app/server/gui/plots.py): values on a binary grid finer
-than a pixel, gaps as null, a constant line as its two ends."""
+"""What the plots put on the wire (app/server/gui/plots.py): the live feed of WS /ws/plots
+(the whole window once, then only new points, every row once, at most POINTS_PER_S rows a
+second per sensor, one clock); and for the Lab tab's viser chart, values on a binary grid
+finer than a pixel, gaps as null, a constant line as its two ends."""
 
 from __future__ import annotations
 
@@ -9,7 +11,18 @@ import msgspec
 import numpy as np
 import zstandard
 
-from app.server.gui.plots import X_HOP_S, X_STEP, Y_BITS, ends, quantize, wire, x_window
+import json
+from pathlib import Path
+
+import pytest
+
+from app.live import LiveCore
+from app.server.gui.plots import POINTS_PER_S, X_STEP, Y_BITS, PlotFeed, ends, quantize, wire
+from app.sources.simulate import simulate
+from harness import feed_lines, log_lines
+
+REAL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "sensorfusion-app"
+FULL_LOG = REAL / "alekodu_activityrecognition" / "sensorLog_20221024T182635_walking_hand.txt"
 
 
 def test_quantize_stays_within_half_a_step_of_the_span():
@@ -42,26 +55,6 @@ def test_wire_gaps_are_null_and_x_stays_within_half_a_step():
     assert np.max(np.abs(np.array(wire(x, step=X_STEP)) - x)) <= X_STEP / 2
 
 
-def test_the_x_window_moves_in_whole_hops_and_starts_at_zero():
-    assert X_HOP_S == 5.0
-    assert x_window(np.array([0.0, 0.1]), 20.0) == (0.0, 5.0)
-    assert x_window(np.array([0.0, 5.0]), 20.0) == (0.0, 5.0)          # 5.0 is inside
-    assert x_window(np.array([0.0, 7.3]), 20.0) == (0.0, 10.0)
-    assert x_window(np.array([3.0, 23.0]), 20.0) == (5.0, 25.0)
-    # the window holds the newest data whatever the refresh: only every 5 s a new range
-    ranges = {x_window(np.array([max(0.0, t - 20.0), t]), 20.0) for t in np.arange(0.1, 60, 0.5)}
-    assert len(ranges) == 12
-    for t in np.arange(0.1, 60, 0.37):
-        lo, hi = x_window(np.array([max(0.0, t - 20.0), t]), 20.0)
-        assert lo <= max(0.0, t - 20.0) + 5.0 and t <= hi and hi - lo <= 20.0
-    # a chart whose data start later (NIS: the newest half) shows the same window
-    assert x_window(np.array([27.0, 33.0]), 20.0) == (15.0, 35.0)
-    # a stream that starts before 0 (an estimator's rows before the first motion sample)
-    assert x_window(np.array([-1.0, 3.0]), 20.0) == (-5.0, 5.0)
-    # nothing finite yet: the first hop
-    assert x_window(np.array([np.nan, np.nan]), 20.0) == (0.0, 5.0)
-
-
 def test_a_constant_line_is_its_two_ends():
     x = np.linspace(0.0, 20.0, 300)
     assert wire(ends(x, 3.5)) == [3.5] + [None] * 298 + [3.5]
@@ -81,3 +74,84 @@ def test_quantized_plot_data_compresses_to_a_fraction():
     raw = size([x.tolist()] + [y.tolist() for y in ys])
     grid = size([wire(x, step=X_STEP)] + [wire(y) for y in ys])
     assert grid < raw / 3
+
+
+# ---------------------------------------------------------------- the live feed (WS /ws/plots)
+
+def _stream(core, lines, feed, size=40, start=True):
+    """Lines into the core chunk by chunk, the feed's delta after each; the messages."""
+    s = core.open_session("phone", "test")
+    core.start(s)
+    out = []
+    for i in range(0, len(lines), size):
+        core.process(s, feed_lines(core, s, lines[i:i + size]))
+        m = feed.delta()
+        if m is not None:
+            out.append(json.loads(m))
+    return s, out
+
+
+def _merge(msgs, name):
+    """The rows of ``name`` a client holds after these messages (a snapshot replaces)."""
+    cols = None
+    for m in msgs:
+        if m["k"] == "s":
+            cols = None
+        part = m.get(name)
+        if part:
+            cols = part if cols is None else [a + b for a, b in zip(cols, part)]
+    return cols
+
+
+def test_the_feed_sends_every_bin_once_at_a_bounded_rate_on_one_clock():
+    if not FULL_LOG.is_file():
+        pytest.skip(f"{FULL_LOG} not present")
+    core = LiveCore(None, history_s=20.0)
+    feed = PlotFeed(core, 20.0)
+    lines = log_lines(FULL_LOG)[:4000]
+    _, msgs = _stream(core, lines, feed)
+    assert msgs[0]["k"] == "s" and all(m["k"] == "d" for m in msgs[1:])
+    assert msgs[0]["meta"]["span"] == 20.0 and "why" in msgs[0]["meta"]
+    for name, ncols in (("pose", 9), ("acc", 3), ("mag", 4)):
+        cols = _merge(msgs, name)
+        assert cols is not None and len(cols) == ncols
+        x = np.array(cols[0])
+        assert np.all(np.diff(x) > 0), name                  # every row once, in order
+        # one row per 1/POINTS_PER_S s of stream time at most, whatever the phone's rate
+        bins = np.floor((x + core.t_first) * POINTS_PER_S + 1e-6)
+        assert len(np.unique(bins)) == len(bins), name
+        assert len(x) <= (x[-1] - x[0]) * POINTS_PER_S + 2
+        assert len(x) >= 0.8 * (x[-1] - x[0]) * POINTS_PER_S, name   # and not fewer
+        assert x[0] >= 0.0 and x[0] < 1.0                    # s since the stream started
+    # one clock: the newest x of every sensor within a bin or two of the others
+    newest = [_merge(msgs, n)[0][-1] for n in ("pose", "acc", "mag")]
+    assert max(newest) - min(newest) < 0.2
+    # a new client's snapshot holds what the deltas gave, up to the same rows
+    snap = json.loads(feed.snapshot())
+    for name in ("pose", "acc", "mag"):
+        got = _merge(msgs, name)
+        s = snap[name]
+        k = len(s[0])
+        assert k > 0 and s[0] == got[0][-k:], name
+    # values rounded to what the sensors tell: degrees to 0.01, |acc| to 1 mm/s², µT to 0.01
+    pose = _merge(msgs, "pose")
+    assert all(v is None or round(v, 2) == v for v in pose[1])
+    acc = _merge(msgs, "acc")
+    assert all(v is None or round(v, 3) == v for v in acc[1])
+
+
+def test_a_new_stream_starts_with_a_snapshot_and_the_reasons_for_empty_plots():
+    core = LiveCore(None, history_s=20.0)
+    feed = PlotFeed(core, 20.0)
+    lines = simulate(("still",), seed=1).lines()[:600]
+    _, first = _stream(core, lines, feed)
+    assert first and first[0]["k"] == "s"
+    _, second = _stream(core, lines, feed)
+    assert second[0]["k"] == "s"                   # the client drops the old stream's rows
+    x = _merge(second, "pose")[0]
+    assert x[0] < 1.0                              # the new stream's clock
+    why = second[0]["meta"]["why"]
+    assert "no reference" in why["error"] and "no magnetometer" in why["mag"]
+    assert "no accelerometer" in why["acc"] and "Kalman" in why["nis"]
+    # nothing new: nothing sent
+    assert feed.delta() is None

@@ -1,9 +1,11 @@
-"""Every plot draws its lines in a real Chromium, with real phone logs streamed over TCP
-into a real server, with each estimator as primary; and with the demo (ORI and truth).
+"""Every plot of the page's Plots tab (static/plots.js) draws its lines in a real Chromium,
+with real phone logs streamed over TCP into a real server, with each estimator as
+primary; and with the demo (ORI and truth).
 
 What is checked is the pixels of each uPlot canvas (the colour of each series must be
 drawn), not the data arrays: uPlot once drew an empty chart for data that was fine in
-Python (a NaN first value blanks the whole chart; see app/server/gui/plots.py).
+Python (a NaN first value blanks the whole chart; the feed sends gaps as null). An empty
+chart says why beside it; every chart shows the same time window.
 """
 
 from __future__ import annotations
@@ -26,81 +28,50 @@ pytestmark = [
     pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: browser test SKIPPED"),
 ]
 
-# Per canvas: the chart title and how many pixels of each colour it holds.
-COUNT_JS = """(colors) => {
+# Per chart of the page: how many pixels of each series' colour its canvas holds, the
+# reason shown beside it (null: none) and its x range.
+COUNT_JS = """() => {
   const hex = (h) => [1, 3, 5].map(i => parseInt(h.slice(i, i + 2), 16));
-  const want = colors.map(hex);
-  return Array.from(document.querySelectorAll('.uplot')).map(u => {
-    const title = (u.querySelector('.u-title') || {}).textContent || '';
-    const c = u.querySelector('canvas');
-    if (!c || c.width === 0 || c.height === 0) return {title: '', counts: {}, w: 0, h: 0};
-    const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
-    const n = want.map(() => 0);
-    for (let i = 0; i < d.length; i += 4) {
-      if (d[i + 3] < 200) continue;
-      for (let k = 0; k < want.length; k++) {
-        const w = want[k];
-        if (Math.abs(d[i] - w[0]) + Math.abs(d[i + 1] - w[1]) + Math.abs(d[i + 2] - w[2]) < 40) n[k]++;
+  const out = {};
+  for (const [key, ch] of Object.entries(window.orientlabPlots.charts)) {
+    const c = ch.u.root.querySelector('canvas');
+    const series = ch.spec.series.map(s => [s[0], hex(s[1])]);
+    const counts = Object.fromEntries(series.map(([l]) => [l, 0]));
+    if (c && c.width && c.height) {
+      const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+      for (let i = 0; i < d.length; i += 4) {
+        if (d[i + 3] < 200) continue;
+        for (const [l, w] of series)
+          if (Math.abs(d[i] - w[0]) + Math.abs(d[i + 1] - w[1]) + Math.abs(d[i + 2] - w[2]) < 40) counts[l]++;
       }
     }
-    const out = {};
-    colors.forEach((h, k) => out[h] = n[k]);
-    return {title, counts: out, w: c.width, h: c.height};
-  });
+    out[key] = {counts, why: ch.why.hidden ? null : ch.why.textContent,
+                x: [ch.u.scales.x.min, ch.u.scales.x.max], n: ch.u.data[0].length};
+  }
+  return out;
 }"""
-
-# What uPlot itself holds per chart (viser's E2E testpoint): for a failure message.
-STATE_JS = """() => Object.values((window.__viserTestpoints || {}).uplots || {}).map(({chart, createCount}) => ({
-  title: chart.root.querySelector('.u-title') ? chart.root.querySelector('.u-title').textContent : '',
-  created: createCount, width: chart.width, height: chart.height,
-  scales: Object.fromEntries(Object.entries(chart.scales).map(([k, v]) => [k, [v.min, v.max]])),
-  n: chart.data[0].length, x: [chart.data[0][0], chart.data[0][chart.data[0].length - 1]],
-  finite: chart.data.slice(1).map(col => Array.from(col).filter(v => v !== null && isFinite(v)).length),
-}))"""
 
 MIN_PIXELS = 25     # a drawn line across a chart has hundreds; noise has none
 
 
-def drawn(frame, gui) -> dict[str, dict[str, int]]:
-    """{plot key: {series label: pixels of its colour}} for the charts on show."""
-    plots = {p.title: p for p in gui.plots}
-    colors = sorted({c for p in gui.plots for c in p.colors})
-    out = {}
-    for row in frame.evaluate(COUNT_JS, colors):
-        p = plots.get(row["title"])
-        if p is not None and row["w"] > 0:
-            out[p.key] = {spec[0]: row["counts"][spec[1]] for spec in p.specs}
-    return out
-
-
-def windows_agree(frame, gui, keys) -> bool:
-    """Each chart of ``keys`` shows on the page the x range the server set for it
-    (app.server.gui.plots.Plot.x_range): the window is the server's, not left to the client."""
-    by_title = {p.title: p for p in gui.plots}
-    shown = {by_title[row["title"]].key: row["scales"]["x"] for row in frame.evaluate(STATE_JS)
-             if row["title"] in by_title}
-    want = {p.key: p.x_range for p in gui.plots}
-    return all(k in shown and None not in shown[k]
-               and max(abs(a - b) for a, b in zip(shown[k], want[k])) < 1e-6 for k in keys)
-
-
-def wait_drawn(frame, gui, expect: dict[str, list[str]], absent: tuple = (), timeout: float = 30.0):
-    """Wait until every expected series of every expected plot has drawn pixels and the
-    ``absent`` plots draw nothing (empty axes; the note says why)."""
+def wait_drawn(page, expect: dict[str, list[str]], absent: tuple = (), timeout: float = 30.0):
+    """Wait until every expected series of every expected chart has drawn pixels, the
+    ``absent`` charts draw nothing and say why, and every chart shows one x window."""
     last = {}
 
     def ok():
         nonlocal last
-        last = drawn(frame, gui)
-        return all(key in last and all(last[key][s] >= MIN_PIXELS for s in series)
-                   for key, series in expect.items()) and \
-            not any(k in last and any(v >= MIN_PIXELS for v in last[k].values()) for k in absent) \
-            and windows_agree(frame, gui, expect)
+        last = page.evaluate(COUNT_JS)
+        windows = {tuple(v["x"]) for v in last.values()}
+        return all(all(last[key]["counts"][s] >= MIN_PIXELS for s in series)
+                   for key, series in expect.items()) \
+            and all(last[k]["why"] and max(last[k]["counts"].values()) < MIN_PIXELS
+                    for k in absent) \
+            and all(last[k]["why"] is None for k in expect) and len(windows) == 1
     try:
         wait_for(ok, timeout, interval=0.5, what="plots drawn")
     except TimeoutError:
-        raise AssertionError(f"not drawn as expected {expect}: {last}\n"
-                             f"uPlot state: {frame.evaluate(STATE_JS)}") from None
+        raise AssertionError(f"not drawn as expected {expect}, absent {absent}: {last}") from None
     return last
 
 
@@ -130,7 +101,8 @@ def open_page(pw, srv, tmp_path):
     page.goto(srv.url + "/")
     frame = page.frame_locator("iframe#viewer")
     frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
-    return ctx, page, page.frames[1] if len(page.frames) > 1 else page.main_frame
+    page.locator("#tab-plots").click()
+    return ctx, page
 
 
 def viewer_frame(page):
@@ -143,10 +115,8 @@ def test_real_log_plots_draw_for_every_primary(tmp_path, browser):
     lines = log_lines(FULL_LOG)[:6000]          # ~17 s of a walk, no ORI, no truth
     with running_server(source="none", preset_dir=tmp_path) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api:
-        gui = srv.app.state.gui
-        ctx, page, _ = open_page(browser, srv, tmp_path)
+        ctx, page = open_page(browser, srv, tmp_path)
         try:
-            frame = viewer_frame(page)
             for primary in srv.engine.core.ensemble.names:
                 assert api.patch("/api/params", json={"primary": primary}).status_code == 200
                 play(srv, api, lines)
@@ -157,12 +127,12 @@ def test_real_log_plots_draw_for_every_primary(tmp_path, browser):
                     expect["mag"].append("L_k")
                 if primary in ("lab", "robust"):
                     expect["nis"] = ["acc NIS", "mag NIS"]
-                # no reference in this log: the error plot is hidden and the note says why
-                wait_drawn(frame, gui, expect,
-                           absent=("error",) + (("euler",) if primary == "phone" else ()))
-                assert "no reference" in gui.plot_note.content
+                # no reference in this log: the error plot is empty and says why
+                got = wait_drawn(page, expect,
+                                 absent=("error",) + (("euler",) if primary == "phone" else ()))
+                assert "no reference" in got["error"]["why"]
                 if primary == "phone":
-                    assert "ORI" in gui.plot_note.content
+                    assert "ORI" in got["euler"]["why"]
             page.screenshot(path=str(ARTIFACTS / "plots_real_log.png")) if ARTIFACTS.is_dir() else None
         finally:
             ctx.close()
@@ -173,19 +143,18 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path, browser):
         pytest.skip(f"{ACC_ONLY_LOG} not present")
     with running_server(source="demo", preset_dir=tmp_path) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api:
-        gui = srv.app.state.gui
-        ctx, page, _ = open_page(browser, srv, tmp_path)
+        ctx, page = open_page(browser, srv, tmp_path)
         try:
             frame = viewer_frame(page)
             # the demo: the phone's own estimate (ORI) and the truth: both error series;
             # robust's |mag| band (grey) goes out as its two ends and spans the gaps
-            wait_drawn(frame, gui, {"euler": ["yaw", "pitch", "roll"],
+            wait_drawn(page, {"euler": ["yaw", "pitch", "roll"],
                                     "error": ["to phone's own", "to truth"],
                                     "acc": ["|acc|"], "mag": ["|mag|", "band lo"],
                                     "nis": ["acc NIS", "mag NIS"]}, timeout=60.0)
             # the Tuning tab: values in the user's unit with three significant digits,
             # a hover text with meaning, unit and effect; the bias button answers
-            # (Tuning is the first tab of the control panel: the plots have their own panel)
+            # (Tuning is the first tab of the control panel: the plots are the page's)
             field = frame.get_by_label("gyr_noise [deg/√s]", exact=True).first
             field.wait_for(state="visible", timeout=30_000)
             assert field.input_value() == "0.286"      # 0.005 rad/√s, not a log10
@@ -201,8 +170,8 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path, browser):
             # (complementary: lab and robust wait for a magnetometer to align)
             api.patch("/api/params", json={"primary": "complementary"})
             play(srv, api, log_lines(ACC_ONLY_LOG))
-            wait_drawn(frame, gui, {"euler": ["pitch", "roll"], "acc": ["|acc|"]},
-                       absent=("mag", "error"))
-            assert "no magnetometer" in gui.plot_note.content
+            got = wait_drawn(page, {"euler": ["pitch", "roll"], "acc": ["|acc|"]},
+                             absent=("mag", "error"))
+            assert "no magnetometer" in got["mag"]["why"]
         finally:
             ctx.close()

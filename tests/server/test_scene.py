@@ -112,3 +112,43 @@ def test_the_servers_viewer_wakes_its_senders_the_loop_safe_way_and_quietly():
         buf = srv.app.state.viewer._websock_server._broadcast_buffer
         assert isinstance(buf.message_event, LoopSafeEvent)
         assert isinstance(buf.event_loop, _QuietLoop) and buf.event_loop._event is buf.message_event
+
+
+def test_every_indicator_value_has_its_unit_and_the_pill_says_what_the_3d_label_says():
+    """'turn 1.83' (rad/s, no unit) was shown while the 3D label said '|m| = 71': every
+    gate's value now comes with its unit, rounded, in the same words in both places."""
+    import re
+    from types import SimpleNamespace
+
+    from app.estimators.base import Reason
+    from app.server.gui.main import _indicators_html
+    from app.server.gui.scene import Indicators, describe_rejection
+    unit = re.compile(r"(µT|m/s²|°/s|°|\d s)")
+    for r, v in ((Reason.NORM, 71.26), (Reason.FIELD, 55.0), (Reason.DIP, 0.2), (Reason.ACCEL, 0.3),
+                 (Reason.TURN, 1.83), (Reason.GAP, 0.5), (Reason.NEW_FIELD, 48.0),
+                 (Reason.OFFSET, 20.0), (Reason.RECOVER, 0.5)):
+        text = describe_rejection("mag", SimpleNamespace(mag=r, mag_value=v))
+        assert unit.search(text), (r, text)
+        assert not re.search(r"\d\.\d{3,}", text), text          # rounded
+    assert describe_rejection("mag", SimpleNamespace(mag=Reason.TURN, mag_value=1.83)) == \
+        "field turning 105°/s more than the phone"
+    assert describe_rejection("mag", SimpleNamespace(mag=Reason.NORM, mag_value=71.26)) == "|m| = 71.3 µT"
+    ind = Indicators(rest=False, acc=None, mag="|m| = 71.3 µT")
+    assert "mag disturbed: |m| = 71.3 µT" in ind.text()
+    assert "mag disturbed: |m| = 71.3 µT" in _indicators_html(ind)
+
+
+def test_the_calibration_read_out_rounds_to_what_the_sensors_tell(tmp_path):
+    """g0 was printed as [0.0, 0.0, 9.812345678901234]: now to 0.01 m/s², m0 to 0.1 µT."""
+    import re
+    with running_server(source="none", preset_dir=tmp_path) as srv:
+        tab = srv.app.state.toolkit_tab
+        tab.tk.calibration.last = {
+            "n_rows": 500, "duration_s": 5.0, "stationary": True, "warnings": [], "sensors": {},
+            "g0": [0.0, 0.0, 9.812345678901234], "m0": [0.0, 19.876543210987, -44.12345678901]}
+        done = threading.Event()
+        srv.engine.loop.call_soon_threadsafe(lambda: (tab._draw_calibration(True), done.set()))
+        assert done.wait(10.0)
+        text = tab.cal_md.content
+        assert "g0 = (0.00, 0.00, 9.81) m/s²" in text and "m0 (formula 7) = (0.0, 19.9, -44.1) µT" in text
+        assert not re.search(r"\d\.\d{5,}", text), text

@@ -1,16 +1,21 @@
 """What a viewer receives, read as a browser tab reads it: a real viser WebSocket client
-on the real server's viewer port, its messages decoded (zstd, then msgpack).
+on the real server's viewer port, its messages decoded (zstd, then msgpack), and a real
+WS /ws/plots client (the page's live plots).
 
 - at the default view (the demo, nothing started in the Lab tab) the Lab tab's heading
   plot sends nothing (the server cannot know whether a browser shows that tab), while
-  the dashboard's own plots do arrive, as two ends for a gate's constant line;
-- once a variant runs beside the builtins, the heading plot follows the stream.
+  the page's plots do arrive, with the gates of the primary;
+- once a variant runs beside the builtins, the heading plot follows the stream;
+- a viewer (the 3D view's WebSocket and the plots' together) costs at most 50 kB/s,
+  the plots sending new points 20 times a second.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import threading
+import time
 from collections import Counter
 
 import httpx
@@ -32,6 +37,7 @@ class ViewerClient:
         self.updates: Counter = Counter()
         self.last: dict[str, object] = {}
         self.messages = 0
+        self.bytes = 0
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
@@ -57,6 +63,7 @@ class ViewerClient:
                     raw = await asyncio.wait_for(ws.recv(), 0.5)
                 except asyncio.TimeoutError:
                     continue
+                self.bytes += len(raw)
                 n_inner = int.from_bytes(raw[:8], "little")
                 n_comp = int.from_bytes(raw[8:16], "little")
                 inner = dz.decompress(raw[16:16 + n_comp], max_output_size=n_inner)
@@ -68,32 +75,88 @@ class ViewerClient:
                             self.last[m["uuid"]] = m["updates"]["data"]
 
 
+class PlotsClient:
+    """A WS /ws/plots client in a thread (what the page's plot panel opens): bytes and
+    messages received, the decoded messages kept."""
+
+    def __init__(self, base: str):
+        self.url = base.replace("http://", "ws://") + "/ws/plots"
+        self.origin = base
+        self.bytes = 0
+        self.msgs: list[dict] = []
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
+
+    def __enter__(self) -> "PlotsClient":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+    def meta(self) -> dict:
+        out: dict = {}
+        with self._lock:
+            for m in self.msgs:
+                out.update(m.get("meta") or {})
+        return out
+
+    async def _run(self) -> None:
+        async with websockets.connect(self.url, origin=self.origin, max_size=None) as ws:
+            while not self._stop.is_set():
+                try:
+                    raw = await asyncio.wait_for(ws.recv(), 0.5)
+                except asyncio.TimeoutError:
+                    continue
+                with self._lock:
+                    self.bytes += len(raw)
+                    self.msgs.append(json.loads(raw))
+
+
+MAX_VIEWER_BYTES_PER_S = 50_000
+
+
+def test_a_viewer_costs_at_most_50_kB_per_second_with_live_plots(tmp_path):
+    """The demo (every sensor, ORI and the truth: every plot has data): one viewer's 3D
+    view and live plots, counted for 10 s after a warm-up."""
+    with running_server(source="demo", preset_dir=tmp_path) as srv:
+        with ViewerClient(srv.viewer_port) as viewer, PlotsClient(srv.url) as plots:
+            wait_for(lambda: len(plots.msgs) > 20, 60.0, what="plot messages")
+            time.sleep(3.0)
+            b0, p0, n0, t0 = viewer.bytes, plots.bytes, len(plots.msgs), time.monotonic()
+            time.sleep(10.0)
+            wall = time.monotonic() - t0
+            v_rate, p_rate = (viewer.bytes - b0) / wall, (plots.bytes - p0) / wall
+            msg_rate = (len(plots.msgs) - n0) / wall
+        print(f"viewer: 3D view {v_rate / 1e3:.1f} kB/s + plots {p_rate / 1e3:.1f} kB/s "
+              f"({msg_rate:.1f} messages/s)")
+        assert v_rate + p_rate <= MAX_VIEWER_BYTES_PER_S
+        assert msg_rate >= 10.0            # the plots get new points 10+ times a second
+        with plots._lock:
+            deltas = [m for m in plots.msgs[1:] if m["k"] == "d"]
+        assert deltas and all(len((m["pose"] or [[]])[0]) <= 10 for m in deltas)   # new points only
+
+
 def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
     with running_server(source="demo", preset_dir=tmp_path) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api:
         gui, toolkit_tab = srv.app.state.gui, srv.app.state.toolkit_tab
         monitor = toolkit_tab.p_monitor._impl.uuid
-        acc_plot = gui.p_acc.handle._impl.uuid
-        nis_plot = gui.p_nis.handle._impl.uuid
-        with ViewerClient(srv.viewer_port) as viewer:
-            # the dashboard's plots arrive (so this client does read the updates) ...
-            wait_for(lambda: viewer.count(acc_plot) >= 4, 60.0, what="|acc| plot updates")
+        with ViewerClient(srv.viewer_port) as viewer, PlotsClient(srv.url) as plots:
+            # the page's plots arrive, and the viewer's messages (so this client reads) ...
+            wait_for(lambda: len(plots.msgs) >= 4 and viewer.messages > 50, 60.0,
+                     what="plot messages and viewer updates")
             # ... the heading plot of the Lab tab does not
             assert viewer.count(monitor) == 0
             assert not toolkit_tab.monitor_live()
-            # a gate's line: its two ends, gaps between (the series spans them); robust,
-            # the demo's primary, has both NIS gates once it makes updates
-
-            def last_nis():
-                with viewer._lock:
-                    data = viewer.last.get(nis_plot)
-                return data if data is not None and data[3][0] is not None else None
-            x, nis_a, nis_m, gate_a, gate_m = wait_for(last_nis, 30.0, what="the NIS gates")
-            assert sum(v is not None for v in nis_a) > 10
-            for gate, name in ((gate_a, "acc_nis_gate"), (gate_m, "mag_nis_gate")):
-                assert gate[1:-1] == [None] * (len(gate) - 2)
-                assert gate[0] == gate[-1] == pytest.approx(
-                    getattr(gui.engine.core.ensemble.params_of("robust"), name), rel=1e-3)
+            # the gates of robust, the demo's primary, as the plots' meta
+            meta = wait_for(lambda: (lambda m: m if m.get("acc_gate") else None)(plots.meta()),
+                            30.0, what="the NIS gates")
+            for name in ("acc_nis_gate", "mag_nis_gate"):
+                assert meta[name.split("_nis")[0] + "_gate"] == pytest.approx(
+                    getattr(gui.engine.core.ensemble.params_of("robust"), name), rel=1e-2)
             # a variant beside the builtins: the heading plot follows the stream
             r = api.post("/api/estimators", json={"preset": "no-rejection"})
             assert r.status_code == 200, r.text

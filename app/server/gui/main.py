@@ -1,8 +1,9 @@
-"""The viser GUI: live controls, read-outs and plots.
+"""The viser GUI: live controls and read-outs (the plots are the landing page's).
 
-Layout (at 1600x900 the 3D view, four plots and the tuning controls are visible at
-once): the plots in their own panel docked left of the 3D view; in the control panel
-the stream line (source, seconds since the stream started, primary), the indicators
+Layout (at 1600x900 and 1280x720 the phone, the plots and the tuning controls are
+visible at once): the plots in a panel of the landing page beside this viewer
+(``static/plots.js``, fed by WS /ws/plots through :class:`app.server.gui.plots.PlotFeed`);
+in the control panel the stream line (source, seconds since the stream started, primary), the indicators
 (standstill, acc / mag disturbed with the gate and its value), the sensor switches,
 then tabs: Tuning (one folder per estimator, the primary's first and open), Read-outs,
 View, Presets (and Lab).
@@ -32,17 +33,16 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 
 from app.estimators import AVERAGED_IN, Reason, is_rejected
 from app.params import describe, fields_of
-from app.quaternion import q2euler_many
 from app.server.gui.controls import Control, build_control, show_value
 from app.live.ensemble import SENSORS
 from app.server.engine import Engine, PatchError
-from app.server.gui.plots import EULER_COLORS, Plot, angle_deg, during, ends, unwrap_deg
+from app.server.gui.plots import PlotFeed
 from app.server.presets import (NAME_RE, list_presets, load_preset, load_preset_path, load_preset_text,
                       save_preset, save_preset_text, shipped_names)
 from app.server.gui.scene import Indicators, Scene, describe_rejection
@@ -50,11 +50,8 @@ from app.server.gui.scene import Indicators, Scene, describe_rejection
 log = logging.getLogger("orientlab.gui")
 
 SENSOR_SWITCHES = (("use_gyr", "Gyroscope"), ("use_acc", "Accelerometer"), ("use_mag", "Magnetometer"))
-NIS_FLOOR = 1e-3         # the NIS plot's lowest value (a log axis labels 1e-4 as "0")
-MAX_POINTS = 300          # per plot: 15 points/s over 20 s is smooth enough
 HOLD_S = 1.0              # a rejection keeps its indicator lit this long
-PLOT_HEIGHT = 140
-PLOT_PANEL_PX = 400       # the plots' panel, docked left of the 3D view
+CONTROL_PANEL_PX = 340    # the control panel, docked right of the 3D view
 BIAS_ESTIMATORS = ("lab",)  # estimators given the bias by "Calibrate gyro bias"
 
 
@@ -76,6 +73,12 @@ class Gui:
         gui = server.gui
         gui.configure_theme(show_share_button=False, control_width="large",
                             brand_color=(30, 90, 170), titlebar_content=None)
+        # the control panel docked right: the 3D view is the rest of the frame (its
+        # centre, where the phone is, not under the panel)
+        if hasattr(gui, "main_panel"):
+            panel = gui.main_panel
+            panel.dock_right()
+            panel.set_width(CONTROL_PANEL_PX)
         self.status = gui.add_html("", order=0)
         self.indicators = gui.add_html("", order=1)
         with gui.add_folder("Sensors and estimator", order=2):
@@ -98,23 +101,16 @@ class Gui:
             self.resume = gui.add_button("Resume demo", visible=settings.source != "none",
                                          hint="Restart the demo / log replay after a phone has left.")
             self.resume.on_click(lambda ev: engine.resume_background())
-        # The plots live in their own panel, docked left of the 3D view: always on show
-        # beside the tuning controls, and never in a hidden tab (a uPlot chart laid out
-        # at zero width keeps a broken x window in viser's client and stays blank).
-        self.plot_panel = None
+        # The plots are drawn by the landing page (static/plots.js, fed by WS /ws/plots:
+        # only the new points, 20 times a second): a panel beside this viewer, so the 3D
+        # view keeps its width for the phone. viser 1.1's charts take whole data only.
         # (kind, start_s, end_s) of the disturbances injected into a stream (the lab's
         # InjectionService.injected_spans, set in the lifespan): drawn over |acc| and |mag|
         self.injections: Callable[[Any], list[tuple[str, float, float]]] | None = None
-        if hasattr(gui, "add_panel"):
-            self.plot_panel = gui.add_panel()
-            with self.plot_panel.add_tab("Plots"):
-                self._build_plots(gui)
-            self.plot_panel.dock_left()
-            self.plot_panel.set_width(PLOT_PANEL_PX)
+        self.feed = PlotFeed(engine.core, settings.history_s,
+                             injections=lambda s: self.injections(s) if self.injections else [])
+        engine.plot_feed = self.feed
         tabs = self.tabs = gui.add_tab_group(order=3)   # the Lab tab joins it (gui/toolkit_tab.py)
-        if self.plot_panel is None:                     # an older viser: plots in a tab
-            with tabs.add_tab("Plots"):
-                self._build_plots(gui)
         with tabs.add_tab("Tuning"):
             gui.add_markdown("Every change applies from the next sample. Hover a control "
                              "for what it does. The primary estimator comes first.")
@@ -360,152 +356,9 @@ class Gui:
             self._sync_thread = None
 
     # ------------------------------------------------------------------ plots
-    def _build_plots(self, gui) -> None:
-        kw = dict(height=PLOT_HEIGHT, span_s=self.settings.history_s)
-        self.p_euler = Plot(gui, "euler", "Euler angles [deg] (solid: estimate, dashed: phone's own)",
-                            [(n, c, False) for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)]
-                            + [(f"phone {n}", c, True)
-                               for n, c in zip(("yaw", "pitch", "roll"), EULER_COLORS)], **kw)
-        self.p_err = Plot(gui, "error", "Error angle [deg]", [("to phone's own", "#ff7f0e", False),
-                                                               ("to truth", "#17becf", False)],
-                          **kw)
-        self.p_acc = Plot(gui, "acc", "|acc| [m/s²] and its gate band; red: shake injected",
-                          [("|acc|", "#1f77b4", False), ("band lo", "#7f7f7f", True, True),
-                           ("band hi", "#7f7f7f", True, True),
-                           ("shake injected", "#d62728", False, False, 4)], **kw)
-        self.p_mag = Plot(gui, "mag", "|mag| and L_k [µT] and its gate band; red: magnet injected",
-                          [("|mag|", "#9467bd", False), ("L_k", "#e377c2", False),
-                           ("band lo", "#7f7f7f", True, True), ("band hi", "#7f7f7f", True, True),
-                           ("magnet injected", "#d62728", False, False, 4)],
-                          **kw)
-        self.p_nis = Plot(gui, "nis", "NIS (log scale) and its gates",
-                          [("acc NIS", "#1f77b4", False, True), ("mag NIS", "#9467bd", False, True),
-                           ("acc gate", "#1f77b4", True, True), ("mag gate", "#9467bd", True, True)],
-                          **kw,
-                          y_scale={"distr": 3, "log": 10})
-        self.plot_note = gui.add_markdown("")
-        self.plots = (self.p_euler, self.p_err, self.p_acc, self.p_mag, self.p_nis)
-        self._note = ""
-
     def stream_t0(self) -> float | None:
         """The phone-clock time (s) of the stream's first motion sample."""
         return self.engine.core.t_first
-
-    def plot_steps(self) -> Iterator[None]:
-        """Update the plots one by one, yielding after each (the caller may give the
-        event loop a turn in between). They show the last ``history_s`` seconds, at most
-        :data:`MAX_POINTS` points each, read once at the start (copies: the filter may
-        run in between): O(MAX_POINTS) work, whatever the sample rate. The x axis is
-        seconds since the stream started. A plot with nothing to show in this stream
-        (no reference for the error, no magnetometer, no NIS) shows empty axes and the
-        note under the plots says why."""
-        core = self.engine.core
-        primary = core.ensemble.primary
-        hist, span = core.history, self.settings.history_s
-        pose = hist.pose.window(span, MAX_POINTS)
-        if len(pose) < 2:
-            return
-        acc = hist.acc.window(span, MAX_POINTS)
-        mag = hist.mag.window(span, MAX_POINTS)
-        session = core.session
-        truth = session.truth if session is not None else None
-        diag = core.ensemble.estimator(primary).diagnostics()
-        t0 = self.stream_t0()
-        if t0 is None:
-            t0 = pose["t"][0]
-        notes = []
-
-        def const(x, v):     # a gate's line: its two ends (the series spans the gaps)
-            return ends(x, v)
-
-        injected = [] if self.injections is None or session is None else self.injections(session)
-
-        def spans(kind):     # when a disturbance of this kind was injected (stream s)
-            return [(a, b) for k, a, b in injected if k == kind]
-
-        x = pose["t"] - t0
-        q_ours, q_phone = pose["q"], pose["phone_q"]
-        has_p = np.isfinite(q_phone[:, 0])
-        ours = np.degrees(q2euler_many(q_ours))
-        phone = np.full_like(ours, np.nan)
-        if np.any(has_p):
-            phone[has_p] = np.degrees(q2euler_many(q_phone[has_p]))
-        # yaw and roll (±180°) unwrapped over the window: no comb, no vertical strokes
-        for a in (ours, phone):
-            a[:, [0, 2]] = unwrap_deg(a[:, [0, 2]])
-        self.p_euler.update(x, *ours.T, *phone.T)
-        self.p_euler.show(self.p_euler.has_data)
-        if not self.p_euler.has_data:
-            notes.append(f"Euler angles: {primary} has no estimate yet"
-                         + (" (it needs the phone's Orientation sensor, ORI)"
-                            if core.ensemble.base_of(primary) == "phone" else ""))
-        yield
-        err_p = np.full(x.shape, np.nan)
-        if np.any(has_p):
-            err_p[has_p] = angle_deg(q_ours[has_p], q_phone[has_p])
-        err_t = np.full(x.shape, np.nan) if truth is None else \
-            angle_deg(q_ours, truth(pose["t"] * 1000.0))
-        x_pose = x
-        self.p_err.update(x, err_p, err_t)
-        self.p_err.show(self.p_err.has_data)
-        if not self.p_err.has_data:
-            notes.append("error angle: no reference in this stream (the phone's Orientation "
-                         "sensor, ORI, or the demo's truth)")
-        yield
-        if len(acc) > 1:
-            band = diag.acc_band or (None, None)
-            x = acc["t"] - t0
-            self.p_acc.update(x, acc["norm"], const(x, band[0]), const(x, band[1]),
-                              during(acc["t"], acc["norm"], spans("shake")))
-        else:                              # empty axes, not the last stream's lines
-            self.p_acc.update(x_pose, *(const(x_pose, None) for _ in range(4)))
-        self.p_acc.show(len(acc) > 1)
-        if len(acc) <= 1:
-            notes.append("|acc|: no accelerometer samples")
-        yield
-        if len(mag) > 1:
-            band = diag.mag_band or (None, None)
-            x = mag["t"] - t0
-            self.p_mag.update(x, mag["norm"], mag["L_k"], const(x, band[0]), const(x, band[1]),
-                              during(mag["t"], mag["norm"], spans("magnet")))
-        else:
-            self.p_mag.update(x_pose, *(const(x_pose, None) for _ in range(5)))
-        self.p_mag.show(len(mag) > 1)
-        if len(mag) <= 1:
-            notes.append("|mag|: no magnetometer samples in this stream")
-        yield
-        acc, mag = acc.tail(MAX_POINTS // 2), mag.tail(MAX_POINTS // 2)
-        has_nis = False
-        if len(acc) + len(mag) > 1:
-            # acc and mag NIS on one time axis: each series null (a gap, spanned) at the
-            # other's times
-            x = np.concatenate([acc["t"], mag["t"]])
-            order = np.argsort(x, kind="stable")
-            nis_a = np.concatenate([acc["nis"], np.full(len(mag), np.nan)])[order]
-            nis_m = np.concatenate([np.full(len(acc), np.nan), mag["nis"]])[order]
-            x = x[order] - t0
-            ga, gm = diag.acc_nis_gate, diag.mag_nis_gate
-            # NIS is positive; a zero (exact fit) cannot sit on a log scale, and below
-            # NIS_FLOOR (a fit as good) the chart's tick labels round to "0"
-            for nis in (nis_a, nis_m):
-                nis[nis <= 0] = np.nan
-                np.maximum(nis, NIS_FLOOR, out=nis, where=np.isfinite(nis))
-            self.p_nis.update(x, nis_a, nis_m, const(x, ga or None), const(x, gm or None))
-            has_nis = bool(np.isfinite(nis_a).any() or np.isfinite(nis_m).any())
-        else:
-            self.p_nis.update(x_pose, *(const(x_pose, None) for _ in range(4)))
-        self.p_nis.show(has_nis)
-        if not has_nis:
-            notes.append(f"NIS: {primary} makes no Kalman update to test")
-        note = ("*Empty charts:* " + "; ".join(notes) + ".") if notes else ""
-        if note != self._note:
-            self.plot_note.content = note
-            self._note = note
-
-    def refresh_plots(self) -> None:
-        """Update every plot at once (see :meth:`plot_steps`)."""
-        for _ in self.plot_steps():
-            pass
 
     # ------------------------------------------------------------------ read-outs
     def indications(self) -> Indicators:
@@ -571,7 +424,6 @@ class Gui:
 
     def refresh(self) -> None:
         self.refresh_text()
-        self.refresh_plots()
 
 
 def _error_text(st: dict) -> str:
@@ -640,23 +492,18 @@ def _readouts_html(st: dict) -> str:
 
 
 async def run_gui(gui: Gui, hz: float, plot_hz: float | None = None) -> None:
-    """Refresh the indicators ``hz`` times a second, and the status line, read-outs and
-    plots ``plot_hz`` times (each plot is resent whole to every viewer: the plots cost a
-    viewer most), giving the event loop a turn between the read-outs and each plot: the
-    filter task (and its latency) never waits for a whole refresh."""
+    """Refresh the indicators ``hz`` times a second, and the status line and read-outs
+    ``plot_hz`` times (the plots are the landing page's: WS /ws/plots)."""
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
-    plot_period = period if plot_hz is None else 1.0 / plot_hz
-    due = plot_due = loop.time()
+    slow_period = period if plot_hz is None else 1.0 / plot_hz
+    due = slow_due = loop.time()
     while True:
         try:
-            slow = loop.time() >= plot_due - 0.5 * period
+            slow = loop.time() >= slow_due - 0.5 * period
             gui.refresh_text(readouts=slow)
             if slow:
-                plot_due = max(plot_due + plot_period, loop.time())
-                await asyncio.sleep(0)
-                for _ in gui.plot_steps():
-                    await asyncio.sleep(0)
+                slow_due = max(slow_due + slow_period, loop.time())
         except Exception:
             log.exception("GUI refresh failed")
         due = max(due + period, loop.time())      # a steady hz, no catching up after a stall

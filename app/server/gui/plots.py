@@ -1,33 +1,35 @@
-"""The live plots: uPlot charts in viser's panel, fed from the engine's history rings.
+"""The live plots' data: the feed of WS /ws/plots, and helpers for viser's uPlot charts.
 
-Why the data goes out as lists with ``null`` and not as arrays with NaN: viser sends a
-float array as a ``Float64Array``, where a missing value can only be NaN, and uPlot
-does not treat NaN as a gap: a series whose first value in view is NaN (or that is NaN
-throughout) turns its chart's y range into NaN and the *whole chart* is drawn empty,
-every series of it. uPlot's own gap marker is ``null``; viser's handle would cast a
-list back to a float array (``plot.data = ...``), so :func:`send_data` queues the
-update itself with plain lists (``None`` for every non-finite value). Checked with
-viser 1.1.1 in Chromium (``tests/server/test_plots_browser.py`` looks at the pixels).
+**The dashboard's plots** (Euler angles, error angle, |acc|, |mag| and L_k, NIS) are drawn
+by the landing page (``static/plots.js``, uPlot vendored under ``static/vendor/``) beside
+the 3D view. :class:`PlotFeed` reads the live core's history rings and sends, over
+WS /ws/plots, the whole window once, then only the new points, up to 20 times a second
+(:data:`app.server.engine.PLOT_HZ`); the page appends them and redraws each chart in its
+canvas (viser 1.1's uPlot handle takes whole data only: every refresh resent every window
+and re-created the chart). Every x is seconds since the stream started (one clock for all
+plots); values are rounded to what the sensors tell; gaps are ``null``. The page unwraps
+yaw and roll over its window as :func:`unwrap_deg` does (no vertical strokes at ±180°,
+no comb when the phone faces south).
 
-What a viewer receives (every chart is resent whole: viser has no append): at most
-:data:`~app.server.gui.main.MAX_POINTS` rows per chart (about the chart's width in pixels),
-a few times a second, each value put on a binary grid (:func:`quantize`: x to
-:data:`X_STEP`, y to 1/2^:data:`Y_BITS` of its column's span, or to :data:`Y_BITS`
-significant bits on a log scale). The grid is far finer than a pixel, and a float on
-it ends in zero bytes, which viser's zstd compression then nearly removes: a value
-costs about 2 bytes on the wire instead of 8. A constant line (a gate band) goes out
-as its two ends with gaps between (:func:`ends`; its series spans gaps).
-
-Every x axis is seconds since the stream started. Angles are kept in their usual
-ranges only when the phone spun round: yaw and roll are unwrapped over the window
-(no vertical strokes at ±180°, no comb when the phone faces south), see
-:func:`unwrap_deg`.
+**viser's charts** (the Lab tab's heading plot) use :func:`send_data`. Why the data goes
+out as lists with ``null`` and not as arrays with NaN: viser sends a float array as a
+``Float64Array``, where a missing value can only be NaN, and uPlot does not treat NaN as
+a gap: a series whose first value in view is NaN (or that is NaN throughout) turns its
+chart's y range into NaN and the *whole chart* is drawn empty, every series of it.
+uPlot's own gap marker is ``null``; viser's handle would cast a list back to a float
+array (``plot.data = ...``), so :func:`send_data` queues the update itself with plain
+lists (``None`` for every non-finite value), each value put on a binary grid
+(:func:`quantize`: x to :data:`X_STEP`, y to 1/2^:data:`Y_BITS` of its column's span, or
+to :data:`Y_BITS` significant bits on a log scale). The grid is far finer than a pixel,
+and a float on it ends in zero bytes, which viser's zstd compression then nearly
+removes. A constant line (a gate band) goes out as its two ends with gaps between
+(:func:`ends`; its series spans gaps).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -36,8 +38,10 @@ try:
 except ImportError:  # pragma: no cover - viser depends on it
     msgspec = None
 
-from app.quaternion import angle_between_many
+from app.quaternion import angle_between_many, q2euler_many
 from app.server import viser_adapter as va
+
+_JSON = msgspec.json.Encoder() if msgspec is not None else None
 
 EULER_COLORS = ("#d62728", "#2ca02c", "#1f77b4")
 
@@ -176,80 +180,234 @@ def series(specs: Iterable[tuple], x_label: str = "t [s]") -> tuple[dict[str, An
     return tuple(out)
 
 
-X_HOP_S = 5.0   # s: the x window moves in whole steps of this (a chart is rebuilt then)
+# --------------------------------------------------------------------------- live feed
+# The dashboard's plots are drawn by the landing page (static/plots.js, uPlot vendored
+# under static/vendor/), fed by WS /ws/plots: a first message with the whole window, then
+# only the new points, STREAM_HZ times a second. viser 1.1's uPlot handle takes whole
+# data only (every refresh resent every window and re-created the chart's canvas).
+
+STREAM_HZ = 20.0        # /ws/plots messages a second (at most; only while samples come)
+POINTS_PER_S = 25.0     # per ring: at most one row per 1/POINTS_PER_S s of stream time
+NIS_FLOOR = 1e-3        # the NIS plot's lowest value (a log axis labels 1e-4 as "0")
+
+# decimals on the wire: what the sensors can tell (and what a chart can show)
+_DEC_X = 3              # s (1 ms)
+_DEC_DEG = 2            # deg
+_DEC_ACC = 3            # m/s²
+_DEC_MAG = 2            # µT
+
+POSE_SERIES = ("yaw", "pitch", "roll", "phone yaw", "phone pitch", "phone roll",
+               "to phone's own", "to truth")
 
 
-def x_window(x: np.ndarray, span_s: float, hop_s: float = X_HOP_S) -> tuple[float, float]:
-    """The x range a chart shows for data ``x`` (s since the stream started): ``span_s``
-    wide, its right end the newest x rounded up to a whole ``hop_s`` (so the range
-    changes only every ``hop_s``), its left end not left of 0 (nor of the whole hop
-    below the oldest x, when that is negative), so a young stream fills its chart and
-    every chart of one stream shows the same window: [0, 5], [0, 10], ..., [5, 25],
-    [10, 30] for a 20 s span."""
-    fin = np.asarray(x, dtype=float)
-    fin = fin[np.isfinite(fin)]
-    if not fin.size:
-        return 0.0, hop_s
-    hi = hop_s * max(1.0, math.ceil(float(fin.max()) / hop_s - 1e-9))
-    lo = max(hi - span_s, min(0.0, hop_s * math.floor(float(fin.min()) / hop_s)))
-    return lo, hi
+def _r(a: np.ndarray, d: int) -> list:
+    """Rounded to ``d`` decimals, as a list (NaN: null in msgspec's JSON)."""
+    return np.round(np.asarray(a, dtype=float), d).tolist()
 
 
-class Plot:
-    """One chart and what it needs to be worth showing.
+def _sig(a, digits: int = 3) -> list:
+    """To ``digits`` significant digits (a log scale), as a list; not positive: null."""
+    return [float(f"{v:.{digits}g}") if v > 0 and math.isfinite(v) else None
+            for v in np.asarray(a, dtype=float).tolist()]
 
-    Its x range is set here, explicitly (:func:`x_window`), not left to the browser:
-    viser's chart keeps its x scale across data updates and re-ranges it only from a
-    React effect that runs when the data's x extent changes; when the extent did not
-    change between two renders the client drew (updates coalesced under load) the
-    scale stayed on an early window, and a chart showed only its first seconds: nothing
-    of a filter that had not yet aligned there (the plot test's intermittent failure).
-    A fixed range (a tuple, which viser keeps through every redraw) makes the chart
-    rebuild itself when the window moves, every :data:`X_HOP_S`; the y scales re-range
-    from the data at every update (uPlot's redraw)."""
 
-    def __init__(self, gui, key: str, title: str, specs: list[tuple], *, height: int = 150,
-                 y_scale: dict | None = None, span_s: float = 20.0):
-        self.key = key
-        self.title = title
-        self.specs = specs
+class PlotFeed:
+    """What WS /ws/plots sends: the plots' rows, from the live core's history rings.
+
+    One feed per dashboard, on the event loop (the engine calls :meth:`delta` at most
+    :data:`STREAM_HZ` times a second, and :meth:`snapshot` for a new client: both read
+    the rings up to the same cursors, so a client gets every row once). Per ring, one
+    row per 1/:data:`POINTS_PER_S` s of stream time goes out (a time bin, sent once it is
+    complete: :meth:`_decimate`): a plot's cost does not grow with the phone's rate.
+
+    Messages (JSON): ``{"k": "s"|"d", "now": x, "pose": [x, yaw, pitch, roll, phone yaw,
+    phone pitch, phone roll, error to phone's own, error to truth], "acc": [x, |acc|,
+    NIS], "mag": [x, |mag|, L_k, NIS], "meta": {...}}``; columns as lists, ``null`` a
+    gap; every ``x`` in s since the stream started (one clock for every plot). ``"s"``
+    (a snapshot: the whole window, a new stream) replaces what a client holds; ``"d"``
+    appends. ``meta`` (in a delta only its keys that changed): the window ``span`` (s),
+    the ``primary``, the gate bands and NIS gates, the injected disturbances (``spans``:
+    kind, from, to or null while on) and, per plot, why it may be empty (``why``).
+    """
+
+    def __init__(self, core, span_s: float, injections: Callable[[Any], list] | None = None):
+        self.core = core
         self.span_s = float(span_s)
-        self._y_scale = dict(y_scale) if y_scale else None
-        self._x_range = (0.0, X_HOP_S)
-        s = series(specs)
-        self.log = bool(y_scale and y_scale.get("distr") == 3)   # a log y scale
-        self.handle = gui.add_uplot(data=tuple(np.zeros(2) for _ in s), series=s, title=title,
-                                    scales=self._scales(), height=height, aspect=2.0)
-        self.visible = True
-        self.has_data = False          # something finite was drawn at the last update
+        self.injections = injections          # (session) -> [(kind, start, end)] stream s
+        self.dt = 1.0 / POINTS_PER_S
+        self._reset()
 
-    def _scales(self) -> dict[str, Any]:
-        scales: dict[str, Any] = {"x": {"time": False, "range": list(self._x_range)}}
-        if self._y_scale:
-            scales["y"] = self._y_scale
-        return scales
+    def _reset(self) -> None:
+        self.session = self.core.session
+        h = self.core.history
+        self.rings = {"pose": h.pose, "acc": h.acc, "mag": h.mag}
+        self.cursor = {k: r.n for k, r in self.rings.items()}     # rows read (logical)
+        self._meta: dict[str, Any] = {}        # the meta last sent (a delta sends what changed)
+        self.messages = 0
 
-    @property
-    def x_range(self) -> tuple[float, float]:
-        """The x range on show (s since the stream started)."""
-        return self._x_range
+    # ------------------------------------------------------------------ reading
+    def _rows(self, name: str, lo: int, hi: int) -> np.ndarray:
+        ring = self.rings[name]
+        lo = max(lo, ring.n - ring.capacity, 0)
+        if hi <= lo:
+            return ring.data[:0]
+        return ring.data[np.arange(lo, hi) % ring.capacity]
 
-    @property
-    def colors(self) -> list[str]:
-        return [s[1] for s in self.specs]
+    def _bins(self, rows: np.ndarray) -> np.ndarray:
+        return np.floor(rows[:, 0] / self.dt)
 
-    def update(self, x: np.ndarray, *ys: np.ndarray) -> None:
-        """New data, and a new x range when the window has moved on (see the class doc)."""
-        send_data(self.handle, (x, *ys), self.log)
-        rng = x_window(x, self.span_s)
-        if rng != self._x_range:
-            self._x_range = rng
-            self.handle.scales = self._scales()
-        self.has_data = any(np.isfinite(np.asarray(y, float)).any() for y in ys)
+    def _decimate(self, rows: np.ndarray) -> np.ndarray:
+        """One row per time bin (1/:data:`POINTS_PER_S` s): the time of the bin's first
+        row and, per column, the first finite value in the bin (a sensor whose NIS is
+        made on every other sample still has one in each bin)."""
+        if len(rows) < 2:
+            return rows
+        b = self._bins(rows)
+        new = np.concatenate(([True], b[1:] != b[:-1]))
+        gid = np.cumsum(new) - 1
+        out = np.full((int(gid[-1]) + 1, rows.shape[1]), np.nan)
+        out[:, 0] = rows[new, 0]
+        for c in range(1, rows.shape[1]):
+            v = rows[:, c]
+            idx = np.flatnonzero(np.isfinite(v))
+            if idx.size:
+                g, first = np.unique(gid[idx], return_index=True)
+                out[g, c] = v[idx[first]]
+        return out
 
-    def show(self, on: bool) -> None:
-        """Whether the chart has something to show. It stays on the page either way
-        (empty axes, the note under the plots says why): a chart mounted again by
-        viser's client starts at zero width and keeps a broken x window (drawn empty)
-        when data are already there."""
-        self.visible = on
+    def _complete(self, name: str) -> np.ndarray:
+        """The rows since the cursor whose time bin is complete (a later row exists),
+        the cursor moved past them."""
+        ring = self.rings[name]
+        rows = self._rows(name, self.cursor[name], ring.n)
+        if not len(rows):
+            return rows
+        b = self._bins(rows)
+        k = int(np.searchsorted(b, b[-1], side="left"))   # times rise: a prefix is complete
+        if self.cursor[name] < ring.n - ring.capacity:      # fell out of the ring meanwhile
+            self.cursor[name] = ring.n - ring.capacity
+        self.cursor[name] = max(self.cursor[name], ring.n - len(rows)) + k
+        return rows[:k]
+
+    def _t0(self) -> float | None:
+        return self.core.t_first
+
+    def _columns(self, name: str, rows: np.ndarray, t0: float) -> list:
+        ring = self.rings[name]
+        x = _r(rows[:, 0] - t0, _DEC_X)
+
+        def col(c):
+            sl = ring.cols[c]
+            return rows[:, sl.start] if sl.stop - sl.start == 1 else rows[:, sl]
+        if name == "pose":
+            q, pq = col("q"), col("phone_q")
+            ours = np.degrees(q2euler_many(q)) if len(rows) else np.zeros((0, 3))
+            has_q = np.isfinite(q[:, 0])
+            ours[~has_q] = np.nan
+            has_p = np.isfinite(pq[:, 0])
+            phone = np.full_like(ours, np.nan)
+            err_p = np.full(len(rows), np.nan)
+            if has_p.any():
+                phone[has_p] = np.degrees(q2euler_many(pq[has_p]))
+                ok = has_p & has_q
+                if ok.any():
+                    err_p[ok] = angle_deg(q[ok], pq[ok])
+            err_t = np.full(len(rows), np.nan)
+            truth = self.session.truth if self.session is not None else None
+            if truth is not None and has_q.any():
+                err_t[has_q] = angle_deg(q[has_q], truth(rows[has_q, 0] * 1000.0))
+            return [x, *(_r(ours[:, k], _DEC_DEG) for k in range(3)),
+                    *(_r(phone[:, k], _DEC_DEG) for k in range(3)),
+                    _r(err_p, _DEC_DEG), _r(err_t, _DEC_DEG)]
+        nis = np.asarray(col("nis"), dtype=float).copy()
+        nis[~(nis > 0)] = np.nan       # a zero (exact fit) cannot sit on a log scale
+        np.maximum(nis, NIS_FLOOR, out=nis, where=np.isfinite(nis))
+        if name == "acc":
+            return [x, _r(col("norm"), _DEC_ACC), _sig(nis)]
+        return [x, _r(col("norm"), _DEC_MAG), _r(col("L_k"), _DEC_MAG), _sig(nis)]
+
+    # ------------------------------------------------------------------ meta
+    def meta(self) -> dict[str, Any]:
+        core = self.core
+        primary = core.ensemble.primary
+        diag = core.ensemble.estimator(primary).diagnostics()
+        t0 = self._t0()
+        spans = []
+        s = self.session
+        if self.injections is not None and s is not None and t0 is not None:
+            for kind, a, b in self.injections(s):
+                spans.append([kind, round(a - t0, _DEC_X),
+                              None if not math.isfinite(b) else round(b - t0, _DEC_X)])
+        band = lambda b: None if b is None else [round(float(b[0]), 1), round(float(b[1]), 1)]  # noqa: E731
+        gate = lambda g: None if not g or not math.isfinite(float(g)) else float(_sig([g])[0])  # noqa: E731
+        ori = " (it needs the phone's Orientation sensor, ORI)" if core.ensemble.base_of(primary) == "phone" else ""
+        return {
+            "span": self.span_s, "primary": primary,
+            # the gates: robust's learned |mag| band moves a little all the time (0.1 µT:
+            # what a magnetometer can tell)
+            "acc_band": band(diag.acc_band), "mag_band": band(diag.mag_band),
+            "acc_gate": gate(diag.acc_nis_gate), "mag_gate": gate(diag.mag_nis_gate),
+            "spans": spans,
+            "why": {
+                "euler": f"{primary} has no estimate yet{ori}",
+                "error": "no reference in this stream (the phone's Orientation sensor, ORI, "
+                         "or the demo's truth)",
+                "acc": "no accelerometer samples in this stream",
+                "mag": "no magnetometer samples in this stream",
+                "nis": f"{primary} makes no Kalman update to test",
+            },
+        }
+
+    # ------------------------------------------------------------------ messages
+    def _stream_changed(self) -> bool:
+        return self.core.session is not self.session or any(
+            r.n < self.cursor[k] for k, r in self.rings.items())
+
+    def _message(self, kind: str, parts: dict[str, np.ndarray], meta: dict | None) -> bytes:
+        t0 = self._t0()
+        msg: dict[str, Any] = {"k": kind}
+        newest = None
+        for name, rows in parts.items():
+            if t0 is None or not len(rows):
+                msg[name] = None
+                continue
+            msg[name] = self._columns(name, rows, t0)
+            newest = max(newest if newest is not None else -math.inf, float(rows[-1, 0]) - t0)
+        if newest is None and t0 is not None and self.core.t_sent is not None:
+            newest = self.core.t_sent - t0
+        msg["now"] = None if newest is None else round(newest, _DEC_X)
+        if meta is not None:
+            msg["meta"] = meta
+        self.messages += 1
+        return _JSON.encode(msg)
+
+    def snapshot(self) -> bytes:
+        """The whole window up to the feed's cursors (a new client's first message)."""
+        parts = {}       # (the engine calls delta() first: a new stream is taken in)
+        for name, ring in self.rings.items():
+            hi = self.cursor[name]
+            rows = self._rows(name, hi - ring.capacity, hi)
+            if len(rows):
+                rows = rows[rows[:, 0] >= rows[-1, 0] - self.span_s]
+            parts[name] = self._decimate(rows)
+        meta = self.meta()
+        return self._message("s", parts, meta)
+
+    def delta(self) -> bytes | None:
+        """The rows since the last call (None: nothing new, nothing changed); after a new
+        stream began, a snapshot of it (``"k": "s"``)."""
+        kind = "d"
+        if self._stream_changed():
+            self._reset()
+            self.cursor = {k: 0 for k in self.rings}
+            kind = "s"
+        parts = {name: self._decimate(self._complete(name)) for name in self.rings}
+        meta = self.meta()
+        if kind == "s":
+            self._meta = meta
+            return self._message(kind, parts, meta)
+        changed = {k: v for k, v in meta.items() if self._meta.get(k) != v}
+        self._meta = meta
+        if not changed and not any(len(p) for p in parts.values()):
+            return None
+        return self._message(kind, parts, changed or None)

@@ -39,8 +39,9 @@ AXIS_LEN = 1.0
 ARROW_LEN = 0.9
 SIGMA_K = 2.0                        # cones show ±2σ
 MAX_CONE_DEG = 60.0
-GRAV_AT = np.array([-1.7, -1.4, 0.0])
-MAG_AT = np.array([1.7, -1.4, 0.0])
+GRAV_AT = np.array([-1.5, -1.4, 0.0])
+MAG_AT = np.array([1.5, -1.4, 0.0])
+CAMERA_AT = (2.1, -3.9, 2.5)
 GREY = (150, 150, 150)
 C_ACC, C_MAG, C_BAD = (0, 150, 255), (190, 0, 200), (230, 30, 30)
 AXIS_COLORS = ((220, 40, 40), (40, 170, 40), (40, 80, 230))
@@ -296,8 +297,10 @@ class Scene:
         self._bad = {"acc": False, "mag": False}
         self._expected: dict[str, np.ndarray] = {}
         self._cone_scale: list[tuple[float, ...]] = [()] * 3
-        server.initial_camera.position = (2.0, -3.3, 2.4)
-        server.initial_camera.look_at = (0.0, 0.0, 0.0)
+        # the phone in the middle of the 3D view, the arrows beside it, the whole at a
+        # projector's 1280x720 too (the view is then about 580 px wide beside the panels)
+        server.initial_camera.position = CAMERA_AT
+        server.initial_camera.look_at = (0.0, -0.3, -0.2)
 
     # ------------------------------------------------------------------ switches
     def show(self, what: str, on: bool) -> None:
@@ -427,7 +430,8 @@ class Indicators:
 
 
 def describe_rejection(sensor: str, f) -> str:
-    """'|a| = 12.3 m/s²' and the like: the gate that refused and its value."""
+    """'|a| = 12.3 m/s²' and the like: the gate that refused and its value, with its unit,
+    rounded to what the sensor can tell (the pills and the 3D label show this text)."""
     r: Reason = getattr(f, sensor)
     v = getattr(f, f"{sensor}_value")
     if not math.isfinite(v):
@@ -442,4 +446,12 @@ def describe_rejection(sensor: str, f) -> str:
         return f"NIS = {v:.1f}"
     if r == Reason.ACCEL:
         return f"accelerating, {math.degrees(v):.0f}° off gravity"
-    return f"{r.label} {v:.3g}"
+    if r == Reason.TURN:
+        return f"field turning {math.degrees(v):.0f}°/s more than the phone"
+    if r == Reason.GAP:
+        return f"gap of {v:.2f} s"
+    if r in (Reason.NEW_FIELD, Reason.OFFSET):
+        return f"{r.label.replace('_', ' ')} {v:.1f} µT"
+    if r == Reason.RECOVER:
+        return f"re-aligned by {math.degrees(v):.0f}°"
+    return f"{r.label.replace('_', ' ')} {v:.3g}"

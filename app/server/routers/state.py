@@ -1,4 +1,4 @@
-"""GET /api/state, GET /api/stats, WS /ws/state, POST /api/source/resume."""
+"""GET /api/state, GET /api/stats, WS /ws/state, WS /ws/plots, POST /api/source/resume."""
 
 import asyncio
 import contextlib
@@ -73,6 +73,47 @@ async def ws_state(ws: WebSocket) -> None:
         pass
     finally:
         engine.unsubscribe(sub)
+        watcher.cancel()
+        if sub.dropped:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(ws.close(code=1013), 1.0)
+
+
+@router.websocket("/ws/plots")
+async def ws_plots(ws: WebSocket) -> None:
+    """The live plots' points (what the landing page's plot panel draws): JSON messages,
+    at most 20 a second while samples come. The first (``"k": "s"``) holds the whole
+    window of every plot, each next one (``"k": "d"``) only the new points; a new stream
+    starts with a ``"s"`` message again. Columns as lists (``null``: a gap), time in s
+    since the stream started (one clock for every plot), at most 25 points a second per
+    sensor; see :class:`app.server.gui.plots.PlotFeed`. Watchers may listen too (read
+    only); a client that stops reading is dropped as on /ws/state."""
+    engine: Engine = ws.app.state.engine
+    if not websocket_origin_ok(ws):
+        await ws.close(code=1008)
+        return
+    await ws.accept()
+    sub = engine.subscribe_plots()
+
+    async def watch_close():
+        try:
+            while True:
+                await ws.receive_text()
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        sub.close()
+
+    watcher = asyncio.create_task(watch_close())
+    try:
+        while True:
+            msg = await sub.next()
+            if msg is None:
+                break
+            await asyncio.wait_for(ws.send_text(msg), WS_SEND_TIMEOUT_S)
+    except (WebSocketDisconnect, RuntimeError, OSError, asyncio.TimeoutError):
+        pass
+    finally:
+        engine.unsubscribe_plots(sub)
         watcher.cancel()
         if sub.dropped:
             with contextlib.suppress(Exception):
