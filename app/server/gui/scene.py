@@ -69,7 +69,7 @@ _CONE_FRAMES = (
 )
 
 
-def _phone_body(scene, name: str, color, opacity=None) -> None:
+def phone_body(scene, name: str, color, opacity=None) -> None:
     """A phone slab with its screen and top marked, under ``name``."""
     scene.add_box(f"{name}/body", color=color, dimensions=(W, H, D), opacity=opacity)
     scene.add_box(f"{name}/top", color=(255, 140, 0), dimensions=(W * 1.001, 0.06, D * 1.05),
@@ -252,7 +252,7 @@ class Scene:
                          anchor="center-center")
         # the estimate
         self.phone = sc.add_frame("/phone", show_axes=False)
-        _phone_body(sc, "/phone", (225, 225, 232))
+        phone_body(sc, "/phone", (225, 225, 232))
         sc.add_frame("/phone/axes", axes_length=AXIS_LEN, axes_radius=0.018, origin_radius=0.03)
         # one label per axis at its tip, nothing else on the phone: labels face the
         # camera, so more of them overlap when the phone turns (the orange band and the
@@ -271,9 +271,9 @@ class Scene:
                 cast_shadow=False, receive_shadow=False))
         # the phone's own estimate and the truth
         self.own = sc.add_frame("/phone_own", show_axes=False, visible=False)
-        _phone_body(sc, "/phone_own", (255, 150, 40), opacity=0.3)
+        phone_body(sc, "/phone_own", (255, 150, 40), opacity=0.3)
         self.truth = sc.add_frame("/truth", show_axes=False, visible=False)
-        _phone_body(sc, "/truth", (60, 200, 90), opacity=0.3)
+        phone_body(sc, "/truth", (60, 200, 90), opacity=0.3)
         # gravity and field arrows
         self.grav_expected = sc.add_arrows("/arrows/gravity_expected", _arrow_points(None),
                                            colors=GREY, position=tuple(GRAV_AT - [0.12, 0, 0]),

@@ -139,9 +139,9 @@ class VariantGhosts:
         for i, name in enumerate(variants):
             f = self.frames.get(name)
             if f is None:
-                from app.server.gui.scene import _phone_body
+                from app.server.gui.scene import phone_body
                 f = sc.add_frame(f"/variant_{name}", show_axes=False)
-                _phone_body(sc, f"/variant_{name}", GHOST_COLORS[i % len(GHOST_COLORS)], opacity=0.3)
+                phone_body(sc, f"/variant_{name}", GHOST_COLORS[i % len(GHOST_COLORS)], opacity=0.3)
                 sc.add_label(f"/variant_{name}/label", name, position=(0.0, -0.95, 0.0),
                              anchor="center-center")
                 self.frames[name] = f
