@@ -171,31 +171,6 @@ def test_editable_install_prints_no_setuptools_warning_box(tmp_path):
 
 # ---------------------------------------------------------------- orientlab compile
 
-def test_compile_into_an_empty_cache_says_each_filter_as_it_goes(tmp_path):
-    """A fresh clone's `make run`: `orientlab compile` into the empty __pycache__."""
-    copy = fresh_copy(tmp_path / "clone")
-    p = subprocess.Popen([sys.executable, "-m", "app.cli", "compile"], cwd=copy,
-                         env=env_for(copy, None), stdin=subprocess.DEVNULL,
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    out = Lines(p.stdout)
-    try:
-        rc = p.wait(timeout=SLOW_S)
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait()
-    out.join()
-    text = out.text()
-    assert rc == 0, text
-    assert "dropped" not in text, text            # nothing was cached: nothing to drop
-    for name in NAMES:
-        assert re.search(rf"\b{name} ready\b", text), text
-    silence = max_silence(out.lines, r"compiling \d+ estimators", r"done in")
-    assert silence <= MAX_SILENCE_S, f"{silence:.0f} s without a line while compiling:\n{text}"
-    assert re.search(r"compiling .*\(\d+ s\)", text), text     # what is being compiled, and since when
-    assert list((copy / "app" / "estimators" / "__pycache__").glob("*.nbi"))   # the clone's own cache
-
-
 # ---------------------------------------------------------------- orientlab serve
 
 def _get(url: str, timeout: float = 5.0) -> tuple[int, bytes]:

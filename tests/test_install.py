@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -183,6 +184,10 @@ def test_bare_compile_then_every_filter_estimates(bare, tmp_path):
     r = run([bare.exe("orientlab"), "compile"], bare.env(), tmp_path)
     for name in NAMES:
         assert f"{name} ready" in r.stderr, r.stderr
+    # output to a pipe, a cold cache: progress lines all along, nothing "dropped" (there
+    # was no cache to drop); tests/test_first_start.py times the lines of serve's compile
+    assert "dropped" not in r.stderr, r.stderr
+    assert re.search(r"compiling .*\(\d+ s\)", r.stderr), r.stderr
     n = write_motion_csv(tmp_path / "in.csv")
     for name in NAMES:
         out = tmp_path / f"{name}.csv"

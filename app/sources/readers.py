@@ -537,10 +537,20 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
 
     ok = line_tag >= 0
     tag_id, raw_t, vals = line_tag[ok], line_time[ok], line_vals[ok]
-    ordered = _order_like_orderer(tag_id, raw_t, SampleOrderer(window=window))
+    orderer = SampleOrderer(window=window)
+    ordered = _order_like_orderer(tag_id, raw_t, orderer)
     if ordered is None:
         return None     # late samples or clock jumps: the orderer's own rules apply
     mapped, glitch, offsets, first, popped_at = ordered
+    # a clock standing still fills the orderer's buffer past its bound (it then releases
+    # early, counted as forced): more samples than that within the span a sample may be
+    # held leaves the file to the orderer
+    held_ms = (orderer.window + orderer.max_delay) * 1000.0
+    srt = np.sort(mapped[~glitch])
+    if srt.size > orderer.max_buffered and \
+            (np.searchsorted(srt, srt + held_ms, side="right") - np.arange(srt.size)).max() \
+            > orderer.max_buffered:
+        return None
     if glitch.any():    # counted when the tag's next sample came (or at the end)
         line_of = np.concatenate((np.flatnonzero(ok), [n_lines]))
         reasons["time_jump"] = line_of[popped_at].tolist()
@@ -567,6 +577,7 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
         span = (times[-1] - times[0]) / 1000.0 if len(times) > 1 else 0.0
         rates[_TAGS[i]] = (len(times) - 1) / span if span > 0.0 else math.nan
     counts = {"malformed": malformed, "tags": counts_tags, "late": 0, "clamped": 0, "jumps": 0,
+              "forced": 0,
               "offsets_s": {_TAGS[i]: off / 1000.0 for i, off in offsets.items()},
               "rates_hz": rates, "lines": n_lines}
     if overflows:

@@ -98,7 +98,8 @@ def test_rerun_scores_against_the_truth_when_given(tmp_path):
 
 def test_calibration_json_has_the_same_numbers_as_orientlab_calibrate(shared_dir, tmp_path, capsys):
     path = shared_dir / "data" / "sensorfusion-app" / STILL
-    assert cli_main(["calibrate", str(path), "--out", str(tmp_path / "p.toml")]) == 0
+    # the standstill log is not stationary throughout: its preset is written only --force
+    assert cli_main(["calibrate", str(path), "--out", str(tmp_path / "p.toml"), "--force"]) == 0
     printed = capsys.readouterr().out
     rec = read_log_data(path)
     st = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
