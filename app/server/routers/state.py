@@ -47,11 +47,18 @@ async def ws_state(ws: WebSocket) -> None:
     :data:`app.server.engine.SUBSCRIBER_BACKLOG` messages behind, or when one message
     takes longer than ``WS_SEND_TIMEOUT_S`` to send; it never holds up the filter."""
     engine: Engine = ws.app.state.engine
+    await _serve(ws, engine.subscribe, engine.unsubscribe, lambda: {"state": engine.state()})
+
+
+async def _serve(ws: WebSocket, subscribe, unsubscribe, first=None) -> None:
+    """One subscriber's WebSocket: the Origin check, ``first()`` (if given) as the first
+    message, then every message of its outbox; a client that stops reading or takes
+    longer than ``WS_SEND_TIMEOUT_S`` for one message is dropped (close code 1013)."""
     if not websocket_origin_ok(ws):   # a foreign page's script may not listen in
         await ws.close(code=1008)
         return
     await ws.accept()
-    sub = engine.subscribe()
+    sub = subscribe()
 
     async def watch_close():
         try:
@@ -63,7 +70,8 @@ async def ws_state(ws: WebSocket) -> None:
 
     watcher = asyncio.create_task(watch_close())
     try:
-        await asyncio.wait_for(ws.send_json({"state": engine.state()}), WS_SEND_TIMEOUT_S)
+        if first is not None:
+            await asyncio.wait_for(ws.send_json(first()), WS_SEND_TIMEOUT_S)
         while True:
             msg = await sub.next()
             if msg is None:
@@ -72,7 +80,7 @@ async def ws_state(ws: WebSocket) -> None:
     except (WebSocketDisconnect, RuntimeError, OSError, asyncio.TimeoutError):
         pass
     finally:
-        engine.unsubscribe(sub)
+        unsubscribe(sub)
         watcher.cancel()
         if sub.dropped:
             with contextlib.suppress(Exception):
@@ -89,32 +97,4 @@ async def ws_plots(ws: WebSocket) -> None:
     sensor; see :class:`app.server.gui.plots.PlotFeed`. Watchers may listen too (read
     only); a client that stops reading is dropped as on /ws/state."""
     engine: Engine = ws.app.state.engine
-    if not websocket_origin_ok(ws):
-        await ws.close(code=1008)
-        return
-    await ws.accept()
-    sub = engine.subscribe_plots()
-
-    async def watch_close():
-        try:
-            while True:
-                await ws.receive_text()
-        except (WebSocketDisconnect, RuntimeError):
-            pass
-        sub.close()
-
-    watcher = asyncio.create_task(watch_close())
-    try:
-        while True:
-            msg = await sub.next()
-            if msg is None:
-                break
-            await asyncio.wait_for(ws.send_text(msg), WS_SEND_TIMEOUT_S)
-    except (WebSocketDisconnect, RuntimeError, OSError, asyncio.TimeoutError):
-        pass
-    finally:
-        engine.unsubscribe_plots(sub)
-        watcher.cancel()
-        if sub.dropped:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(ws.close(code=1013), 1.0)
+    await _serve(ws, engine.subscribe_plots, engine.unsubscribe_plots)
