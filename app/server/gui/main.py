@@ -457,6 +457,23 @@ def _deg3(v) -> str:
     return " ".join(f"{x:7.1f}°" for x in v) if v else "–"
 
 
+def _offset_row(diag: dict) -> list[tuple[str, str]]:
+    """robust's sensor-fixed field offset (a magnet on the phone): its status and size, with
+    the vector once it is found (none for an estimator without the fit)."""
+    status = diag.get("mag_offset_status")
+    if status is None:
+        return []
+    off = diag.get("mag_offset") or (0.0, 0.0, 0.0)
+    size = math.sqrt(sum(float(v) ** 2 for v in off))
+    if status == "none":
+        text = "none found"
+    else:
+        vec = "<code>" + " ".join(f"{float(v):.1f}" for v in off) + "</code> µT"
+        text = (f"<b>removed</b>: {size:.1f} µT {vec}" if status == "applied"
+                else f"fitting: {size:.1f} µT {vec}, not trusted yet")
+    return [("magnet on the phone", text)]
+
+
 def _readouts_html(st: dict) -> str:
     rates = ", ".join(f"{k} {v:.0f} Hz" for k, v in sorted(st["rates_hz"].items()) if v)
     c = st["counts"]
@@ -483,6 +500,7 @@ def _readouts_html(st: dict) -> str:
         ("rates", rates or "–"),
         ("acc updates", used("acc")),
         ("mag updates", used("mag")),
+        *_offset_row(st.get("diagnostics") or {}),
         ("lines", f"{c.get('lines', 0)} ({c.get('malformed', 0)} malformed, "
                   f"{c.get('late', 0)} late)"),
     ]
