@@ -85,13 +85,13 @@ def test_estimator_keys_win_and_primary_and_reset():
 
 def test_variants_through_a_change_and_presets_leave_them_alone():
     ensemble = Ensemble()
-    apply_change(ensemble, Change(add=[Variant("robust-no-rejection", "robust", {"mag_nis_gate": 0.0})]))
+    apply_change(ensemble, Change(add=[Variant("robust-no-rejection", "robust", {"mag_dip_gate": 0.0})]))
     assert ensemble.base_of("robust-no-rejection") == "robust"
-    ch = validate_patch(ensemble, {"estimators": {"robust-no-rejection": {"acc_nis_gate": 0.0}}})
+    ch = validate_patch(ensemble, {"estimators": {"robust-no-rejection": {"mag_norm_gate_rel": 0.0}}})
     apply_change(ensemble, ch)
     apply_change(ensemble, change_from_config(ensemble, {"primary": "lab", "lab": {"acc_std": 0.3}}))
     assert ensemble.params_of("lab").acc_std == 0.3 and ensemble.primary == "lab"
-    assert ensemble.params_of("robust-no-rejection").acc_nis_gate == 0.0
+    assert ensemble.params_of("robust-no-rejection").mag_norm_gate_rel == 0.0
     with pytest.raises(PatchError):
         apply_change(ensemble, Change(remove=["robust"]))
     apply_change(ensemble, Change(remove=["robust-no-rejection"]))

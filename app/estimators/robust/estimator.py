@@ -70,7 +70,6 @@ class RobustEKF(Estimator):
             if p.acc_band_rel > 0 else None,
             mag_band=(ref_n * (1 - p.mag_norm_gate_rel), ref_n * (1 + p.mag_norm_gate_rel))
             if p.mag_norm_gate_rel > 0 and ok else None,
-            acc_nis_gate=float(p.acc_nis_gate), mag_nis_gate=float(p.mag_nis_gate),
             mag_ref_norm=ref_n if ok else None,
             mag_ref_dip=dip if ok else None,
             acc_lp_world=vec3(s[S.acc_lp:S.acc_lp + 3]),

@@ -8,9 +8,7 @@
   (``mag_norm_gate_rel``, ``mag_dip_gate``); the first reference is a field stable for
   ``mag_first_field_time`` (never the first samples of a phone that starts moving); a
   new homogeneous field (stable strength and dip while the phone turns for
-  ``mag_new_field_time``) becomes the reference; after ``mag_max_reject`` seconds of
-  refusal the heading update resumes ``mag_reject_factor`` times slower. Within the
-  gates, a deviation from the reference adds heading noise (``mag_dev_weight``).
+  ``mag_new_field_time``) becomes the reference. Within the gates, a deviation from the reference adds heading noise (``mag_dev_weight``).
 - **Field turn test** (:func:`_turn_check`). A real field is fixed in the world: seen
   through the estimate (whose turns are the gyroscope's) it stays put while the phone
   turns. A magnet brought in over half a second turns the horizontal field by tens of
@@ -150,7 +148,6 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         s[S.ref_dip] = s[S.cand_dip]
         s[S.disturbed] = 0.0
         s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
-        s[S.reject_time] = 0.0
         f[F_MAG] = R_NEW_FIELD
         f[F_MAG_VAL] = s[S.ref_norm]
         return True
@@ -259,14 +256,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     if ok and hi == HI_APPLIED and f[F_MAG] == R_USED:
         f[F_MAG] = R_OFFSET
         f[F_MAG_VAL] = np.sqrt(s[S.hi_applied_x] ** 2 + s[S.hi_applied_y] ** 2 + s[S.hi_applied_z] ** 2)
-    scale = 1.0
-    if ok:
-        s[S.reject_time] = max(s[S.reject_time] - p[PRM.mag_reject_factor] * dt, 0.0)
-    elif p[PRM.mag_max_reject] > 0.0 and s[S.reject_time] > p[PRM.mag_max_reject]:
-        # refused for long: a field that stays is the field; resume, slower (still flagged)
-        scale = p[PRM.mag_reject_factor]
-    else:
-        s[S.reject_time] += dt
+    if not ok:
         return
     # the samples used are averaged in the world frame; the heading correction with
     # their mean runs at most at update_rate_hz
@@ -288,7 +278,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     m_mean[0], m_mean[1], m_mean[2] = mx, my, mz
     innov = heading_innovation(m_mean)
     Rm = np.empty((1, 1))
-    Rm[0, 0] = (scale * p[PRM.heading_noise]) ** 2 / elapsed
+    Rm[0, 0] = p[PRM.heading_noise] ** 2 / elapsed
     if s[S.ref_ok] != 0.0 and p[PRM.mag_dev_weight] > 0.0:
         # a field off its reference by Δ (strength change, or |m|·Δdip) can turn the
         # horizontal field by up to Δ/|m_h|: that much heading noise, within the gates too
@@ -297,7 +287,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         dd = s[S.mag_nd_norm] * (s[S.mag_nd_dip] - s[S.ref_dip])
         Rm[0, 0] += p[PRM.mag_dev_weight] ** 2 * (dn * dn + dd * dd) / max(nh * nh, 1e-6)
     H = heading_jacobian(m_mean)
-    gate = p[PRM.mag_nis_gate]
+    gate = 0.0      # no NIS gate: the field's own tests judge it (a gate was inert on every trial)
     lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]
     if s[S.prob] != 0.0 and not has_rate:
         s[S.prob] = 0.0     # no gyroscope heading to test the field against: the field is all
@@ -326,7 +316,6 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
         # the bias learned meanwhile (from a heading that was wrong) is dropped.
         P[2, 2] += innov[0] ** 2
-        gate = 0.0
         s[S.bias:S.bias + 3] = s[S.bias_good:S.bias_good + 3]
     ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING)
     f[F_MAG_NIS] = nis

@@ -74,7 +74,6 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.mag_sum:S.mag_sum + 3] = 0.0
     s[S.mag_upd_time] = 0.0
     s[S.ref_ok] = 0.0
-    s[S.reject_time] = 0.0
     s[S.cand_time] = 0.0
     s[S.far_time] = 0.0
     s[S.mag_nd_ok] = 0.0

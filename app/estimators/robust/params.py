@@ -86,12 +86,8 @@ class RobustParams(CommonParams):
                                                       "the low-pass); 0: off")
     acc_flag_rel: float = param(0.1, lo=0.0, hi=5.0,
                                 doc="likewise when | |a| - g | > this × g; 0: off")
-    acc_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
-                                doc="NIS gate of the tilt update (χ², 2 dof); 0: off")
     heading_noise: float = param(0.15, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                                  user_scale=DEG, doc="noise density of the magnetometer heading")
-    mag_nis_gate: float = param(30.0, lo=0.0, hi=1000.0,
-                                doc="NIS gate of the heading update (χ², 1 dof); 0: off")
     mag_norm_gate_rel: float = param(0.15, lo=0.0, hi=2.0,
                                      doc="field strength may differ from the reference by this fraction; 0: off")
     mag_dip_gate: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
@@ -102,13 +98,6 @@ class RobustParams(CommonParams):
                                       doc="a new homogeneous field is accepted after this long while turning")
     mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
                                     user_scale=DEG, doc="turn rate that counts towards accepting a new field")
-    mag_max_reject: float = param(60.0, unit="s", lo=0.0, hi=3600.0,
-                                  doc="after this long refused as disturbed, the heading update resumes "
-                                      "mag_reject_factor times slower (a field that stays is the field); "
-                                      "0: never")
-    mag_reject_factor: float = param(2.0, lo=1.0, hi=100.0,
-                                     doc="heading noise multiplier of the resumed updates in a field "
-                                         "judged disturbed; the rejection budget refills this much faster")
     mag_dev_weight: float = param(1.0, lo=0.0, hi=100.0,
                                   doc="heading σ added per relative deviation of the field from its "
                                       "reference (Δ/|m_h|), within the gates too; 0: off")
@@ -188,10 +177,9 @@ class RobustParams(CommonParams):
                                   user_scale=DEG, doc="an undisturbed field this far from the estimated "
                                                       "heading for mag_lost_time means the estimate is lost")
     mag_lost_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
-                                 doc="after this long with an undisturbed field far from the heading (or "
-                                     "refused by the NIS gate), the estimate is judged lost: its heading σ "
-                                     "grows to the error and the field's heading is taken (flag RECOVER); "
-                                     "0: never")
+                                 doc="after this long with an undisturbed field far from the heading, the "
+                                     "estimate is judged lost: its heading σ grows to the error and the "
+                                     "field's heading is taken (flag RECOVER); 0: never")
     init_tilt_std: float = param(10.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",
                                  user_scale=DEG, doc="σ of the tilt after the initial alignment")
     init_heading_std: float = param(20.0 * math.pi / 180.0, unit="rad", lo=1e-4, hi=3.2, user_unit="deg",

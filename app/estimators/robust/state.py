@@ -36,7 +36,6 @@ STATE = (
     ("cand_norm", 1, "candidate new field: strength (µT)"),
     ("cand_dip", 1, "candidate new field: dip (rad)"),
     ("cand_time", 1, "s the candidate has been stable while turning"),
-    ("reject_time", 1, "s of continuous magnetic rejection"),
     ("t0", 1, "time of the alignment"),
     ("mag_t", 1, "time of the last magnetometer update attempt"),
     ("acc_t", 1, "time of the last accelerometer sample"),

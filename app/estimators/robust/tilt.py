@@ -135,7 +135,7 @@ def acc_update(s, P, p, t, acc, f):
     # low-pass, correlated for seconds, which a white-noise model would let the bias absorb
     # (the bias is learned from the corrections' rate below, slowly, as VQF does)
     lp_frac = _tilt_lp_share(P, r, dt, p) if p[PRM.tilt_damping] > 0.0 else 1.0
-    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), p[PRM.acc_nis_gate], _MASK_ATTITUDE)
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), 0.0, _MASK_ATTITUDE)
     f[F_ACC_NIS] = nis
     if ok:
         inject(s, P, dx, lp_frac)

@@ -75,18 +75,15 @@ EFFECT = {
                "tilt corrections lag more",
     "tilt_damping": "raising it makes the tilt loop slower to answer a drifting gyroscope, with less "
                     "overshoot (none from 1); 0: off (overdamped)",
-    "acc_nis_gate": "raising it refuses fewer tilt updates; 0: off",
     "heading_noise": "raising it trusts the magnetometer heading less: slower heading corrections",
     "refused_turn_noise": "raising it makes the heading jump back sooner when the field returns after "
                           "a long refusal while the phone turned; 0: off (the steady, slow rate)",
-    "mag_nis_gate": "raising it refuses fewer heading updates; 0: off",
     "mag_norm_gate_rel": "raising it accepts field strengths farther from the learned one "
                          "(fewer rejections, magnets disturb more); 0: off",
     "mag_dip_gate": "raising it accepts dip angles farther from the learned one; 0: off",
     "mag_ref_tau": "raising it makes the learned field reference follow slow changes more slowly",
     "mag_new_field_time": "raising it waits longer before a new, stable field is accepted",
     "mag_new_min_rate": "raising it needs faster turning before a new field is accepted",
-    "mag_max_reject": "raising it keeps rejecting a changed field longer before re-learning it; 0: never",
     "rest_gyr_th": "raising it detects rest while the phone still moves slightly",
     "rest_acc_th": "raising it detects rest while the phone still moves slightly",
     "rest_time": "raising it needs a longer quiet time before 'standstill'; 0: no rest detection",
