@@ -37,6 +37,8 @@ MECHANISMS = {
     "dip gate": {"mag_dip_gate": 0.0},
     "field turn test": {"mag_turn_gate": 0.0},
     "heading noise from field deviation": {"mag_dev_weight": 0.0},
+    "heading noise measured from the data (evidence)": {"heading_evidence_tau": 0.0},
+    "evidence off, heading_noise back to 0.15": {"heading_evidence_tau": 0.0, "heading_noise": 0.15},
     "never lost (recover)": {"mag_lost_time": 0.0},
     "new field acceptance": {"mag_new_field_time": 600.0},
     "refused-turn heading noise": {"refused_turn_noise": 0.0},

@@ -33,7 +33,8 @@ import evalkit  # noqa: E402
 from app.estimators.robust import RobustParams  # noqa: E402
 
 # the parameters a fold may set (each ×0.5 / ×1 / ×2 of its default)
-GRID = ("heading_noise", "tilt_noise", "mag_norm_gate_rel", "mag_dip_gate", "hard_iron_window")
+GRID = ("heading_noise", "heading_evidence_tau", "tilt_noise", "mag_norm_gate_rel", "mag_dip_gate",
+        "hard_iron_window")
 
 
 def candidates():

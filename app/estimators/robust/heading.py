@@ -44,6 +44,11 @@ from app.estimators.robust.state import DT_MAX, S, inject, lp_coef, rotate3, upd
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 
+# The heading evidence (heading_evidence_tau) first low-passes the field's heading over this (s):
+# a magnetometer's white noise and a stride's swing average out; what is left is correlated over
+# about this long, so its variance v stands for the noise density 2 v HV_SMOOTH
+HV_SMOOTH = 0.5
+
 # The turn (rad) over which a field's heading must stay consistent after a refusal before the
 # heading σ grown during the refusal is let act: a quarter turn, over which a magnet's bias on
 # the heading (near the phone or on it) changes with the attitude by most of its range
@@ -204,6 +209,32 @@ def _turn_check(s, p, mw, dt, rate, has_rate):
 
 
 @njit(cache=True)
+def _heading_evidence(s, p, innov, elapsed):
+    """The field's heading noise now, from the data (a noise density, rad²·s). The innovation
+    plus the corrections applied so far is the field's heading less the gyroscope's alone:
+    the filter's own corrections do not move it, the gyroscope drifts it slowly (its bias, at
+    most a few 0.01 rad/s), the field moves it as fast as the phone meets its unevenness
+    (indoors, near steel) or turns a residual offset about. Low-passed over ``HV_SMOOTH``
+    (white noise out), its variance ``v`` about its mean over ``heading_evidence_tau`` is the
+    field's wander: as noise correlated over ``HV_SMOOTH`` its density is ``2 v HV_SMOOTH``."""
+    z = innov + s[S.hv_corr]
+    if s[S.hv_ok] == 0.0:
+        s[S.hv_fast] = z
+        s[S.hv_mean] = z
+        s[S.hv_var] = 0.0
+        s[S.hv_ok] = 1.0
+        return 0.0
+    d = z - s[S.hv_fast]
+    d = (d + np.pi) % (2.0 * np.pi) - np.pi           # headings wrap
+    s[S.hv_fast] += lp_coef(elapsed, HV_SMOOTH) * d
+    k = lp_coef(elapsed, p[PRM.heading_evidence_tau])
+    d = s[S.hv_fast] - s[S.hv_mean]
+    s[S.hv_mean] += k * d
+    s[S.hv_var] += k * (d * d - s[S.hv_var])
+    return 2.0 * s[S.hv_var] * HV_SMOOTH
+
+
+@njit(cache=True)
 def _far(s, elapsed):
     """The heading disagrees with an undisturbed field: count the time; at its start,
     keep the bias estimate (what follows may be learned from a wrong heading)."""
@@ -253,6 +284,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         s[S.prob_turn] = 0.0
         s[S.prob_lo] = np.inf
         s[S.prob_hi] = -np.inf
+        s[S.hv_ok] = 0.0        # the gyroscope drifted meanwhile: the evidence starts afresh
     if ok and hi == HI_APPLIED and f[F_MAG] == R_USED:
         f[F_MAG] = R_OFFSET
         f[F_MAG_VAL] = np.sqrt(s[S.hi_applied_x] ** 2 + s[S.hi_applied_y] ** 2 + s[S.hi_applied_z] ** 2)
@@ -289,6 +321,12 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     H = heading_jacobian(m_mean)
     gate = 0.0      # no NIS gate: the field's own tests judge it (a gate was inert on every trial)
     lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]
+    if p[PRM.heading_evidence_tau] > 0.0 and has_rate and not lost:
+        Rm[0, 0] += _heading_evidence(s, p, innov[0], elapsed) / elapsed
+    else:
+        # without a gyroscope there is no heading to measure the field against; a lost
+        # estimate's jump is no wander of the field: the evidence starts afresh
+        s[S.hv_ok] = 0.0
     if s[S.prob] != 0.0 and not has_rate:
         s[S.prob] = 0.0     # no gyroscope heading to test the field against: the field is all
     if s[S.prob] != 0.0 and not lost:
@@ -321,6 +359,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     f[F_MAG_NIS] = nis
     if ok2:
         inject(s, P, dx)
+        s[S.hv_corr] += dx[2]
         if not lost and p[PRM.bias_heading_noise] > 0.0 and s[S.rest] == 0.0:
             s[S.mb_sum_z] += dx[2]
             s[S.mb_time_heading] += elapsed

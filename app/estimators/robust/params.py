@@ -86,8 +86,18 @@ class RobustParams(CommonParams):
                                                       "the low-pass); 0: off")
     acc_flag_rel: float = param(0.1, lo=0.0, hi=5.0,
                                 doc="likewise when | |a| - g | > this × g; 0: off")
-    heading_noise: float = param(0.15, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
-                                 user_scale=DEG, doc="noise density of the magnetometer heading")
+    heading_noise: float = param(0.1, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
+                                 user_scale=DEG,
+                                 doc="noise density of the magnetometer heading in a steady field (the "
+                                     "field's wander measured now adds to it: heading_evidence_tau)")
+    heading_evidence_tau: float = param(2.0, unit="s", lo=0.0, hi=600.0,
+                                        doc="the field's heading noise measured from the data: the field's "
+                                            "heading less the gyroscope's (which the corrections do not move) "
+                                            "wanders while the phone moves through an uneven field or turns "
+                                            "with a residual offset; its variance v about its mean over this "
+                                            "window (a few strides, a turn of the hand: short against the "
+                                            "heading's time constant of tens of seconds) adds 2 v × 0.5 s to "
+                                            "heading_noise² (a noise correlated over 0.5 s); 0: off")
     mag_norm_gate_rel: float = param(0.15, lo=0.0, hi=2.0,
                                      doc="field strength may differ from the reference by this fraction; 0: off")
     mag_dip_gate: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,

@@ -93,6 +93,12 @@ STATE = (
     ("prob_hi", 1, "probation: largest heading innovation seen (rad)"),
     ("prob_turn", 1, "probation: turn (rad) over which the innovations stayed consistent"),
     ("mag_c", 3, "scratch: the field sample with the offset removed"),
+    ("hv_corr", 1, "heading evidence: the heading corrections applied so far (rad)"),
+    ("hv", ("fast", "mean", "var"), "heading evidence: the field's heading less the gyroscope's, "
+                                    "low-passed over HV_SMOOTH (rad); that low-passed over "
+                                    "heading_evidence_tau (rad); its squared deviation from it, "
+                                    "low-passed likewise (rad²)"),
+    ("hv_ok", 1, "1 once the heading evidence's low-passes hold a value"),
 )
 # slots that start as NaN ("not yet")
 STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
