@@ -1,7 +1,9 @@
 """The gyroscope bias: learned at rest, and in motion from the rate of the corrections.
 
-- **Rest detection** (gyroscope and accelerometer both quiet for ``rest_time``):
-  the low-passed gyroscope is then a direct measurement of the bias.
+- **Rest detection** (gyroscope and accelerometer both quiet for ``rest_time``, and the
+  gyroscope reading no more than a plausible bias, ``bias_max``: a steady turn about the
+  vertical is as quiet as rest): the low-passed gyroscope is then a direct measurement of
+  the bias.
 - **Bias in motion from the correction rates** (VQF's motion bias estimation, through
   the same ``correct``). The tilt and heading updates correct the attitude only: their
   errors (specific force left in the low-pass, a field bent indoors) last for seconds,
@@ -62,6 +64,12 @@ def rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
     quiet = True
     if has_gyr and _lp_sensor(s, S.gyr_lp, S.gyr_lp_t, gyr, t, p[PRM.rest_lp_tau]) > p[PRM.rest_gyr_th]:
         quiet = False
+    if has_gyr and p[PRM.bias_max] > 0.0 and quiet:
+        # a steady turn about the vertical (a turntable, a swivel chair) leaves gyroscope and
+        # accelerometer as constant as rest does: a rate above any plausible bias is a turn
+        g2 = s[S.gyr_lp] ** 2 + s[S.gyr_lp + 1] ** 2 + s[S.gyr_lp + 2] ** 2
+        if g2 > p[PRM.bias_max] ** 2:
+            quiet = False
     if has_acc and _lp_sensor(s, S.acc_lp_rest, S.acc_lp_rest_t, acc, t, p[PRM.rest_lp_tau]) > p[PRM.rest_acc_th]:
         quiet = False
     s[S.quiet_time] = s[S.quiet_time] + dt if quiet else 0.0

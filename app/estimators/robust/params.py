@@ -28,8 +28,10 @@ class RobustParams(CommonParams):
     bias_noise: float = param(3e-5, unit="rad/s/√s", lo=0.0, hi=0.1, log=True, user_unit="deg/s/√s",
                               user_scale=DEG, doc="gyroscope bias random walk")
     bias_max: float = param(0.3, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s", user_scale=DEG,
-                            doc="a bias estimate above this is implausible (the filter is lost): it "
-                                "is reset and flagged; 0: off")
+                            doc="the largest plausible gyroscope bias (a phone's reach 0.05-0.1 rad/s): "
+                                "a bias estimate above it is reset and flagged (the filter is lost), a "
+                                "reading above it is no rest (a steady turn on a turntable or a swivel "
+                                "chair reads as constant as rest); 0: off")
     gyr_scale_noise: float = param(0.02, unit="√s", lo=0.0, hi=1.0,
                                    doc="tilt noise density per rad/s of net turn rate (the world-frame "
                                        "turn rate low-passed over acc_tau): a gyroscope's scale factor, off "
@@ -136,10 +138,13 @@ class RobustParams(CommonParams):
                                 doc="the turn test's time scale: the world-frame field low-passed over "
                                     "mag_norm_dip_tau is low-passed again over this, a change at rate r "
                                     "leaves it behind by r × this; the turn rate is low-passed over it too")
-    mag_delay: float = param(0.0, unit="s", lo=-0.1, hi=0.1,
-                             doc="the magnetometer's samples lag the gyroscope's by this (its output "
-                                 "filter, a slower sampling): each field sample is turned forward by "
-                                 "the gyroscope's rate × this before use; 0: off")
+    mag_delay: float = param(0.005, unit="s", lo=-0.1, hi=0.1,
+                             doc="the magnetometer's samples lag the gyroscope's by this: each field "
+                                 "sample is turned forward by the gyroscope's rate × this before use "
+                                 "(above 300 °/s a 5 ms lag is 1.5° of heading). A sample stands for "
+                                 "the field over its conversion, stamped at its end: half the period "
+                                 "of a 100 Hz magnetometer (a phone's usual rate) is 5 ms; a research "
+                                 "IMU's was measured at 1-2 samples of 286 Hz (3.5-7 ms); 0: off")
     hard_iron_window: float = param(10.0, unit="s", lo=0.0, hi=600.0,
                                     doc="a magnet fixed to the phone (a case, a mount) is a constant offset "
                                         "in the sensor frame: it is fitted online, the field's samples on a "
