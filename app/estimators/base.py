@@ -399,6 +399,12 @@ class Diagnostics:
     mag_offset_status: str | None = None
     """robust: "none" (no offset found), "tracking" (an offset found, not yet trusted) or
     "applied" (removed from every field sample)."""
+    heading_wander: float | None = None
+    """robust: the field's heading wander measured now against the gyroscope's, √v (rad; see
+    ``heading_evidence_tau``); 0 before it is measured."""
+    heading_noise_now: float | None = None
+    """robust: the heading noise density in use now, √(heading_noise² + 2 v · 0.5 s) (rad·√s):
+    the larger, the longer the gyroscope alone is trusted."""
     # --- complementary
     alpha: float | None = None
     """Gyro weight α = τ/(τ+dt) of the last blend (NaN: none made yet; 0: compass only)."""

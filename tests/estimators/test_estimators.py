@@ -442,7 +442,8 @@ def test_save_state_and_load_state_mid_stream_equals_one_run(name):
 # other field is None
 DIAG_FIELDS = {
     "robust": {"g0", "m0", "acc_band", "mag_band", "mag_ref_norm",
-               "mag_ref_dip", "acc_lp_world", "gyr_bias", "rest", "mag_offset", "mag_offset_status"},
+               "mag_ref_dip", "acc_lp_world", "gyr_bias", "rest", "mag_offset", "mag_offset_status",
+               "heading_wander", "heading_noise_now"},
     "lab": {"g0", "m0", "acc_band", "mag_band", "L_k", "acc_nis_gate", "mag_nis_gate", "nis_gate"},
     "complementary": {"alpha", "am_yaw", "am_pitch", "am_roll", "tau", "ma_window"},
     "phone": {"ori_t", "ori_age"},

@@ -52,10 +52,19 @@ def test_the_panel_shows_a_magnet_on_the_phone_found_and_removed():
     assert np.linalg.norm(np.asarray(vec) - OFFSET) < 2.0, last
     # on the way it was found before it was trusted
     assert any(x.startswith("fitting") for x in seen), seen
+    # the heading noise the data sets now, beside it
+    html = _readouts_html(state(core))
+    m = re.search(r"field's heading noise</td><td>([\d.]+) deg·√s \(the field wanders ([\d.]+)°\)", html)
+    assert m, html
+    d = core.ensemble.estimator("robust").diagnostics()
+    assert float(m[1]) == round(np.degrees(d.heading_noise_now), 1) >= round(np.degrees(
+        core.ensemble.params_of("robust").heading_noise), 1)
+    assert float(m[2]) == round(np.degrees(d.heading_wander), 1)
 
 
 def test_estimators_without_the_fit_show_no_offset_row():
-    assert "magnet on the phone" not in _readouts_html({**_min_state(), "diagnostics": {}})
+    html = _readouts_html({**_min_state(), "diagnostics": {}})
+    assert "magnet on the phone" not in html and "heading noise" not in html
 
 
 def _min_state() -> dict:

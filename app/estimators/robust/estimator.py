@@ -11,6 +11,7 @@ import numpy as np
 
 from app.estimators.base import Diagnostics, Estimator, vec3
 from app.estimators.robust.hardiron import HI_STATUS
+from app.estimators.robust.heading import HV_SMOOTH
 from app.estimators.robust.kernel import robust_run, robust_step
 from app.estimators.robust.params import GRAVITY, RobustParams, param_vector
 from app.estimators.robust.state import S, new_state
@@ -62,6 +63,7 @@ class RobustEKF(Estimator):
         p, s = self._params, self._s
         ok = bool(s[S.ref_ok])
         ref_n, dip = float(s[S.ref_norm]), float(s[S.ref_dip])
+        wander = float(s[S.hv_var]) if s[S.hv_ok] and p.heading_evidence_tau > 0 else 0.0
         return Diagnostics(
             g0=(0.0, 0.0, GRAVITY),
             # the expected field in world coordinates (µT): north and the learned dip
@@ -77,6 +79,8 @@ class RobustEKF(Estimator):
             rest=bool(s[S.rest]),
             mag_offset=vec3(s[S.hi_o:S.hi_o + 3]),
             mag_offset_status=HI_STATUS[int(s[S.hi_status])],
+            heading_wander=float(np.sqrt(wander)),
+            heading_noise_now=float(np.sqrt(p.heading_noise ** 2 + 2.0 * wander * HV_SMOOTH)),
         )
 
     @property

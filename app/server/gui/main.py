@@ -474,6 +474,17 @@ def _offset_row(diag: dict) -> list[tuple[str, str]]:
     return [("magnet on the phone", text)]
 
 
+def _heading_noise_row(diag: dict) -> list[tuple[str, str]]:
+    """robust's heading noise as the data sets it now: the field's heading wander against the
+    gyroscope's and the noise density it leads to (the larger, the longer the gyroscope alone
+    is trusted); none for an estimator without it."""
+    now, wander = diag.get("heading_noise_now"), diag.get("heading_wander")
+    if now is None or wander is None:
+        return []
+    return [("field's heading noise",
+             f"{math.degrees(now):.1f} deg·√s (the field wanders {math.degrees(wander):.1f}°)")]
+
+
 def _readouts_html(st: dict) -> str:
     rates = ", ".join(f"{k} {v:.0f} Hz" for k, v in sorted(st["rates_hz"].items()) if v)
     c = st["counts"]
@@ -501,6 +512,7 @@ def _readouts_html(st: dict) -> str:
         ("acc updates", used("acc")),
         ("mag updates", used("mag")),
         *_offset_row(st.get("diagnostics") or {}),
+        *_heading_noise_row(st.get("diagnostics") or {}),
         ("lines", f"{c.get('lines', 0)} ({c.get('malformed', 0)} malformed, "
                   f"{c.get('late', 0)} late)"),
     ]
