@@ -40,7 +40,8 @@ H_BIAS = np.hstack((np.zeros((3, 3)), np.eye(3)))  # at rest the low-passed gyro
 @njit(cache=True)
 def _lp_sensor(s, idx, idx_t, v, t, tau):
     """Low-pass ``s[idx:idx+3]`` towards v with the time since that sensor's last
-    sample (a phone sends one sensor per row); returns |v - low-pass|."""
+    sample (a phone sends one sensor per row); returns |v - low-pass|² (squared: the
+    caller compares it with a squared threshold, no root per row)."""
     if np.isnan(s[idx_t]):
         s[idx:idx + 3] = v
         s[idx_t] = t
@@ -51,7 +52,7 @@ def _lp_sensor(s, idx, idx_t, v, t, tau):
     for i in range(3):
         s[idx + i] += k * (v[i] - s[idx + i])
         d2 += (v[i] - s[idx + i]) ** 2
-    return np.sqrt(d2)
+    return d2
 
 
 @njit(cache=True)
@@ -62,7 +63,7 @@ def rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
         s[S.rest] = 0.0
         return
     quiet = True
-    if has_gyr and _lp_sensor(s, S.gyr_lp, S.gyr_lp_t, gyr, t, p[PRM.rest_lp_tau]) > p[PRM.rest_gyr_th]:
+    if has_gyr and _lp_sensor(s, S.gyr_lp, S.gyr_lp_t, gyr, t, p[PRM.rest_lp_tau]) > p[PRM.rest_gyr_th] ** 2:
         quiet = False
     if has_gyr and p[PRM.bias_max] > 0.0 and quiet:
         # a steady turn about the vertical (a turntable, a swivel chair) leaves gyroscope and
@@ -70,7 +71,8 @@ def rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
         g2 = s[S.gyr_lp] ** 2 + s[S.gyr_lp + 1] ** 2 + s[S.gyr_lp + 2] ** 2
         if g2 > p[PRM.bias_max] ** 2:
             quiet = False
-    if has_acc and _lp_sensor(s, S.acc_lp_rest, S.acc_lp_rest_t, acc, t, p[PRM.rest_lp_tau]) > p[PRM.rest_acc_th]:
+    if has_acc and _lp_sensor(s, S.acc_lp_rest, S.acc_lp_rest_t, acc, t,
+                              p[PRM.rest_lp_tau]) > p[PRM.rest_acc_th] ** 2:
         quiet = False
     s[S.quiet_time] = s[S.quiet_time] + dt if quiet else 0.0
     s[S.rest] = 1.0 if s[S.quiet_time] >= p[PRM.rest_time] else 0.0

@@ -232,8 +232,8 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
             rate = np.sqrt(bx * bx + by * by + bz * bz)
         mag_update(s, P, p, t, mag, rate, not np.isnan(w[0]), f)
     if p[PRM.bias_max] > 0.0:
-        bn = qm.norm3(s[S.bias:S.bias + 3])
-        if bn > p[PRM.bias_max]:
+        b2 = s[S.bias_x] ** 2 + s[S.bias_y] ** 2 + s[S.bias_z] ** 2
+        if b2 > p[PRM.bias_max] ** 2:
             # no phone's gyroscope is that far off: the estimate is lost, not the sensor
             for i in range(3):
                 s[S.bias + i] = p[PRM.gyr_bias + i]
