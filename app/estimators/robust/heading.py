@@ -44,6 +44,12 @@ from app.estimators.robust.state import DT_MAX, S, inject, lp_coef, rotate3, upd
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 
+# A candidate new field stays one while its strength and dip stay within the gates; with a gate
+# off, within these (a magnetometer's noise and a room's variation: 5 %, 3°). They were
+# parameters (mag_cand_norm_rel, mag_cand_dip) that acted only below the gates: never by default
+CAND_OFF_NORM_REL = 0.05
+CAND_OFF_DIP = 0.05
+
 # The heading evidence (heading_evidence_tau) first low-passes the field's heading over this (s):
 # a magnetometer's white noise and a stride's swing average out; what is left is correlated over
 # about this long, so its variance v stands for the noise density 2 v HV_SMOOTH
@@ -104,8 +110,8 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
     # candidate for a new homogeneous field: stable strength and dip (while turning)
     cn_dev = abs(nf - s[S.cand_norm]) / max(s[S.cand_norm], 1e-6)
     cd_dev = abs(df - s[S.cand_dip])
-    if (cn_dev <= max(p[PRM.mag_norm_gate_rel], p[PRM.mag_cand_norm_rel])
-            and cd_dev <= max(p[PRM.mag_dip_gate], p[PRM.mag_cand_dip])):
+    if (cn_dev <= (p[PRM.mag_norm_gate_rel] if p[PRM.mag_norm_gate_rel] > 0.0 else CAND_OFF_NORM_REL)
+            and cd_dev <= (p[PRM.mag_dip_gate] if p[PRM.mag_dip_gate] > 0.0 else CAND_OFF_DIP)):
         if rate >= p[PRM.mag_new_min_rate] or s[S.ref_ok] == 0.0:
             s[S.cand_time] += dt
         kc = lp_coef(dt, p[PRM.mag_cand_tau]) if dt > 0 else 0.0

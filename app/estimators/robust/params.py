@@ -183,11 +183,6 @@ class RobustParams(CommonParams):
                                    "low-passes the samples are compared with")
     mag_cand_tau: float = param(2.0, unit="s", lo=0.0, hi=60.0,
                                 doc="time constant of the candidate new field's strength and dip")
-    mag_cand_norm_rel: float = param(0.05, lo=0.0, hi=2.0,
-                                     doc="a candidate new field stays one while its strength stays within "
-                                         "this fraction (at least mag_norm_gate_rel)")
-    mag_cand_dip: float = param(0.05, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
-                                doc="likewise for its dip angle (at least mag_dip_gate)")
     mag_lost_angle: float = param(30.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
                                   user_scale=DEG, doc="an undisturbed field this far from the estimated "
                                                       "heading for mag_lost_time means the estimate is lost")

@@ -60,8 +60,6 @@ EFFECT = {
     "rw_noise": "raising it lets the estimate move faster (and noisier) when the gyroscope is off",
     "rest_lp_tau": "raising it smooths the rest detector's low-passes more (slower to see rest)",
     "mag_cand_tau": "raising it averages a candidate new field longer",
-    "mag_cand_norm_rel": "raising it lets a candidate new field vary more in strength",
-    "mag_cand_dip": "raising it lets a candidate new field vary more in dip",
     "mag_nis_reset_time": "raising it keeps refusing heading updates longer before the gate opens",
     "mag_relearn_std": "raising it lets the heading move more after the field is re-learned",
     "init_tilt_std": "raising it lets the first tilt corrections move the estimate more",
