@@ -19,13 +19,14 @@ from app.toolkit.errors import ToolError
 
 def no_rejection_changes(base: str) -> dict[str, Any]:
     """The parameter changes that turn off every gate of estimator ``base``: fields
-    named ``*gate*``, ``*band*`` or ``*dev_weight*`` (a deviating field trusted less)
-    whose help says ``0: off`` get 0; optional absolute bands (``*_band_uT``) get None."""
+    named ``*gate*``, ``*band*``, ``*dev_weight*`` (a deviating field trusted less) or
+    ``*evidence*`` (a wandering field trusted less) whose help says ``0: off`` get 0;
+    optional absolute bands (``*_band_uT``) get None."""
     out: dict[str, Any] = {}
     for f in dataclasses.fields(estimator_class(base).Params):
         name, meta = f.name, f.metadata
-        if not any(k in name for k in ("gate", "band", "dev_weight")):
-            continue   # gates, bands and the de-weighting of a deviating field
+        if not any(k in name for k in ("gate", "band", "dev_weight", "evidence")):
+            continue   # gates, bands and the de-weighting of a deviating or wandering field
         if meta.get("optional") and name.endswith("_uT"):
             out[name] = None
         elif "0: off" in (meta.get("doc") or ""):

@@ -15,8 +15,11 @@ explained in the module that does it:
   (``gyr_scale_noise``), **the heading's σ grows with the turn while the field is
   refused** (``refused_turn_noise``), the reset of an implausible bias (``bias_max``).
 - :mod:`.heading`: **heading only from the magnetometer**, **magnetic disturbance
-  detection** (VQF's logic), **the field turn test**, **never lost** (RECOVER).
-- :mod:`.bias`: **rest detection**, **bias in motion from the correction rates**.
+  detection** (VQF's logic), **the field turn test**, **the heading's noise measured from
+  the data** (``heading_evidence_tau``: the field's wander against the gyroscope slows the
+  correction; docs/filter.md), **never lost** (RECOVER).
+- :mod:`.bias`: **rest detection** (a steady spin above ``bias_max`` is no rest), **bias in
+  motion from the correction rates**.
 - :mod:`.hardiron`: **a sensor-fixed magnetic offset tracked online** (a magnet on the
   phone: a causal sphere fit, applied only when the corrected field is the earth's; flag
   OFFSET, ``Diagnostics.mag_offset``); :mod:`.heading` also makes **a return to the field

@@ -8,7 +8,10 @@
   (``mag_norm_gate_rel``, ``mag_dip_gate``); the first reference is a field stable for
   ``mag_first_field_time`` (never the first samples of a phone that starts moving); a
   new homogeneous field (stable strength and dip while the phone turns for
-  ``mag_new_field_time``) becomes the reference. Within the gates, a deviation from the reference adds heading noise (``mag_dev_weight``).
+  ``mag_new_field_time``) becomes the reference. Within the gates, a deviation from the
+  reference adds heading noise (``mag_dev_weight``).
+- **The field's heading noise measured from the data** (:func:`_heading_evidence`,
+  ``heading_evidence_tau``): the field's wander against the gyroscope slows the correction.
 - **Field turn test** (:func:`_turn_check`). A real field is fixed in the world: seen
   through the estimate (whose turns are the gyroscope's) it stays put while the phone
   turns. A magnet brought in over half a second turns the horizontal field by tens of
