@@ -263,6 +263,10 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     # a sensor-fixed offset (a magnet on the phone), when one is applied, is removed first
     mc = s[S.mag_c:S.mag_c + 3]
     hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, mc)
+    # the turn test judges the field as measured: its allowance for what a turn does to a
+    # real field (mag_turn_rel) includes the field's lag, and a delay that is not the
+    # sensor's own would turn the turn's angular accelerations into field turns
+    mw_turn = rotate3(s, mc)
     if has_rate and p[PRM.mag_delay] != 0.0:
         # the field lags the gyroscope by mag_delay: it was measured at t - d, when the
         # sensor frame was turned by -ω d from now; m(t) = m(t - d) - d ω × m(t - d)
@@ -276,12 +280,14 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         mc[0] -= d * c0
         mc[1] -= d * c1
         mc[2] -= d * c2
-    mw = rotate3(s, mc)
+        mw = rotate3(s, mc)
+    else:
+        mw = mw_turn
     n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
     dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
     f[F_MAG_VAL] = n
     f[F_MAG] = R_USED
-    turn = _turn_check(s, p, mw, dt, rate, has_rate)
+    turn = _turn_check(s, p, mw_turn, dt, rate, has_rate)
     was = s[S.disturbed]
     ok = _field_check(s, p, n, dip, dt, rate, turn, f)
     if was == 0.0 and s[S.disturbed] != 0.0:
