@@ -49,7 +49,8 @@ MECHANISMS = {
     "rest detection": {"rest_time": 0.0},
     "bias reset (bias_max)": {"bias_max": 0.0},
     "acc flags": {"acc_flag_angle": 0.0, "acc_flag_rel": 0.0},
-    "(on, off by default) field delay 3.5 ms compensated": {"mag_delay": 0.0035},
+    "field delay compensation (mag_delay 0)": {"mag_delay": 0.0},
+    "(another value) field delay 3.5 ms instead of 5 ms": {"mag_delay": 0.0035},
 }
 
 # not scaled: switches, sensor selection, initial conditions without a physical scale
