@@ -235,6 +235,12 @@ def angle_between_many(q0: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def wrap_angle(a):
+    """a wrapped to [-π, π)."""
+    return np.mod(a + np.pi, 2.0 * np.pi) - np.pi
+
+
+@njit(cache=True)
 def q2euler(q):
     """Euler angles exactly as the manual's appendix A.2.2 ``q2euler``.
 
@@ -260,7 +266,7 @@ def q2euler(q):
         s = -1.0
     e[1] = -np.arcsin(s)
     for i in range(3):
-        e[i] = np.mod(e[i] + np.pi, 2.0 * np.pi) - np.pi
+        e[i] = wrap_angle(e[i])
     return e
 
 

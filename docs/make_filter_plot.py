@@ -1,7 +1,7 @@
 """docs/filter_evidence.svg and the figures docs/filter.md quotes: robust's heading noise measured
 from the data on real trials, beside the heading error it leads to.
 
-For each trial named below (a phone carried through a building's uneven field, the research IMU
+First the table of time constants docs/filter.md quotes. Then, for each trial named below (a phone carried through a building's uneven field, the research IMU
 turned with rests), robust runs in 0.1 s slices and its state is read after each: the field's
 heading wander (√v, the evidence of ``heading_evidence_tau``) and the heading noise density it
 sets, √(heading_noise² + 2 v · 0.5 s). Beside them the heading error against the optical truth of
@@ -26,6 +26,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from accuracy_phones import load_broad, load_phones  # noqa: E402
 from app.estimators import make_estimator  # noqa: E402
+from app.estimators.robust.heading import evidence_density  # noqa: E402
 from app.quaternion import error_angles  # noqa: E402
 
 DEG = 180.0 / np.pi
@@ -108,7 +109,18 @@ def _legend(top, items):
     return out
 
 
+def time_constants() -> None:
+    """The table of docs/filter.md: the heading noise density and the correction's time
+    constant (about σ_h / gyr_noise) for a field wandering by √v."""
+    prm = make_estimator("robust").params
+    print("wander √v (deg)   σ_h (deg·√s)   time constant σ_h/gyr_noise (s)")
+    for w in (0.0, 0.5, 3.0, 10.0):
+        s_h = np.sqrt(prm.heading_noise ** 2 + evidence_density(np.radians(w) ** 2))
+        print(f"{w:15.1f}   {np.degrees(s_h):12.1f}   {s_h / prm.gyr_noise:31.1f}")
+
+
 def main() -> int:
+    time_constants()
     trials = {t["name"]: t for t in load_phones() + load_broad() if t["name"] in TRIALS}
     if len(trials) < len(TRIALS):
         print("the shared data is not here (../shared/data): nothing to plot")

@@ -79,6 +79,7 @@ import numpy as np
 from numba import njit
 
 from app import quaternion as qm
+from app.quaternion import wrap_angle
 from app.params import CommonParams, ParamError, param
 from app.estimators.base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
                    F_MAG_VAL, R_INIT, R_USED, R_WAIT, Diagnostics, Estimator,
@@ -113,12 +114,6 @@ class ComplementaryParams(CommonParams):
 
 
 # ------------------------------------------------------------------ the paper's math
-
-@njit(cache=True)
-def wrap_angle(a):
-    """a wrapped to [-π, π)."""
-    return np.mod(a + np.pi, TWO_PI) - np.pi
-
 
 @njit(cache=True)
 def _unit_row(r):

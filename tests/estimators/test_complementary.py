@@ -20,8 +20,9 @@ from app.estimators.base import F_ACC, F_GYR, F_MAG
 from app.quaternion import compass_matrix
 from app.estimators.complementary import (
     ComplementaryDNRF, blend_angles, euler_from_matrix, gyro_step,
-    matrix_from_euler, orthonormalize, wrap_angle)
+    matrix_from_euler, orthonormalize)
 from app.params import ParamError
+from app.quaternion import wrap_angle
 
 G0 = np.array([0.0, 0.0, 9.81])
 M0 = np.array([0.0, 20.0, -45.0])

@@ -44,6 +44,7 @@ from app.estimators.robust.bias import BIAS_UPD_S, heading_bias_update
 from app.estimators.robust.hardiron import HI_APPLIED, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import DT_MAX, S, inject, lp_coef, rotate3, update_is_due
+from app.quaternion import wrap_angle
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 
@@ -233,14 +234,19 @@ def _heading_evidence(s, p, innov, elapsed):
         s[S.hv_var] = 0.0
         s[S.hv_ok] = 1.0
         return 0.0
-    d = z - s[S.hv_fast]
-    d = (d + np.pi) % (2.0 * np.pi) - np.pi           # headings wrap
-    s[S.hv_fast] += lp_coef(elapsed, HV_SMOOTH) * d
+    s[S.hv_fast] += lp_coef(elapsed, HV_SMOOTH) * wrap_angle(z - s[S.hv_fast])   # headings wrap
     k = lp_coef(elapsed, p[PRM.heading_evidence_tau])
     d = s[S.hv_fast] - s[S.hv_mean]
     s[S.hv_mean] += k * d
     s[S.hv_var] += k * (d * d - s[S.hv_var])
-    return 2.0 * s[S.hv_var] * HV_SMOOTH
+    return evidence_density(s[S.hv_var])
+
+
+@njit(cache=True)
+def evidence_density(v):
+    """The heading noise density (rad²·s) a wander of variance ``v`` (rad²), correlated over
+    ``HV_SMOOTH``, stands for: ``2 v HV_SMOOTH`` (the filter's term and the diagnostics')."""
+    return 2.0 * v * HV_SMOOTH
 
 
 @njit(cache=True)

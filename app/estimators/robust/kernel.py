@@ -81,6 +81,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.disturbed] = 0.0
     s[S.mt_ok] = 0.0
     hard_iron_reset(s)
+    s[S.hv_ok] = 0.0
     s[S.prob] = 0.0
     s[S.p22_pre] = 0.0
 
