@@ -468,7 +468,7 @@ def _offset_row(diag: dict) -> list[tuple[str, str]]:
     if status == "none":
         text = "none found"
     else:
-        vec = "<code>" + " ".join(f"{float(v):.1f}" for v in off) + "</code> µT"
+        vec = "(x y z <code>" + " ".join(f"{float(v):.1f}" for v in off) + "</code>)"
         text = (f"<b>removed</b>: {size:.1f} µT {vec}" if status == "applied"
                 else f"fitting: {size:.1f} µT {vec}, not trusted yet")
     return [("magnet on the phone", text)]
