@@ -52,13 +52,13 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-import websockets
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
 from harness import free_port, wait_for  # noqa: E402
+from health_latency import ws_reader  # noqa: E402
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import SimConfig, simulate
 
@@ -125,22 +125,10 @@ def start_server(port: int, viewer_port: int, phone_port: int, variants: int,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-async def reader(url: str, counter: list, stop: asyncio.Event) -> None:
-    import viser
-    proto = [f"viser-v{viser.__version__}"] if "/ws/state" not in url else None
-    async with websockets.connect(url, max_size=None, subprotocols=proto) as ws:
-        while not stop.is_set():
-            try:
-                msg = await asyncio.wait_for(ws.recv(), 0.5)
-            except asyncio.TimeoutError:
-                continue
-            counter[0] += len(msg)
-
-
 def clients_thread(urls: list[str], counters: list, stop_flag: threading.Event) -> threading.Thread:
     async def main():
         stop = asyncio.Event()
-        tasks = [asyncio.create_task(reader(u, c, stop)) for u, c in zip(urls, counters)]
+        tasks = [asyncio.create_task(ws_reader(u, c, stop)) for u, c in zip(urls, counters)]
         while not stop_flag.is_set():
             await asyncio.sleep(0.1)
         stop.set()

@@ -66,6 +66,29 @@ def start_server(port: int, viewer_port: int, phone_port: int, root: Path = ROOT
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+async def ws_reader(url: str, counter: list, stop) -> None:
+    """A WebSocket client that counts what it receives until ``stop`` (an asyncio.Event) is
+    set: ``counter[0]`` bytes and, when the list has a second slot, ``counter[1]`` messages.
+    The server's own WebSockets (``/ws/state``, ``/ws/plots``) are opened with the page's
+    Origin; anything else is a viser viewer (its subprotocol)."""
+    import asyncio
+
+    import viser
+    import websockets
+    api = "/ws/" in url
+    origin = url.replace("ws://", "http://").rsplit("/ws/", 1)[0] if api else None
+    proto = None if api else [f"viser-v{viser.__version__}"]
+    async with websockets.connect(url, max_size=None, subprotocols=proto, origin=origin) as ws:
+        while not stop.is_set():
+            try:
+                msg = await asyncio.wait_for(ws.recv(), 0.5)
+            except asyncio.TimeoutError:
+                continue
+            counter[0] += len(msg)
+            if len(counter) > 1:
+                counter[1] += 1
+
+
 def stop_server(proc: subprocess.Popen) -> None:
     proc.send_signal(signal.SIGINT)
     try:

@@ -36,33 +36,20 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-import websockets
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from health_latency import (free_port, play_paced, rss_mb, server_ok, start_server,  # noqa: E402
-                            stop_server, wait_for)
+                            stop_server, wait_for, ws_reader)
 
 N_VIEWERS = 5
-
-
-async def _viewer(url: str, counter: list, stop: asyncio.Event) -> None:
-    import viser
-    async with websockets.connect(url, max_size=None,
-                                  subprotocols=[f"viser-v{viser.__version__}"]) as ws:
-        while not stop.is_set():
-            try:
-                msg = await asyncio.wait_for(ws.recv(), 0.5)
-            except asyncio.TimeoutError:
-                continue
-            counter[0] += len(msg)
 
 
 def viewers(url: str, counters: list, stop_flag: threading.Event) -> threading.Thread:
     async def main():
         stop = asyncio.Event()
-        tasks = [asyncio.create_task(_viewer(url, c, stop)) for c in counters]
+        tasks = [asyncio.create_task(ws_reader(url, c, stop)) for c in counters]
         while not stop_flag.is_set():
             await asyncio.sleep(0.1)
         stop.set()

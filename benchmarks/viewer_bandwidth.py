@@ -47,8 +47,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from health_latency import free_port, server_ok, start_server, stop_server, wait_for  # noqa: E402
-from soak import _viewer  # noqa: E402
+from health_latency import free_port, server_ok, start_server, stop_server, wait_for, ws_reader  # noqa: E402
 
 
 def cpu_s(pid: int) -> float:
@@ -57,27 +56,13 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-async def _plots(url: str, counter: list, stop: asyncio.Event) -> None:
-    """A WS /ws/plots client (the page's live plots): counter[0] bytes, counter[1] messages."""
-    import websockets
-    origin = url.replace("ws://", "http://").rsplit("/ws/", 1)[0]
-    async with websockets.connect(url, origin=origin, max_size=None) as ws:
-        while not stop.is_set():
-            try:
-                msg = await asyncio.wait_for(ws.recv(), 0.5)
-            except asyncio.TimeoutError:
-                continue
-            counter[0] += len(msg)
-            counter[1] += 1
-
-
 def many_viewers(url: str, n: int, counters: list, stop_flag: threading.Event,
                  plots_url: str | None = None, plot_counters: list | None = None) -> threading.Thread:
     async def main():
         stop = asyncio.Event()
-        tasks = [asyncio.create_task(_viewer(url, c, stop)) for c in counters[:n]]
+        tasks = [asyncio.create_task(ws_reader(url, c, stop)) for c in counters[:n]]
         if plots_url is not None:
-            tasks += [asyncio.create_task(_plots(plots_url, c, stop)) for c in plot_counters[:n]]
+            tasks += [asyncio.create_task(ws_reader(plots_url, c, stop)) for c in plot_counters[:n]]
         while not stop_flag.is_set():
             await asyncio.sleep(0.1)
         stop.set()
