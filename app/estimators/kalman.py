@@ -18,154 +18,148 @@ from numba import njit
 
 
 @njit(cache=True)
-def mm(A, B):
-    """A @ B for small matrices."""
-    n, k = A.shape
-    m = B.shape[1]
-    C = np.zeros((n, m))
-    for i in range(n):
-        for l in range(k):
-            a = A[i, l]
-            if a != 0.0:
-                for j in range(m):
-                    C[i, j] += a * B[l, j]
-    return C
+def work_size(n: int, m: int) -> int:
+    """Floats of the scratch :func:`correct` needs for n states and m measurements."""
+    return 2 * n * m + 3 * m * m + n + m
 
 
 @njit(cache=True)
-def inv_small(S):
-    """Inverse of a small symmetric positive definite matrix (closed form up to 2x2,
-    Gauss-Jordan with partial pivoting above). A singular S gives NaNs."""
-    m = S.shape[0]
-    out = np.empty((m, m))
-    if m == 1:
-        out[0, 0] = 1.0 / S[0, 0]
-        return out
-    if m == 2:
-        det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
-        out[0, 0] = S[1, 1] / det
-        out[0, 1] = -S[0, 1] / det
-        out[1, 0] = -S[1, 0] / det
-        out[1, 1] = S[0, 0] / det
-        return out
-    A = S.copy()
-    for i in range(m):
-        for j in range(m):
-            out[i, j] = 1.0 if i == j else 0.0
-    for c in range(m):
-        piv = c
-        for r in range(c + 1, m):
-            if abs(A[r, c]) > abs(A[piv, c]):
-                piv = r
-        if A[piv, c] == 0.0:
-            out[:, :] = np.nan
-            return out
-        if piv != c:
-            for j in range(m):
-                A[c, j], A[piv, j] = A[piv, j], A[c, j]
-                out[c, j], out[piv, j] = out[piv, j], out[c, j]
-        d = 1.0 / A[c, c]
-        for j in range(m):
-            A[c, j] *= d
-            out[c, j] *= d
-        for r in range(m):
-            if r != c:
-                f = A[r, c]
-                if f != 0.0:
-                    for j in range(m):
-                        A[r, j] -= f * A[c, j]
-                        out[r, j] -= f * out[c, j]
-    return out
-
-
-@njit(cache=True)
-def nis_and_gain(P, H, R, innov):
-    """Innovation covariance, NIS and Kalman gain for ``z - h(x) = innov``.
-
-    Returns ``(nis, K, S, PHt)``; ``nis`` is ``innov' S^-1 innov`` (chi-square with
-    ``len(innov)`` degrees of freedom when the model is honest). Zeros of H (most
-    of it, for these sensor models) are skipped. The products are written out (the
-    same sums, in the same order, as :func:`mm` would form them) so a call makes no
-    array beyond the four it returns and the inverse: in a filter running at a million
-    samples a second, an allocation costs more than the arithmetic.
-    """
-    n = P.shape[0]
-    m = H.shape[0]
-    PHt = np.zeros((n, m))  # P H' = (H P)' for a symmetric P
-    for a in range(m):
-        for l in range(n):
-            h = H[a, l]
-            if h != 0.0:
-                for j in range(n):
-                    PHt[j, a] += h * P[l, j]
-    S = np.empty((m, m))
-    for a in range(m):
-        for b in range(m):
-            v = 0.0
-            for l in range(n):
-                h = H[a, l]
-                if h != 0.0:
-                    v += h * PHt[l, b]
-            S[a, b] = R[a, b] + v
-    Sinv = inv_small(S)
-    nis = 0.0
-    for i in range(m):
-        for j in range(m):
-            nis += innov[i] * Sinv[i, j] * innov[j]
-    K = np.zeros((n, m))
-    for i in range(n):
-        for l in range(m):
-            c = PHt[i, l]
-            if c != 0.0:
-                for j in range(m):
-                    K[i, j] += c * Sinv[l, j]
-    return nis, K, S, PHt
-
-
-@njit(cache=True)
-def correct(P, H, R, innov, nis_gate, mask=None):
+def correct(P, H, R, innov, nis_gate, mask=None, work=None):
     """Generic EKF measurement update with an innovation gate; updates ``P`` in place.
 
     ``nis_gate <= 0`` switches the gate off. ``mask`` (optional, one 0/1 per state)
     names the states the update may change; the gain rows of the others are zeroed
     (a "consider" update: a heading measurement that must not tilt the attitude).
     Returns ``(accepted, nis, dx)``; when the gate refuses, ``dx`` is zero and ``P``
-    is left as it was.
+    is left as it was. ``nis`` is ``innov' S^-1 innov`` with ``S = H P H' + R`` (chi-square
+    with ``len(innov)`` degrees of freedom when the model is honest).
+
+    ``work`` (optional, at least :func:`work_size` floats): the scratch of the products,
+    so that an update makes no array (a filter running at a million samples a second
+    spends more on an allocation than on this arithmetic); ``dx`` is then a view into it,
+    valid until the next call with the same scratch. Without it the scratch is made here.
 
     The covariance update is Joseph's form ``(I - K H) P (I - K H)' + K R K'``
     multiplied out, ``P - K (PH')' - PH' K' + K S K'``: exact for any gain (so it
-    stays right for the masked one), symmetric by construction, and O(n² m).
+    stays right for the masked one), symmetric by construction, and O(n² m). Zeros of
+    H (most of it, for these sensor models) are skipped.
     """
-    nis, K, S, PHt = nis_and_gain(P, H, R, innov)
     n = P.shape[0]
-    m = innov.shape[0]
-    dx = np.zeros(n)
+    m = H.shape[0]
+    if work is None:
+        work = np.empty(work_size(n, m))
+    # scratch, row-major: PH' (n x m), S (m x m), S^-1 (m x m), K (n x m), dx (n), a row of
+    # K S (m), and the copy of S the inverse reduces (m x m)
+    o_s = n * m
+    o_si = o_s + m * m
+    o_k = o_si + m * m
+    o_dx = o_k + n * m
+    o_ks = o_dx + n
+    o_a = o_ks + m
+    for i in range(n * m):
+        work[i] = 0.0
+    for a in range(m):                       # PH' = (H P)' for a symmetric P
+        for l in range(n):
+            h = H[a, l]
+            if h != 0.0:
+                for j in range(n):
+                    work[j * m + a] += h * P[l, j]
+    for a in range(m):                       # S = H PH' + R
+        for b in range(m):
+            v = 0.0
+            for l in range(n):
+                h = H[a, l]
+                if h != 0.0:
+                    v += h * work[l * m + b]
+            work[o_s + a * m + b] = R[a, b] + v
+    _inv_small(work, o_s, o_si, o_a, m)
+    nis = 0.0
+    for i in range(m):
+        for j in range(m):
+            nis += innov[i] * work[o_si + i * m + j] * innov[j]
+    for i in range(n * m):                   # K = PH' S^-1
+        work[o_k + i] = 0.0
+    for i in range(n):
+        for l in range(m):
+            c = work[i * m + l]
+            if c != 0.0:
+                for j in range(m):
+                    work[o_k + i * m + j] += c * work[o_si + l * m + j]
+    dx = work[o_dx:o_dx + n]
+    for i in range(n):
+        dx[i] = 0.0
     if not np.isfinite(nis) or (nis_gate > 0.0 and nis > nis_gate):
         return False, nis, dx
     if mask is not None:
         for i in range(n):
             if mask[i] == 0.0:
                 for j in range(m):
-                    K[i, j] = 0.0
+                    work[o_k + i * m + j] = 0.0
     for i in range(n):
         for j in range(m):
-            dx[i] += K[i, j] * innov[j]
-    # K S, row by row into S's place is not possible (S is used by every row): the
-    # rows of K S are formed where they are used, with mm's order of the sum
-    KSi = np.empty(m)
+            dx[i] += work[o_k + i * m + j] * innov[j]
+    # the rows of K S are formed where they are used
     for i in range(n):
         for a in range(m):
-            KSi[a] = 0.0
+            work[o_ks + a] = 0.0
         for l in range(m):
-            c = K[i, l]
+            c = work[o_k + i * m + l]
             if c != 0.0:
                 for a in range(m):
-                    KSi[a] += c * S[l, a]
+                    work[o_ks + a] += c * work[o_s + l * m + a]
         for j in range(i, n):
             v = 0.0
             for a in range(m):
-                v += -K[i, a] * PHt[j, a] - PHt[i, a] * K[j, a] + KSi[a] * K[j, a]
+                v += (-work[o_k + i * m + a] * work[j * m + a] - work[i * m + a] * work[o_k + j * m + a]
+                      + work[o_ks + a] * work[o_k + j * m + a])
             P[i, j] += v
             if j != i:
                 P[j, i] = P[i, j]
     return True, nis, dx
+
+
+@njit(cache=True)
+def _inv_small(w, o_s, o_out, o_a, m):
+    """Inverse of the small symmetric positive definite m x m matrix at ``w[o_s:]`` into
+    ``w[o_out:]`` (row-major; closed form up to 2x2, Gauss-Jordan with partial pivoting
+    above, reducing a copy at ``w[o_a:]``). A singular matrix gives NaNs."""
+    if m == 1:
+        w[o_out] = 1.0 / w[o_s]
+        return
+    if m == 2:
+        det = w[o_s] * w[o_s + 3] - w[o_s + 1] * w[o_s + 2]
+        w[o_out] = w[o_s + 3] / det
+        w[o_out + 1] = -w[o_s + 1] / det
+        w[o_out + 2] = -w[o_s + 2] / det
+        w[o_out + 3] = w[o_s] / det
+        return
+    for i in range(m):
+        for j in range(m):
+            w[o_a + i * m + j] = w[o_s + i * m + j]
+            w[o_out + i * m + j] = 1.0 if i == j else 0.0
+    for c in range(m):
+        piv = c
+        for r in range(c + 1, m):
+            if abs(w[o_a + r * m + c]) > abs(w[o_a + piv * m + c]):
+                piv = r
+        if w[o_a + piv * m + c] == 0.0:
+            for i in range(m * m):
+                w[o_out + i] = np.nan
+            return
+        if piv != c:
+            for j in range(m):
+                ca, pa = o_a + c * m + j, o_a + piv * m + j
+                w[ca], w[pa] = w[pa], w[ca]
+                co, po = o_out + c * m + j, o_out + piv * m + j
+                w[co], w[po] = w[po], w[co]
+        d = 1.0 / w[o_a + c * m + c]
+        for j in range(m):
+            w[o_a + c * m + j] *= d
+            w[o_out + c * m + j] *= d
+        for r in range(m):
+            if r != c:
+                f = w[o_a + r * m + c]
+                if f != 0.0:
+                    for j in range(m):
+                        w[o_a + r * m + j] -= f * w[o_a + c * m + j]
+                        w[o_out + r * m + j] -= f * w[o_out + c * m + j]

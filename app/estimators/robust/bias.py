@@ -25,7 +25,7 @@ from numba import njit
 from app.estimators.base import F_GYR, F_REST, R_REST
 from app.estimators.kalman import correct
 from app.estimators.robust.params import PRM
-from app.estimators.robust.state import DT_MAX, S, inject, lp_coef
+from app.estimators.robust.state import DT_MAX, KF_WORK, S, inject, lp_coef
 
 # The bias learned in motion follows the correction rates over a minute: it is updated
 # with the corrections summed over this long (s), not after every correction.
@@ -90,7 +90,7 @@ def rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
     for i in range(3):
         Rm[i, i] = p[PRM.rest_noise] ** 2 / elapsed
     innov = s[S.gyr_lp:S.gyr_lp + 3] - s[S.bias:S.bias + 3]
-    ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0)
+    ok, nis, dx = correct(P, H_BIAS, Rm, innov, 0.0, None, s[S.kf_work:S.kf_work + KF_WORK])
     if ok:
         inject(s, P, dx)
         f[F_GYR] = R_REST
@@ -144,7 +144,7 @@ def motion_bias_update(s, P, p, dx0, dx1, dt):
     Rm = np.zeros((2, 2))
     Rm[0, 0] = p[PRM.bias_motion_noise] ** 2 / dt
     Rm[1, 1] = Rm[0, 0]
-    ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS)
+    ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS, s[S.kf_work:S.kf_work + KF_WORK])
     if ok:
         for i in range(3):
             s[S.bias + i] += db[3 + i]
@@ -169,7 +169,7 @@ def heading_bias_update(s, P, p, dz, dt):
         innov[0] = min(clip, max(-clip, innov[0]))
     Rm = np.empty((1, 1))
     Rm[0, 0] = p[PRM.bias_heading_noise] ** 2 / dt
-    ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS)
+    ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS, s[S.kf_work:S.kf_work + KF_WORK])
     if ok:
         for i in range(3):
             s[S.bias + i] += db[3 + i]

@@ -43,7 +43,7 @@ from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_bias_update
 from app.estimators.robust.hardiron import HI_APPLIED, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
-from app.estimators.robust.state import DT_MAX, S, inject, lp_coef, rotate3, update_is_due
+from app.estimators.robust.state import DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, update_is_due
 from app.quaternion import wrap_angle
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
@@ -376,7 +376,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         # the bias learned meanwhile (from a heading that was wrong) is dropped.
         P[2, 2] += innov[0] ** 2
         s[S.bias:S.bias + 3] = s[S.bias_good:S.bias_good + 3]
-    ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING)
+    ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING, s[S.kf_work:S.kf_work + KF_WORK])
     f[F_MAG_NIS] = nis
     if ok2:
         inject(s, P, dx)

@@ -13,7 +13,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from app.estimators.kalman import work_size
 from app.estimators.robust.params import PRM, layout
+
+# the scratch of a measurement update of the 6 error states by at most 3 measurements
+KF_WORK = work_size(6, 3)
 
 # A slot is (name, size, doc); a vector read by component gives its components' names
 # as its size (see :func:`.params.layout`): ("bias", "xyz") makes S.bias, S.bias_x...
@@ -99,6 +103,7 @@ STATE = (
                                     "heading_evidence_tau (rad); its squared deviation from it, "
                                     "low-passed likewise (rad²)"),
     ("hv_ok", 1, "1 once the heading evidence's low-passes hold a value"),
+    ("kf_work", KF_WORK, "scratch of the measurement updates (kalman.correct): no array per update"),
 )
 # slots that start as NaN ("not yet")
 STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")

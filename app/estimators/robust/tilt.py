@@ -34,7 +34,7 @@ from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_N
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
 from app.estimators.robust.params import GRAVITY, PRM
-from app.estimators.robust.state import S, inject, lp_coef, rotate3, update_is_due
+from app.estimators.robust.state import KF_WORK, S, inject, lp_coef, rotate3, update_is_due
 
 _MASK_ATTITUDE = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
 
@@ -135,7 +135,8 @@ def acc_update(s, P, p, t, acc, f):
     # low-pass, correlated for seconds, which a white-noise model would let the bias absorb
     # (the bias is learned from the corrections' rate below, slowly, as VQF does)
     lp_frac = _tilt_lp_share(P, r, dt, p) if p[PRM.tilt_damping] > 0.0 else 1.0
-    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), 0.0, _MASK_ATTITUDE)
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), 0.0, _MASK_ATTITUDE,
+                          s[S.kf_work:S.kf_work + KF_WORK])
     f[F_ACC_NIS] = nis
     if ok:
         inject(s, P, dx, lp_frac)
