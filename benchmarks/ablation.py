@@ -8,7 +8,8 @@ attitude benchmark of Michel, Genevès, Fourati, Layaïda (IEEE PerCom 2017, CeC
    mean total error on BROAD (all 17, and the 14 without an attached magnet, and the 3 with one:
    one attached-magnet trial moves a 17-trial mean by 0.1-0.4°) and on the 42 phone trials.
 2. **Sensitivity**: every numeric parameter at ×0.5 and ×2, likewise. A default at a sharp optimum
-   shows as both columns clearly positive.
+   shows as both columns clearly positive; the run ends with the list of those where both cost
+   more than ``SHARP`` (2 %) of the defaults' mean, on BROAD's 17 or on the phones' 42.
 
 Usage: ``python benchmarks/ablation.py [--only ablation|sensitivity] [--params NAME ...]``
 (two worker processes; the whole run takes a few minutes on two cores).
@@ -58,6 +59,9 @@ SKIP = {"use_gyr", "use_acc", "use_mag", "gyr_bias", "max_gap", "gyr_hold", "acc
         "tilt_motion_time", "update_rate_hz", "acc_flag_angle", "acc_flag_rel"}
 
 
+# a default "at a sharp optimum": ×0.5 and ×2 both cost more than this share of the defaults' mean
+SHARP = 0.02
+
 def summary(params: dict | None) -> tuple[float, float, float, float]:
     b = evalkit.evaluate("broad", params)[:, 0]
     ph = evalkit.evaluate("phones", params)[:, 0]
@@ -92,13 +96,14 @@ def main(argv=None) -> int:
         print("| parameter | default | ×0.5: BROAD 17 / 14 / 3, phones | ×2: BROAD 17 / 14 / 3, phones |")
         print("|---|---|---|---|")
         d = RobustParams()
+        sharp = []
         for f in fields(RobustParams):
             v = getattr(d, f.name)
             if f.name in SKIP or isinstance(v, (bool, tuple)) or not isinstance(v, float) or v == 0.0:
                 continue
             if args.params and f.name not in args.params:
                 continue
-            cells = []
+            cells, costs = [], []
             for k in (0.5, 2.0):
                 try:
                     s = summary({f.name: v * k})
@@ -106,8 +111,14 @@ def main(argv=None) -> int:
                     cells.append(f"({type(e).__name__})")
                     continue
                 dd = [x - y for x, y in zip(s, base)]
+                costs.append(dd)
                 cells.append(" / ".join(f"{x:+.2f}" for x in dd))
             print(f"| `{f.name}` | {v:.4g} | {cells[0]} | {cells[1]} |", flush=True)
+            for col, where in ((0, "BROAD"), (3, "phones")):
+                if len(costs) == 2 and min(c[col] for c in costs) > SHARP * base[col]:
+                    sharp.append(f"{f.name} on {where} ({costs[0][col]:+.2f} / {costs[1][col]:+.2f})")
+        print(f"\nAt a sharp optimum (×0.5 and ×2 both cost more than {SHARP:.0%} of the defaults' "
+              f"mean): {', '.join(sharp) if sharp else 'none'}")
     return 0
 
 
