@@ -33,13 +33,20 @@ class ParamError(ValueError):
 def param(default, *, unit: str = "", lo: float | None = None, hi: float | None = None,
       doc: str = "", user_unit: str | None = None, user_scale: float = 1.0,
       choices: tuple | None = None, log: bool = False, tunable: bool = True,
-      length: int | None = None, optional: bool = False, integer: bool | None = None):
+      length: int | None = None, optional: bool = False, integer: bool | None = None,
+      rejects: bool = False):
     """A parameter field. ``user_unit``/``user_scale`` give the unit shown to users:
     ``user_value = value * user_scale`` (for example rad/s shown as deg/s).
-    ``log`` marks a quantity tuned over decades (noise levels)."""
+    ``log`` marks a quantity tuned over decades (noise levels). ``rejects`` marks a
+    rejection or de-weighting of a sensor's data (a gate, a band, a noise added for a
+    deviating field) that its off value switches off: 0, or None for an optional one (the
+    no-rejection variant, :func:`app.toolkit.variants.no_rejection_changes`, turns every
+    such parameter off)."""
+    if rejects and not (optional or "0: off" in doc):
+        raise ValueError(f"a rejecting parameter needs an off value (0: off, or optional): {doc!r}")
     meta = dict(unit=unit, lo=lo, hi=hi, doc=doc, user_unit=user_unit or unit,
                 user_scale=user_scale, choices=choices, log=log, tunable=tunable,
-                length=length, optional=optional,
+                length=length, optional=optional, rejects=rejects,
                 integer=isinstance(default, int) and not isinstance(default, bool)
                 if integer is None else integer)
     if isinstance(default, list):

@@ -10,8 +10,9 @@ import pytest
 
 from app.config import ConfigError, defaults_toml, estimator_params, load_config, params_table
 from app.estimators import NAMES, estimator_class, make_estimator
-from app.params import CONFIG_DIR, DEFAULT_CONFIG, load_toml, to_dict
+from app.params import CONFIG_DIR, DEFAULT_CONFIG, load_toml, param, to_dict
 from app.sources.simulate import simulate
+from app.toolkit.variants import no_rejection_changes
 
 
 def test_default_toml_is_the_parameter_definitions():
@@ -85,3 +86,22 @@ def test_an_old_preset_with_a_renamed_key_loads_translated(tmp_path, caplog):
     with pytest.raises(ConfigError) as e:
         load_config(path)
     assert "both gyr_noise and gyr_std" in str(e.value)
+
+
+def test_every_rejecting_parameter_is_declared_and_the_no_rejection_variant_turns_it_off():
+    """A gate, a band or a de-weighting declares itself (``param(rejects=True)``): the
+    no-rejection variant switches off exactly those, each to its off value, and nothing
+    else; a rejecting parameter without an off value is refused where it is defined."""
+    robust = no_rejection_changes("robust")
+    assert {"mag_norm_gate_rel", "mag_dip_gate", "mag_turn_gate", "mag_dev_weight",
+            "heading_evidence_tau", "acc_band_rel"} <= set(robust)
+    assert no_rejection_changes("lab") == {"acc_band_rel": 0.0, "mag_band_rel": 0.0,
+                                           "mag_band_uT": None, "nis_gate": 0.0}
+    for name in NAMES:
+        changes = no_rejection_changes(name)
+        flagged = {f.name for f in dataclasses.fields(estimator_class(name).Params)
+                   if f.metadata.get("rejects")}
+        assert set(changes) == flagged
+        make_estimator(name, changes)      # every off value is a valid value
+    with pytest.raises(ValueError, match="off value"):
+        param(0.1, doc="a gate without a way to switch it off", rejects=True)

@@ -64,15 +64,17 @@ class LabParams(CommonParams):
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="gyroscope bias subtracted from every sample (calibration)")
     acc_band_rel: float = param(0.25, lo=0.0, hi=2.0,
-                                doc="accelerometer used only while | |a| - |g0| | <= this × |g0|; 0: off")
+                                doc="accelerometer used only while | |a| - |g0| | <= this × |g0|; 0: off",
+                                rejects=True)
     mag_band_rel: float = param(0.2, lo=0.0, hi=1.0,
-                                doc="magnetometer used only while | L_k - |m0| | <= this × |m0|; 0: off")
+                                doc="magnetometer used only while | L_k - |m0| | <= this × |m0|; 0: off",
+                                rejects=True)
     mag_band_uT: tuple | None = param(None, unit="µT", length=2, lo=0.0, hi=1000.0, optional=True,
                                       tunable=False, doc="absolute band (lo, hi) for L_k, as report A's "
-                                      "35-55 µT; overrides mag_band_rel when given")
+                                      "35-55 µT; overrides mag_band_rel when given", rejects=True)
     mag_alpha: float = param(0.01, lo=0.0, hi=1.0, doc="α of the field-strength filter L_k")
     nis_gate: float = param(0.0, lo=0.0, hi=1000.0,
-                            doc="innovation gate on NIS (χ², 3 dof) for both updates; 0: off")
+                            doc="innovation gate on NIS (χ², 3 dof) for both updates; 0: off", rejects=True)
     p0: float = param(0.1, lo=1e-8, hi=10.0, log=True, tunable=False,
                       doc="initial P = p0 I after alignment")
     m0_learn_time: float = param(2.0, unit="s", lo=0.0, hi=60.0, tunable=False,

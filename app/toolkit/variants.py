@@ -4,8 +4,8 @@
 demonstration) and ``lab-approx`` (exercise 9: the approximate time update (2k) beside
 the exact one (2j)) are the ready-made ones; any ``(name, base, params)`` is accepted
 (``app.live.ensemble.Ensemble.check_new`` validates it).
-Which parameters are gates is read from the parameter set itself (a gate, band or
-de-weighting field whose help says ``0: off``), so a renamed or new gate is covered without a list here.
+Which parameters are gates is read from the parameter set itself (each declares it:
+``param(rejects=True)``), so a renamed or new gate is covered without a list here.
 """
 
 from __future__ import annotations
@@ -18,19 +18,19 @@ from app.toolkit.errors import ToolError
 
 
 def no_rejection_changes(base: str) -> dict[str, Any]:
-    """The parameter changes that turn off every gate of estimator ``base``: fields
-    named ``*gate*``, ``*band*``, ``*dev_weight*`` (a deviating field trusted less) or
-    ``*evidence*`` (a wandering field trusted less) whose help says ``0: off`` get 0;
-    optional absolute bands (``*_band_uT``) get None."""
+    """The parameter changes that turn off every gate of estimator ``base``: each parameter
+    whose metadata says it rejects or de-weights a sensor's data (``param(rejects=True)``: a
+    gate, a band, the heading noise added for a deviating or wandering field) goes to its off
+    value, 0, or None for an optional one."""
     out: dict[str, Any] = {}
     for f in dataclasses.fields(estimator_class(base).Params):
-        name, meta = f.name, f.metadata
-        if not any(k in name for k in ("gate", "band", "dev_weight", "evidence")):
-            continue   # gates, bands and the de-weighting of a deviating or wandering field
-        if meta.get("optional") and name.endswith("_uT"):
-            out[name] = None
-        elif "0: off" in (meta.get("doc") or ""):
-            out[name] = 0.0 if not meta.get("integer") else 0
+        meta = f.metadata
+        if not meta.get("rejects"):
+            continue
+        if meta.get("optional"):
+            out[f.name] = None
+        else:
+            out[f.name] = 0 if meta.get("integer") else 0.0
     return out
 
 

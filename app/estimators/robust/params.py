@@ -78,10 +78,10 @@ class RobustParams(CommonParams):
                                     "more)")
     acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
                                 doc="tilt corrections pause while | |a| - g | > this × g (every sample "
-                                    "still enters the low-pass); 0: off")
+                                    "still enters the low-pass); 0: off", rejects=True)
     tilt_motion_time: float = param(0.0, unit="s", lo=0.0, hi=10.0,
                                     doc="correlation time of the specific force: its power (low-passed, "
-                                        "over g²) times this is added to tilt_noise² (0: off)")
+                                        "over g²) times this is added to tilt_noise² (0: off)", rejects=True)
     acc_flag_angle: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
                                   user_scale=DEG, doc="a sample this far from the low-passed gravity is "
                                                       "flagged as specific force (ACCEL; it still enters "
@@ -99,11 +99,14 @@ class RobustParams(CommonParams):
                                             "with a residual offset; its variance v about its mean over this "
                                             "window (a few strides, a turn of the hand: short against the "
                                             "heading's time constant of tens of seconds) adds 2 v × 0.5 s to "
-                                            "heading_noise² (a noise correlated over 0.5 s); 0: off")
+                                            "heading_noise² (a noise correlated over 0.5 s); 0: off",
+                                            rejects=True)
     mag_norm_gate_rel: float = param(0.15, lo=0.0, hi=2.0,
-                                     doc="field strength may differ from the reference by this fraction; 0: off")
+                                     doc="field strength may differ from the reference by this fraction; 0: off",
+                                     rejects=True)
     mag_dip_gate: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
-                                doc="dip angle may differ from the reference by this much; 0: off")
+                                doc="dip angle may differ from the reference by this much; 0: off",
+                                rejects=True)
     mag_ref_tau: float = param(20.0, unit="s", lo=0.1, hi=3600.0,
                                doc="time constant of learning the field reference while undisturbed")
     mag_new_field_time: float = param(20.0, unit="s", lo=0.0, hi=600.0,
@@ -112,7 +115,7 @@ class RobustParams(CommonParams):
                                     user_scale=DEG, doc="turn rate that counts towards accepting a new field")
     mag_dev_weight: float = param(1.0, lo=0.0, hi=100.0,
                                   doc="heading σ added per relative deviation of the field from its "
-                                      "reference (Δ/|m_h|), within the gates too; 0: off")
+                                      "reference (Δ/|m_h|), within the gates too; 0: off", rejects=True)
     mag_first_field_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
                                         doc="the first field reference is a field stable this long (until "
                                             "then every sample corrects the heading: nothing to judge it by)")
@@ -129,7 +132,7 @@ class RobustParams(CommonParams):
                                      "beyond what the turn explains is a disturbance (flag TURN): a magnet "
                                      "brought in, before its strength or dip leave their gates. 2.5× a "
                                      "phone's largest gyroscope bias (0.1 rad/s, which turns the field this "
-                                     "way until it is learned); 0: off")
+                                     "way until it is learned); 0: off", rejects=True)
     mag_turn_rel: float = param(0.5, lo=0.0, hi=10.0,
                                 doc="change rate of the world-frame field (rad/s) allowed per rad/s of turn "
                                     "rate: a saturated gyroscope (running) reads at least 2/3 of the turn; "
