@@ -27,8 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "docs"))
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
-from harness import CHROMIUM, CHROMIUM_ARGS, hide_notices, log_lines, running_server  # noqa: E402
-from make_screenshot import DEFAULT_LOG, play_paced  # noqa: E402
+from harness import CHROMIUM, CHROMIUM_ARGS, hide_notices, log_lines, play_paced, running_server  # noqa: E402
+from make_screenshot import DEFAULT_LOG  # noqa: E402
 
 SIZES = ((1600, 900), (1280, 720))
 

@@ -19,46 +19,16 @@ import argparse
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
-from app.sources.sensorfusion import MalformedLine, parse_line
-from harness import (CHROMIUM, CHROMIUM_ARGS, Phone, hide_notices, log_lines,  # noqa: E402
+from harness import (CHROMIUM, CHROMIUM_ARGS, hide_notices, log_lines, play_paced,  # noqa: E402
                      running_server)
 
 DEFAULT_LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
                / "sensorLog_20221024T182635_walking_hand.txt")
-
-
-def play_paced(port: int, lines: list[str], stop: threading.Event) -> None:
-    """Send ``lines`` to the phone port at the pace of their timestamps (per tag clock)."""
-    first: dict[str, int] = {}
-    due = []
-    prev = 0.0
-    for ln in lines:
-        try:
-            s = parse_line(ln)
-            prev = max(0.0, (s.time_ms - first.setdefault(s.tag, s.time_ms)) / 1000.0)
-        except MalformedLine:
-            pass
-        due.append(prev)
-    with Phone(port) as ph:
-        t0 = time.monotonic()
-        i = 0
-        while i < len(lines) and not stop.is_set():
-            now = time.monotonic() - t0
-            j = i
-            while j < len(lines) and due[j] <= now:
-                j += 1
-            if j > i:
-                ph.send_lines(lines[i:j])
-                i = j
-            time.sleep(0.02)
-        stop.wait()          # keep the connection open until the shots are taken
 
 
 def shoot(url: str, out_main: Path, seconds: float, start=None) -> None:

@@ -4,7 +4,8 @@
 receiver and the engine) in a thread on 127.0.0.1; ``srv.url``, ``srv.phone_port``,
 ``srv.viewer_port`` and ``srv.app`` (the FastAPI app, its ``state`` holds the engine)
 are available; leaving the block stops everything. :class:`Phone` is a TCP client that
-sends lines as the Sensor Fusion app does.
+sends lines as the Sensor Fusion app does; :func:`play_paced` plays a log through it at the
+log's own pace.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Callable, Iterator
 from collections import Counter
 
 from app.server.run import make_server
-from app.sources.sensorfusion import decode_lines
+from app.sources.sensorfusion import MalformedLine, decode_lines, parse_line
 from app.server.settings import Settings
 
 START_TIMEOUT_S = 300.0   # the first start may compile the estimators (numba)
@@ -164,6 +165,33 @@ class Phone:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def play_paced(port: int, lines: list[str], stop: threading.Event) -> None:
+    """Play the Sensor Fusion app: send ``lines`` to the phone port at the pace of their
+    timestamps (each sensor tag on its own clock, as the app stamps them), then keep the
+    connection open until ``stop`` is set (run it in a thread)."""
+    first: dict[str, int] = {}
+    due, prev = [], 0.0
+    for ln in lines:
+        try:
+            s = parse_line(ln)
+            prev = max(0.0, (s.time_ms - first.setdefault(s.tag, s.time_ms)) / 1000.0)
+        except MalformedLine:
+            pass
+        due.append(prev)
+    with Phone(port) as ph:
+        t0, i = time.monotonic(), 0
+        while i < len(lines) and not stop.is_set():
+            now = time.monotonic() - t0
+            j = i
+            while j < len(lines) and due[j] <= now:
+                j += 1
+            if j > i:
+                ph.send_lines(lines[i:j])
+                i = j
+            time.sleep(0.02)
+        stop.wait()
 
 
 def log_lines(path: str | Path) -> list[str]:

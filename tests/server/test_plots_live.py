@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import re
 import threading
-import time
 from pathlib import Path
 
 import pytest
 
-from app.sources.sensorfusion import MalformedLine, parse_line
-from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Phone, log_lines, running_server
+from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, log_lines, play_paced, running_server
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 FULL_LOG = (SHARED / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
@@ -61,31 +59,6 @@ STATE_JS = """() => Object.fromEntries(Object.entries(window.orientlabPlots.char
   why: c.why.hidden ? null : c.why.textContent,
   finite: c.u.data.slice(1).map(col => col.filter(v => v !== null).length),
 }]))"""
-
-
-def play_paced(port: int, lines: list[str], stop: threading.Event) -> None:
-    """Send ``lines`` to the phone port at the pace of their timestamps (per tag clock)."""
-    first: dict[str, int] = {}
-    due, prev = [], 0.0
-    for ln in lines:
-        try:
-            s = parse_line(ln)
-            prev = max(0.0, (s.time_ms - first.setdefault(s.tag, s.time_ms)) / 1000.0)
-        except MalformedLine:
-            pass
-        due.append(prev)
-    with Phone(port) as ph:
-        t0, i = time.monotonic(), 0
-        while i < len(lines) and not stop.is_set():
-            now = time.monotonic() - t0
-            j = i
-            while j < len(lines) and due[j] <= now:
-                j += 1
-            if j > i:
-                ph.send_lines(lines[i:j])
-                i = j
-            time.sleep(0.02)
-        stop.wait()
 
 
 def test_live_plots_redraw_10_times_a_second_in_the_same_canvas(tmp_path):
