@@ -24,18 +24,17 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import threading
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from app.estimators import NAMES
 from harness import CHROMIUM, CHROMIUM_ARGS, free_port
+from venvs import cache_root, http_get, stop_with_sigint
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCE = Path(os.environ.get("FIRST_START_SOURCE") or REPO)
@@ -146,7 +145,6 @@ def _venv_for_pip(root: Path) -> Path:
 
 
 def test_editable_install_prints_no_setuptools_warning_box(tmp_path):
-    from test_install import cache_root
     root = cache_root()
     root.mkdir(parents=True, exist_ok=True)
     with open(root / "pip-only-venv.lock", "w") as lock:
@@ -173,14 +171,9 @@ def test_editable_install_prints_no_setuptools_warning_box(tmp_path):
 
 # ---------------------------------------------------------------- orientlab serve
 
-def _get(url: str, timeout: float = 5.0) -> tuple[int, bytes]:
-    with urllib.request.urlopen(url, timeout=timeout) as r:
-        return r.status, r.read()
-
-
 def _health(port: int) -> dict | None:
     with contextlib.suppress(OSError, ValueError):
-        return json.loads(_get(f"http://127.0.0.1:{port}/api/health")[1])
+        return json.loads(http_get(f"http://127.0.0.1:{port}/api/health")[1])
     return None
 
 
@@ -224,7 +217,7 @@ def test_serve_answers_while_the_filters_compile(tmp_path):
             assert p.poll() is None, f"serve exited {p.returncode}:\n{err.text()}"
             assert time.monotonic() < deadline, "the page never answered"
             with contextlib.suppress(OSError):
-                status, body = _get(f"http://127.0.0.1:{port}/")
+                status, body = http_get(f"http://127.0.0.1:{port}/")
                 h = _health(port)
                 if status == 200 and h is not None:
                     early = h
@@ -264,18 +257,11 @@ def test_serve_answers_while_the_filters_compile(tmp_path):
         # 4. the samples that waited are filtered, and the stream goes on
         samples = 0
         while samples == 0 and time.monotonic() < deadline:
-            samples = json.loads(_get(f"http://127.0.0.1:{port}/api/state")[1])["counts"]["samples"]
+            samples = json.loads(http_get(f"http://127.0.0.1:{port}/api/state")[1])["counts"]["samples"]
             time.sleep(0.2)
         assert samples > 0
     finally:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-        try:
-            rc = p.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-            raise AssertionError("serve did not stop on SIGINT")
+        rc = stop_with_sigint(p)
         out.join()
         err.join()
     assert rc == 0, err.text()

@@ -6,90 +6,37 @@ The first version crashed at start-up on a fresh machine (scipy, which numba nee
 ``@`` in the filters, was only a test extra) and ``make test`` did not notice: it only
 ever ran with the test extras installed. These tests would.
 
-The venv is reused between runs only under a key made of the Python version and
-pyproject's dependency and build tables: it only ever receives ``pip install -e .``
-without extras, so a reused venv holds exactly what a fresh one would (a dependency
-dropped from pyproject changes the key; an import of an undeclared package finds
-nothing there). The package itself is re-installed (editable, ``--no-deps``) from this
-checkout every run. numba's cache for these runs is a fresh directory
-(``NUMBA_CACHE_DIR``), so the filters are compiled in the bare environment itself,
-never loaded from a cache that a fuller environment wrote.
+The venv is the cached bare one of ``tests/venvs.py`` (``pip install -e .`` only, reused
+under a key of the interpreter and pyproject's install tables). numba's cache for these runs is
+a fresh directory (``NUMBA_CACHE_DIR``), so the filters are compiled in the bare environment
+itself, never loaded from a cache that a fuller environment wrote.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
-import fcntl
-import hashlib
 import json
 import math
-import os
 import re
-import shutil
-import signal
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from app.estimators import NAMES
 from harness import free_port
+from venvs import REPO, bare_venv, clean_env, http_get, run, stop_with_sigint
 
-try:
-    import tomllib
-except ImportError:  # Python 3.10
-    import tomli as tomllib
-
-REPO = Path(__file__).resolve().parents[1]
 SLOW_S = 900.0      # a safety net for a cold compile on a loaded machine, not a timing claim
 
 
-def venv_key() -> str:
-    meta = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
-    proj = meta["project"]
-    what = {"python": list(sys.version_info[:2]), "platform": sys.platform,
-            "dependencies": sorted(proj.get("dependencies", [])),
-            "requires-python": proj.get("requires-python"),
-            "build-system": meta.get("build-system")}
-    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def cache_root() -> Path:
-    base = os.environ.get("ORIENTLAB_TEST_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "orientlab-tests")
-    return Path(base)
-
-
-def run(cmd, env, cwd, timeout=SLOW_S, check=True) -> subprocess.CompletedProcess:
-    r = subprocess.run([str(c) for c in cmd], env=env, cwd=cwd, capture_output=True, text=True,
-                       timeout=timeout, stdin=subprocess.DEVNULL)
-    if check and r.returncode != 0:
-        raise AssertionError(f"{' '.join(map(str, cmd))} -> exit {r.returncode}\n"
-                             f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-5000:]}")
-    return r
-
-
 def base_python() -> str:
-    """The interpreter this venv was made from (a venv made by a venv's python is
-    based on the base interpreter anyway; this just says so)."""
+    """The interpreter this venv is made from (a venv made by a venv's python is based on
+    the base interpreter anyway; this just says so)."""
     return getattr(sys, "_base_executable", None) or sys.executable
-
-
-def clean_env(venv: Path, numba_cache: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("PYTHONPATH", "PYTHONHOME", "PYTHONSTARTUP", "VIRTUAL_ENV",
-                        "PYTHONUSERBASE", "NUMBA_DISABLE_JIT", "NUMBA_CACHE_DIR")}
-    dev_bin = str(Path(sys.executable).parent)
-    path = [p for p in env.get("PATH", "").split(os.pathsep) if p and p != dev_bin]
-    env["PATH"] = os.pathsep.join([str(venv / "bin")] + path)
-    env["VIRTUAL_ENV"] = str(venv)
-    env["PYTHONNOUSERSITE"] = "1"
-    env["NUMBA_CACHE_DIR"] = str(numba_cache)
-    return env
 
 
 class Bare:
@@ -105,27 +52,9 @@ class Bare:
 
 @pytest.fixture(scope="module")
 def bare(tmp_path_factory) -> Bare:
-    root = cache_root()
-    root.mkdir(parents=True, exist_ok=True)
-    key = venv_key()
-    venv = root / f"bare-venv-{key}"
     work = tmp_path_factory.mktemp("bare")
-    numba_cache = work / "numba-cache"
-    # other checkouts' suites on this machine use the same venv: one at a time, since
-    # each points its editable install at its own checkout
-    with open(root / f"bare-venv-{key}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        env = clean_env(venv, numba_cache)
-        if not (venv / ".complete").is_file():
-            shutil.rmtree(venv, ignore_errors=True)
-            run([base_python(), "-m", "venv", venv], env, work)
-            # exactly what `make run` does: the package and its runtime dependencies
-            run([venv / "bin" / "python", "-m", "pip", "install", "-q", "-e", REPO], env, work)
-            (venv / ".complete").write_text(key + "\n")
-        else:
-            run([venv / "bin" / "python", "-m", "pip", "install", "-q", "--no-deps",
-                 "--force-reinstall", "-e", REPO], env, work)
-        yield Bare(venv, numba_cache, work)
+    with bare_venv(base_python(), "bare", work) as venv:
+        yield Bare(venv, work / "numba-cache", work)
 
 
 def write_motion_csv(path: Path, n: int = 400, fs: float = 100.0) -> int:
@@ -197,11 +126,6 @@ def test_bare_compile_then_every_filter_estimates(bare, tmp_path):
         check_estimate_output(out, n)
 
 
-def _get(url: str, timeout: float = 5.0) -> tuple[int, bytes]:
-    with urllib.request.urlopen(url, timeout=timeout) as resp:
-        return resp.status, resp.read()
-
-
 def test_bare_serve_demo_answers_and_stops_on_sigint(bare, tmp_path):
     port, viewer, phone = free_port(), free_port(), free_port()
     proc = subprocess.Popen(
@@ -219,30 +143,23 @@ def test_bare_serve_demo_answers_and_stops_on_sigint(bare, tmp_path):
             if time.monotonic() > deadline:
                 raise AssertionError("the page never answered")
             with contextlib.suppress(OSError):
-                page = _get(f"http://127.0.0.1:{port}/")
+                page = http_get(f"http://127.0.0.1:{port}/")
             time.sleep(0.2)
         status, body = page
         assert status == 200 and b"<title>orientlab" in body
         # the demo phone streams into the filters: samples are counted
         samples = 0
         while samples == 0 and time.monotonic() < deadline:
-            _, st = _get(f"http://127.0.0.1:{port}/api/state")
+            _, st = http_get(f"http://127.0.0.1:{port}/api/state")
             samples = json.loads(st)["counts"]["samples"]
             time.sleep(0.2)
         assert samples > 0
-        status, _ = _get(f"http://127.0.0.1:{viewer}/")     # the 3D viewer answers too
+        status, _ = http_get(f"http://127.0.0.1:{viewer}/")     # the 3D viewer answers too
         assert status == 200
         banner = (tmp_path / "stdout.txt").read_text()
         assert f":{port}/" in banner and f"port {phone}" in banner
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-        try:
-            rc = proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-            raise AssertionError("serve did not stop on SIGINT")
+        rc = stop_with_sigint(proc)
     err = (tmp_path / "stderr.txt").read_text()
     assert rc == 0, err
     assert "Traceback" not in err, err

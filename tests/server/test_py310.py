@@ -8,41 +8,27 @@ imported ``tomllib`` (3.11+) unguarded in ``app/server/presets.py``: serve died 
 start-up with ``ModuleNotFoundError: No module named 'tomllib'``.
 
 Skipped when no ``/root/.pyenv/versions/3.10.*/bin/python`` exists or when
-``ORIENTLAB_SKIP_PY310=1``. The venv is cached as in ``tests/test_install.py``: reused
-only under a key made of the interpreter's version and pyproject's dependency and build
-tables (it only ever receives ``pip install -e .`` without extras), one run at a time
-(a lock file), the package re-installed (editable, ``--no-deps``) from this checkout
-every run. ``NUMBA_DISABLE_JIT=1``: nothing is compiled (import and start-up are what
-is checked here; the filters' compilation is tests/test_install.py's business).
+``ORIENTLAB_SKIP_PY310=1``. The venv is the cached bare one of ``tests/venvs.py`` (``pip
+install -e .`` only) made from that interpreter. ``NUMBA_DISABLE_JIT=1``: nothing is compiled
+(import and start-up are what is checked here; the filters' compilation is
+tests/test_install.py's business).
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import glob
-import hashlib
 import json
 import os
-import shutil
-import signal
 import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from harness import free_port
+from venvs import REPO, bare_venv, clean_env, http_get, python_version, run, stop_with_sigint
 
-try:
-    import tomllib
-except ImportError:  # Python 3.10
-    import tomli as tomllib
-
-REPO = Path(__file__).resolve().parents[2]
-INSTALL_S = 600.0     # a cold pip install (numba, scipy, viser...) on a loaded machine
 START_S = 120.0       # serve without JIT starts in a few seconds
 
 
@@ -60,68 +46,12 @@ pytestmark = [
 ]
 
 
-def _venv_key(version: str) -> str:
-    meta = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
-    proj = meta["project"]
-    what = {"python": version, "platform": sys.platform,
-            "dependencies": sorted(proj.get("dependencies", [])),
-            "requires-python": proj.get("requires-python"),
-            "build-system": meta.get("build-system")}
-    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def _cache_root() -> Path:
-    base = os.environ.get("ORIENTLAB_TEST_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "orientlab-tests")
-    return Path(base)
-
-
-def _env(venv: Path) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("PYTHONPATH", "PYTHONHOME", "PYTHONSTARTUP", "VIRTUAL_ENV",
-                        "PYTHONUSERBASE", "NUMBA_CACHE_DIR", "ORIENTLAB_PRESETS")}
-    dev_bin = str(Path(sys.executable).parent)
-    path = [p for p in env.get("PATH", "").split(os.pathsep) if p and p != dev_bin]
-    env["PATH"] = os.pathsep.join([str(venv / "bin")] + path)
-    env["VIRTUAL_ENV"] = str(venv)
-    env["PYTHONNOUSERSITE"] = "1"
-    env["PYTHONDONTWRITEBYTECODE"] = "1"
-    env["NUMBA_DISABLE_JIT"] = "1"
-    return env
-
-
-def _run(cmd, env, cwd, timeout) -> subprocess.CompletedProcess:
-    r = subprocess.run([str(c) for c in cmd], env=env, cwd=cwd, capture_output=True, text=True,
-                       timeout=timeout, stdin=subprocess.DEVNULL)
-    if r.returncode != 0:
-        raise AssertionError(f"{' '.join(map(str, cmd))} -> exit {r.returncode}\n"
-                             f"stdout:\n{r.stdout[-3000:]}\nstderr:\n{r.stderr[-5000:]}")
-    return r
-
-
 @pytest.fixture(scope="module")
 def venv310(tmp_path_factory):
-    version = subprocess.run([PY310, "-c", "import sys; print(sys.version.split()[0])"],
-                             capture_output=True, text=True, check=True).stdout.strip()
-    assert version.startswith("3.10."), version
-    root = _cache_root()
-    root.mkdir(parents=True, exist_ok=True)
-    key = _venv_key(version)
-    venv = root / f"py310-venv-{key}"
+    assert python_version(PY310).startswith("3.10."), PY310
     work = tmp_path_factory.mktemp("py310")
-    with open(root / f"py310-venv-{key}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)    # other checkouts' suites share this venv
-        env = _env(venv)
-        if not (venv / ".complete").is_file():
-            shutil.rmtree(venv, ignore_errors=True)
-            _run([PY310, "-m", "venv", venv], env, work, 120)
-            _run([venv / "bin" / "python", "-m", "pip", "install", "-q", "-e", REPO],
-                 env, work, INSTALL_S)
-            (venv / ".complete").write_text(key + "\n")
-        else:
-            _run([venv / "bin" / "python", "-m", "pip", "install", "-q", "--no-deps",
-                  "--force-reinstall", "-e", REPO], env, work, INSTALL_S)
-        yield venv, env, work
+    with bare_venv(PY310, "py310", work) as venv:
+        yield venv, clean_env(venv, jit=False), work
 
 
 IMPORT_ALL = r"""
@@ -143,18 +73,13 @@ print(json.dumps({"roots": [str(r) for r in roots], "seen": names, "bad": bad}))
 
 def test_every_module_of_app_imports_on_310(venv310):
     venv, env, work = venv310
-    r = _run([venv / "bin" / "python", "-c", IMPORT_ALL], env, work, 300)
+    r = run([venv / "bin" / "python", "-c", IMPORT_ALL], env, work, 300)
     out = json.loads(r.stdout.strip().splitlines()[-1])
     # the checkout under test, not some other install
     assert [Path(r).resolve() for r in out["roots"]] == [(REPO / "app").resolve()], out["roots"]
     assert {"app.server.presets", "app.cli", "app.server.run"} <= set(out["seen"]), out["seen"]
     assert len(out["seen"]) > 40, out["seen"]
     assert not out["bad"], "\n".join(f"{k}:\n{v}" for k, v in out["bad"].items())
-
-
-def _get(url: str, timeout: float = 5.0) -> tuple[int, bytes]:
-    with urllib.request.urlopen(url, timeout=timeout) as resp:
-        return resp.status, resp.read()
 
 
 def test_serve_starts_answers_health_and_stops_on_sigint_on_310(venv310, tmp_path):
@@ -178,20 +103,13 @@ def test_serve_starts_answers_health_and_stops_on_sigint_on_310(venv310, tmp_pat
             if time.monotonic() > deadline:
                 raise AssertionError(f"/api/health never answered:\n{err.read_text()[-5000:]}")
             with contextlib.suppress(OSError):
-                health = _get(f"http://127.0.0.1:{port}/api/health")
+                health = http_get(f"http://127.0.0.1:{port}/api/health")
             time.sleep(0.2)
         status, body = health
         assert status == 200, body
         assert json.loads(body)["status"] == "ok", body
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-        try:
-            rc = proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-            raise AssertionError("serve did not stop on SIGINT")
+        rc = stop_with_sigint(proc)
     text = err.read_text()
     assert rc == 0, text[-5000:]
     assert "Traceback" not in text, text[-5000:]
