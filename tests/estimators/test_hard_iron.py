@@ -86,3 +86,19 @@ def test_no_offset_without_a_magnet():
         res = est.run(rows.t, rows.gyr, rows.acc, rows.mag, rows.ori)
         assert not np.any(res.flags[:, F_MAG] == Reason.OFFSET)
         assert est.diagnostics().mag_offset_status != "applied"
+
+
+def test_hard_iron_slots_are_one_block_reset_to_their_initial_values():
+    """hard_iron_reset restores the block hi_A..hi_solve_t from the initial state: every
+    hard iron slot lies in it, and after a reset they equal a new state's."""
+    from app.estimators.robust.hardiron import hard_iron_reset
+    from app.estimators.robust.state import INITIAL, S, STATE, new_state
+
+    names = [n for n, _, _ in STATE]
+    block = names[names.index("hi_A"):names.index("hi_solve_t") + 1]
+    assert block == [n for n in names if n.startswith("hi_")]
+    s = new_state()
+    s[S.hi_A:S.hi_solve_t + 1] = 7.0
+    hard_iron_reset(s)
+    np.testing.assert_array_equal(s, INITIAL)
+    assert np.isinf(s[S.hi_std]) and np.isinf(s[S.hi_rms])

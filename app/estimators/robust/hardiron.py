@@ -52,7 +52,7 @@ import numpy as np
 from numba import njit
 
 from app.estimators.robust.params import PRM
-from app.estimators.robust.state import DT_MAX, S, lp_coef
+from app.estimators.robust.state import DT_MAX, INITIAL, S, lp_coef
 
 # How often the fit is solved (s): the offset changes over seconds
 HI_SOLVE_S = 0.1
@@ -79,20 +79,10 @@ def _reset_fit(s):
 
 @njit(cache=True)
 def hard_iron_reset(s):
-    """Start over (alignment): no fit, nothing applied."""
-    _reset_fit(s)
-    s[S.hi_o:S.hi_o + 3] = 0.0
-    s[S.hi_applied:S.hi_applied + 3] = 0.0
-    s[S.hi_status] = HI_NONE
-    s[S.hi_std] = np.inf
-    s[S.hi_r] = 0.0
-    s[S.hi_rms] = np.inf
-    s[S.hi_dev_raw] = 0.0
-    s[S.hi_dev_cor] = 0.0
-    s[S.hi_dev_fit] = 0.0
-    s[S.hi_solve_t] = 0.0
-    s[S.hi_w_acc] = 0.0
-    s[S.hi_feed_t] = 0.0
+    """Start over (alignment): no fit, nothing applied; every hard iron slot (``hi_A`` to
+    ``hi_solve_t``, one block of the state) back to its initial value."""
+    for i in range(S.hi_A, S.hi_solve_t + 1):
+        s[i] = INITIAL[i]
 
 
 @njit(cache=True)

@@ -122,6 +122,11 @@ def new_state() -> np.ndarray:
     return s
 
 
+# The state a stream starts from (read by the compiled code: a slot reset at an alignment
+# gets its value from here, the one place initial values are written)
+INITIAL = new_state()
+
+
 # Longest interval (s) a low-pass or an update accumulator takes from one sample: a stall
 # in the stream must not look like a long, information-rich average.
 DT_MAX = 0.1
