@@ -300,6 +300,22 @@ def quat_conj_many(q: np.ndarray) -> np.ndarray:
     return np.asarray(q, float) * np.array([1.0, -1.0, -1.0, -1.0])
 
 
+def Q_many(q: np.ndarray) -> np.ndarray:
+    """:func:`Q` of (N, 4) unit quaternions: (N, 3, 3) rotation matrices, v_world = R v_sensor."""
+    q0, q1, q2, q3 = np.asarray(q, float).T
+    R = np.empty((len(q0), 3, 3))
+    R[:, 0, 0] = 2.0 * (q0 * q0 + q1 * q1) - 1.0
+    R[:, 0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+    R[:, 0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+    R[:, 1, 0] = 2.0 * (q1 * q2 + q0 * q3)
+    R[:, 1, 1] = 2.0 * (q0 * q0 + q2 * q2) - 1.0
+    R[:, 1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+    R[:, 2, 0] = 2.0 * (q1 * q3 - q0 * q2)
+    R[:, 2, 1] = 2.0 * (q2 * q3 + q0 * q1)
+    R[:, 2, 2] = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    return R
+
+
 def rotvec_from_quat_many(q: np.ndarray) -> np.ndarray:
     """:func:`rotvec_from_quat` of (..., 4) unit quaternions (angle in [0, pi]: q and -q
     give the same rotation vector)."""

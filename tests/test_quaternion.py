@@ -318,3 +318,10 @@ def test_alignment_without_field_points_the_phones_top_north():
     q = qm.quat_from_rotvec(np.array([np.radians(30), 0.0, 0.0]))
     q_al = qm.q_from_acc_mag(qm.Q(q).T @ np.array([0.0, 0.0, 9.81]), np.zeros(3), False)
     assert qm.angle_between(q_al, q) < 1e-9
+
+
+def test_Q_many_is_Q_row_by_row():
+    from app.quaternion import Q, Q_many, quat_from_rotvec_many
+    rng = np.random.default_rng(3)
+    qs = quat_from_rotvec_many(rng.normal(size=(50, 3)))
+    np.testing.assert_allclose(Q_many(qs), np.array([Q(q) for q in qs]), atol=1e-15)

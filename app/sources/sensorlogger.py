@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from app.quaternion import Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul_many
 from app.sources.samples import MAX_TIME_MS, Sample, impossible_rows
 
 __all__ = ["SensorLoggerError", "Batch", "SensorLoggerStream", "OrientationCheck",
@@ -108,43 +109,6 @@ class Batch:
     samples: list[Sample]
     new_session: bool
     ended: list[Sample] = field(default_factory=list)
-
-
-# ---------------------------------------------------------------- quaternions
-
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product, scalar first, broadcasting over leading axes."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
-
-
-def _qconj(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _rotmat(q: np.ndarray) -> np.ndarray:
-    """(N, 4) unit quaternions -> (N, 3, 3) rotation matrices (v_world = R v_sensor)."""
-    w, x, y, z = q.T
-    R = np.empty((len(q), 3, 3))
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    R[:, 0, 1] = 2 * (x * y - w * z)
-    R[:, 0, 2] = 2 * (x * z + w * y)
-    R[:, 1, 0] = 2 * (x * y + w * z)
-    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    R[:, 1, 2] = 2 * (y * z - w * x)
-    R[:, 2, 0] = 2 * (x * z - w * y)
-    R[:, 2, 1] = 2 * (y * z + w * x)
-    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
-
-
-def _rz(deg: float) -> np.ndarray:
-    h = math.radians(deg) / 2.0
-    return np.array([math.cos(h), 0.0, 0.0, math.sin(h)])
 
 
 def _nearest(tq: np.ndarray, tr: np.ndarray, max_dt) -> tuple[np.ndarray, np.ndarray]:
@@ -234,8 +198,9 @@ class OrientationCheck:
         """The app's quaternions (N, 4) in candidate ``cand``'s reading: sensor->ENU, w >= 0."""
         cand = self.chosen if cand is None else cand
         conj, k = divmod(cand, len(self.TURNS))
-        base = _qconj(q) if conj else q
-        out = _qmul(_rz(self.TURNS[k]), base)
+        base = quat_conj_many(q) if conj else q
+        turn = quat_from_rotvec_many(np.array([0.0, 0.0, math.radians(self.TURNS[k])]))
+        out = quat_mul_many(turn, base)
         out /= np.linalg.norm(out, axis=1, keepdims=True)
         return np.where(out[:, :1] < 0.0, -out, out)
 
@@ -260,7 +225,7 @@ class OrientationCheck:
         cos_tilt = math.cos(math.radians(self.tilt_deg))
         fits = []
         for conj in (False, True):
-            R = _rotmat(_qconj(qq) if conj else qq)
+            R = Q_many(quat_conj_many(qq) if conj else qq)
             up = R[:, 2, :]                                   # world up in sensor axes
             tilt_ok = np.einsum("ij,ij->i", up, fa) >= cos_tilt
             mw = np.einsum("nij,nj->ni", R, mm)               # field in the world
