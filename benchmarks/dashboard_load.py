@@ -40,7 +40,6 @@ addresses are used.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import signal
 import socket
@@ -58,7 +57,7 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
 from harness import free_port, wait_for  # noqa: E402
-from health_latency import ws_reader  # noqa: E402
+from health_latency import ws_readers  # noqa: E402
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import SimConfig, simulate
 
@@ -125,20 +124,6 @@ def start_server(port: int, viewer_port: int, phone_port: int, variants: int,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def clients_thread(urls: list[str], counters: list, stop_flag: threading.Event) -> threading.Thread:
-    async def main():
-        stop = asyncio.Event()
-        tasks = [asyncio.create_task(ws_reader(u, c, stop)) for u, c in zip(urls, counters)]
-        while not stop_flag.is_set():
-            await asyncio.sleep(0.1)
-        stop.set()
-        await asyncio.gather(*tasks, return_exceptions=True)
-
-    th = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
-    th.start()
-    return th
-
-
 def phone_lines(seconds: float) -> list[tuple[int, str]]:
     cfg = SimConfig(acc_period_ms=1000 // RATE_HZ, gyr_period_ms=1000 // RATE_HZ,
                     mag_period_ms=1000 // RATE_HZ, ori_period_ms=10_000)
@@ -182,7 +167,7 @@ def main() -> int:
         urls = [f"ws://127.0.0.1:{vport}"] * N_VIEWERS + [f"ws://127.0.0.1:{port}/ws/state"] * N_STATE
         counters = [[0] for _ in urls]
         stop_clients = threading.Event()
-        clients = clients_thread(urls, counters, stop_clients)
+        clients = ws_readers(list(zip(urls, counters)), stop_clients)
         lines = phone_lines(warm + args.seconds + 1.0)
         stop_phone = threading.Event()
         phone = threading.Thread(target=play, args=(pport, lines, stop_phone), daemon=True)

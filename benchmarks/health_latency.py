@@ -89,6 +89,25 @@ async def ws_reader(url: str, counter: list, stop) -> None:
                 counter[1] += 1
 
 
+def ws_readers(clients: list[tuple[str, list]], stop_flag) -> "threading.Thread":
+    """:func:`ws_reader` for every ``(url, counter)`` of ``clients``, all in one asyncio loop
+    on a daemon thread (started), until ``stop_flag`` (a threading.Event) is set."""
+    import asyncio
+    import threading
+
+    async def main():
+        stop = asyncio.Event()
+        tasks = [asyncio.create_task(ws_reader(u, c, stop)) for u, c in clients]
+        while not stop_flag.is_set():
+            await asyncio.sleep(0.1)
+        stop.set()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    th = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
+    th.start()
+    return th
+
+
 def stop_server(proc: subprocess.Popen) -> None:
     proc.send_signal(signal.SIGINT)
     try:

@@ -25,7 +25,6 @@ Run: ``.venv/bin/python benchmarks/soak.py [--seconds 120] [--every 10]``. Loopb
 from __future__ import annotations
 
 import argparse
-import asyncio
 import base64
 import os
 import socket
@@ -41,23 +40,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from health_latency import (free_port, play_paced, rss_mb, server_ok, start_server,  # noqa: E402
-                            stop_server, wait_for, ws_reader)
+                            stop_server, wait_for, ws_readers)
 
 N_VIEWERS = 5
-
-
-def viewers(url: str, counters: list, stop_flag: threading.Event) -> threading.Thread:
-    async def main():
-        stop = asyncio.Event()
-        tasks = [asyncio.create_task(ws_reader(url, c, stop)) for c in counters]
-        while not stop_flag.is_set():
-            await asyncio.sleep(0.1)
-        stop.set()
-        await asyncio.gather(*tasks, return_exceptions=True)
-
-    th = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
-    th.start()
-    return th
 
 
 def stuck_client(port: int) -> socket.socket:
@@ -86,7 +71,7 @@ def main() -> int:
         wait_for(lambda: server_ok(http), 300.0, 0.2, "server start")
         counters = [[0] for _ in range(N_VIEWERS)]
         stop_viewers = threading.Event()
-        vth = viewers(f"ws://127.0.0.1:{vport}", counters, stop_viewers)
+        vth = ws_readers([(f"ws://127.0.0.1:{vport}", c) for c in counters], stop_viewers)
         stuck = stuck_client(port)
         stop_phone, sent = threading.Event(), [0]
         phone = threading.Thread(target=play_paced, args=(pport, stop_phone, sent), daemon=True)

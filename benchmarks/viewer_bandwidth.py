@@ -32,7 +32,6 @@ Run: ``.venv/bin/python benchmarks/viewer_bandwidth.py [--viewers 30] [--seconds
 from __future__ import annotations
 
 import argparse
-import asyncio
 import collections
 import os
 import sys
@@ -47,7 +46,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from health_latency import free_port, server_ok, start_server, stop_server, wait_for, ws_reader  # noqa: E402
+from health_latency import free_port, server_ok, start_server, stop_server, wait_for, ws_readers  # noqa: E402
 
 
 def cpu_s(pid: int) -> float:
@@ -58,19 +57,11 @@ def cpu_s(pid: int) -> float:
 
 def many_viewers(url: str, n: int, counters: list, stop_flag: threading.Event,
                  plots_url: str | None = None, plot_counters: list | None = None) -> threading.Thread:
-    async def main():
-        stop = asyncio.Event()
-        tasks = [asyncio.create_task(ws_reader(url, c, stop)) for c in counters[:n]]
-        if plots_url is not None:
-            tasks += [asyncio.create_task(ws_reader(plots_url, c, stop)) for c in plot_counters[:n]]
-        while not stop_flag.is_set():
-            await asyncio.sleep(0.1)
-        stop.set()
-        await asyncio.gather(*tasks, return_exceptions=True)
-
-    th = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
-    th.start()
-    return th
+    """``n`` viewers (and as many plot clients on ``plots_url``) counting what they receive."""
+    clients = [(url, c) for c in counters[:n]]
+    if plots_url is not None:
+        clients += [(plots_url, c) for c in plot_counters[:n]]
+    return ws_readers(clients, stop_flag)
 
 
 def rate(http: httpx.Client, seconds: float) -> float:
