@@ -56,7 +56,7 @@ MECHANISMS = {
 
 # not scaled: switches, sensor selection, initial conditions without a physical scale
 SKIP = {"use_gyr", "use_acc", "use_mag", "gyr_bias", "max_gap", "gyr_hold", "acc_band_rel",
-        "tilt_motion_time", "update_rate_hz", "acc_flag_angle", "acc_flag_rel"}
+        "update_rate_hz", "acc_flag_angle", "acc_flag_rel"}
 
 
 # a default "at a sharp optimum": ×0.5 and ×2 both cost more than this share of the defaults' mean

@@ -50,7 +50,6 @@ def _align(s, P, p, t, acc, mag, use_mag):
     for i in range(3):
         s[S.bias + i] = p[PRM.gyr_bias + i]
     s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
-    s[S.acc_var] = 0.0
     s[S.turn_lp:S.turn_lp + 2] = 0.0
     s[S.mb_ok] = 0.0
     s[S.mb_sum:S.mb_sum + 3] = 0.0

@@ -79,9 +79,6 @@ class RobustParams(CommonParams):
     acc_band_rel: float = param(0.0, lo=0.0, hi=2.0,
                                 doc="tilt corrections pause while | |a| - g | > this × g (every sample "
                                     "still enters the low-pass); 0: off", rejects=True)
-    tilt_motion_time: float = param(0.0, unit="s", lo=0.0, hi=10.0,
-                                    doc="correlation time of the specific force: its power (low-passed, "
-                                        "over g²) times this is added to tilt_noise² (0: off)", rejects=True)
     acc_flag_angle: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=3.2, user_unit="deg",
                                   user_scale=DEG, doc="a sample this far from the low-passed gravity is "
                                                       "flagged as specific force (ACCEL; it still enters "

@@ -62,7 +62,6 @@ STATE = (
     ("dist_reason", 1, "Reason of the current disturbance (NORM, DIP or TURN)"),
     ("dist_val", 1, "TURN: the latest unexplained change rate of the field (rad/s)"),
     ("bias_good", 3, "the bias estimate before the heading began to disagree with the field"),
-    ("acc_var", 1, "low-passed power of the specific force, |a - low-pass|² (m²/s⁴)"),
     ("mb_ok", 1, "1 once the motion-bias low-passes hold a value"),
     ("mb_R", 9, "motion bias: low-passed rotation matrix (rows of R, sensor to world)"),
     ("mb_Rb", "xy", "motion bias: low-passed horizontal rows of R b (rad/s)"),

@@ -91,12 +91,8 @@ def acc_update(s, P, p, t, acc, f):
     if age > 0.0 and dt / (age + dt) > k:
         k = dt / (age + dt)
     aw = rotate3(s, acc)
-    d2 = 0.0
     for i in range(3):
         s[S.acc_lp + i] += k * (aw[i] - s[S.acc_lp + i])
-        d2 += (aw[i] - s[S.acc_lp + i]) ** 2
-    # the power of the specific force over the same window (what the low-pass averages out)
-    s[S.acc_var] += k * (d2 - s[S.acc_var])
     f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
     # specific force: the sample is far from the low-passed gravity (angle) or from g
     # (norm): the phone accelerates. It still enters the low-pass (the accelerations
@@ -124,10 +120,9 @@ def acc_update(s, P, p, t, acc, f):
     an = qm.norm3(a)
     if an < 1e-6:
         return
-    # noise density of the low-passed direction: the sensor's, plus what the specific force
-    # leaves in it (its power over g², times its correlation time): a walking or running
-    # phone's gravity estimate is trusted less than a still one's
-    r = (p[PRM.tilt_noise] ** 2 + p[PRM.tilt_motion_time] * s[S.acc_var] / (GRAVITY * GRAVITY)) / dt
+    # noise density of the low-passed direction (one that grew with the specific force's power,
+    # the removed tilt_motion_time, was worse on both shared data sets)
+    r = p[PRM.tilt_noise] ** 2 / dt
     Rm = np.zeros((2, 2))
     Rm[0, 0] = r
     Rm[1, 1] = r
