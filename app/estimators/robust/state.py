@@ -16,8 +16,9 @@ from numba import njit
 from app.estimators.kalman import work_size
 from app.estimators.robust.params import PRM, layout
 
-# the scratch of a measurement update of the 6 error states by at most 3 measurements
-KF_WORK = work_size(6, 3)
+# the scratch of a measurement update of the 6 error states by at most 3 measurements (the
+# plain Python function: nothing is compiled at import)
+KF_WORK = work_size.py_func(6, 3)
 
 # A slot is (name, size, doc); a vector read by component gives its components' names
 # as its size (see :func:`.params.layout`): ("bias", "xyz") makes S.bias, S.bias_x...
