@@ -17,8 +17,9 @@ from app.estimators.kalman import work_size
 from app.estimators.robust.params import PRM, layout
 
 # the scratch of a measurement update of the 6 error states by at most 3 measurements (the
-# plain Python function: nothing is compiled at import)
-KF_WORK = work_size.py_func(6, 3)
+# plain Python function: nothing is compiled at import; with NUMBA_DISABLE_JIT=1 it is the
+# function itself)
+KF_WORK = getattr(work_size, "py_func", work_size)(6, 3)
 
 # A slot is (name, size, doc); a vector read by component gives its components' names
 # as its size (see :func:`.params.layout`): ("bias", "xyz") makes S.bias, S.bias_x...
