@@ -310,6 +310,12 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         f[F_MAG] = R_OFFSET
         f[F_MAG_VAL] = np.sqrt(s[S.hi_applied_x] ** 2 + s[S.hi_applied_y] ** 2 + s[S.hi_applied_z] ** 2)
     if not ok:
+        # the samples averaged so far are dropped with the refused one: a disturbance starts
+        # before the gates see it (they judge a low-passed field), and a world-frame average
+        # kept across the refusal would mix in a field seen through a heading since drifted
+        s[S.mag_sum:S.mag_sum + 3] = 0.0
+        s[S.mag_count] = 0.0
+        s[S.mag_upd_time] = 0.0
         return
     # the samples used are averaged in the world frame; the heading correction with
     # their mean runs at most at update_rate_hz
