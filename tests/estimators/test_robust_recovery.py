@@ -118,25 +118,33 @@ def test_heading_lost_mid_trial_is_noticed_and_recovered(shared_dir, name):
 def test_heading_after_a_long_refusal_in_motion_corrects_at_once(shared_dir):
     """BROAD, a magnet attached 3 cm from the IMU while it turns at 4-5 rad/s: the field is
     refused for about 50 s and the gyroscope alone keeps the heading, which drifts by
-    2-3° (its scale error times the turn). With the heading σ grown along the turn
+    6-7° (its scale error times the turn). With the heading σ grown along the turn
     (refused_turn_noise), the first good field corrects it within seconds; with the
     covariance grown by the white gyroscope noise alone it took half a minute."""
     tr = _broad(shared_dir, "34_disturbed_attached_magnet_3cm")
     t = tr["t"]
-    rms = {}
+    start, rms = {}, {}
     # (issue 19: by default the magnet's offset is now tracked and the field used, not refused;
     # the refusal this test replays is the filter without the offset tracking, and without the
-    # field's delay compensation: the few field windows accepted by chance during the magnet's
-    # 50 s, which set the heading the refusal starts from, move with it: 4° off at 5 ms)
+    # field's delay compensation. The field's chance windows within the gates during the
+    # magnet's 50 s, 33-82° off the gyroscope's heading, are refused by the return's innovation
+    # test (flag NIS): the heading the refusal ends with is the gyroscope's drift alone)
     off = {"hard_iron_window": 0.0, "mag_delay": 0.0}
     for p in (off, {**off, "refused_turn_noise": 0.0}):
         res = make_estimator("robust", p).run(t, tr["gyr"], tr["acc"], tr["mag"])
         win = (t >= 85.0) & (t < 98.0)
         assert np.mean([is_rejected(c) for c in res.flags[win, F_MAG].astype(int)]) > 0.8
+        during = res.flags[(t > 50.0) & (t < 100.0), F_MAG].astype(int)
+        assert np.sum(during == Reason.NIS) > 20          # the chance windows, refused
         err = _heading_err_deg(res.q, tr["ref"])
-        rms["refused_turn_noise" in p] = float(np.sqrt(np.mean(_window(t, err, 102.0, 112.0) ** 2)))
-    assert rms[False] < 1.0, rms      # the defaults: corrected within 2-12 s of the field's return
-    assert rms[True] > 1.5, rms       # without: still off by the drift
+        key = "refused_turn_noise" in p
+        start[key] = float(np.sqrt(np.mean(_window(t, err, 95.0, 100.0) ** 2)))
+        rms[key] = float(np.sqrt(np.mean(_window(t, err, 102.0, 112.0) ** 2)))
+    assert start[False] > 4.0, start                   # the gyroscope's drift over the refusal
+    # the defaults: most of it corrected within 2-12 s of the field's return ...
+    assert rms[False] < 0.25 * start[False], (start, rms)
+    # ... without: half of it still there
+    assert rms[True] > 0.4 * start[True], (start, rms)
 
 
 def test_implausible_bias_is_reset_and_flagged(shared_dir):

@@ -23,9 +23,12 @@
   sphere fit and judged the earth field's is removed from every sample first (flag OFFSET).
 - **The field's delay** (``mag_delay``): each sample is turned forward by the gyroscope's
   rate × the delay (0: off).
-- **A return after a refusal needs evidence** (``PROBATION_TURN``): the heading σ grown
-  while the field was refused acts only once the field's heading has stayed consistent
-  (within ``mag_dip_gate``) over a quarter turn; until then the steady gain.
+- **A return after a refusal needs evidence** (``PROBATION_TURN``, ``PROBATION_GATE``): the
+  heading σ grown while the field was refused acts only once the field's heading (less the
+  gyroscope's, low-passed over ``HV_SMOOTH``) has stayed consistent (within
+  ``mag_dip_gate``) over a quarter turn; until then the steady gain, and a field farther from
+  the gyroscope's heading than 3σ and ``mag_dip_gate`` is not used (flag NIS): a magnet's
+  chance window within the gates.
 - **Never lost.** An undisturbed field farther than ``mag_lost_angle`` from the heading
   for ``mag_lost_time`` means the estimate is wrong: the heading σ grows to the error,
   the field's heading is taken, the bias learned meanwhile is dropped (flag RECOVER);
@@ -63,6 +66,11 @@ HV_SMOOTH = 0.5
 # heading σ grown during the refusal is let act: a quarter turn, over which a magnet's bias on
 # the heading (near the phone or on it) changes with the attitude by most of its range
 PROBATION_TURN = 0.5 * np.pi
+
+# During that probation a field heading (low-passed over HV_SMOOTH) farther from the gyroscope's
+# than this many σ of their difference, and than mag_dip_gate, is not used (3σ: a consistent
+# field is refused by chance in 0.3 % of the updates)
+PROBATION_GATE = 3.0
 
 
 @njit(cache=True)
@@ -358,13 +366,20 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         s[S.prob] = 0.0     # no gyroscope heading to test the field against: the field is all
     if s[S.prob] != 0.0 and not lost:
         # a return after a refusal is confirmed by a consistent field over a real turn: its
-        # heading innovations stay within mag_dip_gate of each other while the phone turns
+        # heading less the gyroscope's, low-passed over HV_SMOOTH (a single sample's noise is
+        # no inconsistency: the range of white noise grows with the number of samples seen),
+        # stays within mag_dip_gate while the phone turns
         # by PROBATION_TURN (a magnet near or on a turning phone bends the field's heading
         # by an amount that changes with the attitude; a chance half second "within the
         # gates" is no evidence). Until then the correction runs at the steady gain (R
         # scaled by the growth of the heading variance during the refusal), after it the
         # grown σ lets it catch up at once.
-        iv = innov[0]
+        z = innov[0] + s[S.hv_corr]
+        if s[S.prob_lo] > s[S.prob_hi]:
+            s[S.prob_z] = z
+        else:
+            s[S.prob_z] += lp_coef(elapsed, HV_SMOOTH) * wrap_angle(z - s[S.prob_z])
+        iv = s[S.prob_z]
         s[S.prob_lo] = min(s[S.prob_lo], iv)
         s[S.prob_hi] = max(s[S.prob_hi], iv)
         if s[S.prob_hi] - s[S.prob_lo] > p[PRM.mag_dip_gate]:
@@ -374,8 +389,30 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         s[S.prob_turn] += rate * elapsed
         if s[S.prob_turn] >= PROBATION_TURN or p[PRM.mag_dip_gate] <= 0.0:
             s[S.prob] = 0.0
-        elif s[S.p22_pre] > 0.0 and P[2, 2] > s[S.p22_pre]:
-            Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
+        else:
+            # and until then a field whose heading, low-passed over HV_SMOOTH, is farther from
+            # the gyroscope's than PROBATION_GATE σ and than mag_dip_gate (the tolerance of a
+            # consistent field) is not used: the heading's σ (grown during
+            # the refusal by what the gyroscope may have drifted) and the field's noise over
+            # HV_SMOOTH cannot explain it (a magnet's chance window within the gates, tens of
+            # degrees off); a field that disagrees but stays consistent over the turn ends the
+            # probation and is taken (the gyroscope drifted), and "never lost" still counts
+            d = wrap_angle(s[S.prob_z] - s[S.hv_corr])
+            hph = 0.0
+            for i in range(3):
+                for j in range(3):
+                    hph += H[0, i] * P[i, j] * H[0, j]
+            v = hph + Rm[0, 0] * elapsed / HV_SMOOTH
+            if d * d > max(PROBATION_GATE * PROBATION_GATE * v, p[PRM.mag_dip_gate] ** 2):
+                if f[F_MAG] == R_USED or f[F_MAG] == R_OFFSET:
+                    f[F_MAG] = R_NIS
+                    f[F_MAG_VAL] = d * d / v
+                f[F_MAG_NIS] = d * d / v
+                if ok and p[PRM.mag_lost_angle] > 0.0 and abs(innov[0]) > p[PRM.mag_lost_angle]:
+                    _far(s, elapsed)
+                return
+            if s[S.p22_pre] > 0.0 and P[2, 2] > s[S.p22_pre]:
+                Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
     if lost:
         # an undisturbed field has disagreed with the estimate for long: the estimate is
         # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
