@@ -3,7 +3,8 @@
 - **Tilt from an inertial low-pass of the accelerometer.** Each specific-force sample
   is rotated into the world frame and low-pass filtered there (``acc_tau``, 4.5 s), so
   the phone's accelerations, which average to zero, cancel, while gravity stays. The
-  filtered direction is the measurement (2 components, ``h = (-δθy, δθx)``); the
+  filtered direction is the measurement (2 components, ``h = (-δθy, δθx)``); it corrects
+  the tilt only, never the heading (``_MASK_TILT``); the
   filter state is rotated with every correction, so it always lives in the current
   estimate's world frame (by how much: below). Every valid sample enters the low-pass
   (leaving out the peaks of a movement would bias its mean); an innovation (NIS) gate, and optionally
@@ -36,7 +37,12 @@ from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
 from app.estimators.robust.params import GRAVITY, PRM
 from app.estimators.robust.state import KF_WORK, S, inject, lp_coef, rotate3, update_is_due
 
-_MASK_ATTITUDE = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+# The tilt update corrects the tilt only, never the heading, as the heading update never tilts:
+# through the cross-covariances a dipping field's heading updates leave between tilt and heading,
+# the accelerometer's errors, the specific force left in the low-pass and correlated for seconds
+# (not the white noise the model assumes), would turn the heading (VQF's accelerometer correction
+# never turns it either). Without a magnetometer the heading is then the gyroscope's alone.
+_MASK_TILT = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
 
 # Measurement models in the error state x = [δθ (world), δb]. With q_true = exp(δθ) ⊗ q,
 # a world-frame vector v seen through the estimate is v - δθ × v, so dv/dδθ = [v]×.
@@ -130,7 +136,7 @@ def acc_update(s, P, p, t, acc, f):
     # low-pass, correlated for seconds, which a white-noise model would let the bias absorb
     # (the bias is learned from the corrections' rate below, slowly, as VQF does)
     lp_frac = _tilt_lp_share(P, r, dt, p) if p[PRM.tilt_damping] > 0.0 else 1.0
-    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), 0.0, _MASK_ATTITUDE,
+    ok, nis, dx = correct(P, tilt_jacobian(a), Rm, tilt_innovation(a), 0.0, _MASK_TILT,
                           s[S.kf_work:S.kf_work + KF_WORK])
     f[F_ACC_NIS] = nis
     if ok:
