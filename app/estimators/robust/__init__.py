@@ -9,8 +9,9 @@ the gyroscope bias ``b`` (sensor frame), 6 states with a well-conditioned 6x6 ``
 What makes it accurate on real data (see ``shared/notes/robust-orientation.md``), each
 explained in the module that does it:
 
-- :mod:`.tilt`: **tilt from an inertial low-pass of the accelerometer**, **a damped tilt
-  loop** (``tilt_damping``), **specific force flagged** (ACCEL).
+- :mod:`.tilt`: **tilt from an inertial low-pass of the accelerometer** (it corrects the
+  tilt only, never the heading), **a damped tilt loop** (``tilt_damping``), **specific force
+  flagged** (ACCEL).
 - :mod:`.kernel` (the time update): **scale-factor noise along the net turn**
   (``gyr_scale_noise``), **the heading's σ grows with the turn while the field is
   refused** (``refused_turn_noise``), the reset of an implausible bias (``bias_max``).
