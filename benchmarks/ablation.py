@@ -10,8 +10,11 @@ attitude benchmark of Michel, Genevès, Fourati, Layaïda (IEEE PerCom 2017, CeC
 2. **Sensitivity**: every numeric parameter at ×0.5 and ×2, likewise. A default at a sharp optimum
    shows as both columns clearly positive; the run ends with the list of those where both cost
    more than ``SHARP`` (2 %) of the defaults' mean, on BROAD's 17 or on the phones' 42.
+3. **The rule's reference** (``--only vqf``): VQF's published defaults (Laidig and Seel 2023, its
+   ``params``) through the same ×0.5 / ×2 and the same rule on the same trials: how a filter
+   whose defaults were not chosen on these trials looks to it.
 
-Usage: ``python benchmarks/ablation.py [--only ablation|sensitivity] [--params NAME ...]``
+Usage: ``python benchmarks/ablation.py [--only ablation|sensitivity|vqf] [--params NAME ...]``
 (two worker processes; the whole run takes a few minutes on two cores).
 """
 
@@ -77,7 +80,7 @@ def row(label, s, base):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", choices=("ablation", "sensitivity"))
+    ap.add_argument("--only", choices=("ablation", "sensitivity", "vqf"))
     ap.add_argument("--params", nargs="*", help="sensitivity of these parameters only")
     args = ap.parse_args(argv)
     base = summary(None)
@@ -119,7 +122,31 @@ def main(argv=None) -> int:
                     sharp.append(f"{f.name} on {where} ({costs[0][col]:+.2f} / {costs[1][col]:+.2f})")
         print(f"\nAt a sharp optimum (×0.5 and ×2 both cost more than {SHARP:.0%} of the defaults' "
               f"mean): {', '.join(sharp) if sharp else 'none'}")
+    if args.only == "vqf":
+        vqf_reference()
     return 0
+
+
+def vqf_reference() -> None:
+    """VQF's published defaults through the same sensitivity and the same rule."""
+    from vqf import VQF
+
+    base = [evalkit.evaluate(w, method="VQF")[:, 0].mean() for w in ("broad", "phones")]
+    print(f"VQF's defaults: BROAD {base[0]:.2f}, phones {base[1]:.2f}\n")
+    print("| VQF parameter | default | ×0.5: BROAD, phones | ×2: BROAD, phones |")
+    print("|---|---|---|---|")
+    sharp = []
+    for name, v in VQF(0.01).params.items():
+        if isinstance(v, bool) or not v:
+            continue
+        costs = [[evalkit.evaluate(w, {name: v * k}, method="VQF")[:, 0].mean() - b
+                  for w, b in zip(("broad", "phones"), base)] for k in (0.5, 2.0)]
+        print(f"| `{name}` | {v:g} | {costs[0][0]:+.2f}, {costs[0][1]:+.2f} | "
+              f"{costs[1][0]:+.2f}, {costs[1][1]:+.2f} |", flush=True)
+        for col, where in ((0, "BROAD"), (1, "phones")):
+            if min(c[col] for c in costs) > SHARP * base[col]:
+                sharp.append(f"{name} on {where} ({costs[0][col]:+.2f} / {costs[1][col]:+.2f})")
+    print(f"\nVQF at a sharp optimum (the same rule): {', '.join(sharp) if sharp else 'none'}")
 
 
 if __name__ == "__main__":

@@ -62,7 +62,7 @@ def _run_one(args):
     tr = trials(which)[i]
     if method == "VQF":
         from vqf import VQF
-        v = VQF(1.0 / tr["fs"])
+        v = VQF(1.0 / tr["fs"], **(params or {}))
         q = v.updateBatch(*(np.ascontiguousarray(tr[k]) for k in ("gyr", "acc", "mag")))["quat9D"]
     else:
         q = make_estimator(method, params).run(tr["t"], tr["gyr"], tr["acc"], tr["mag"]).q
