@@ -366,14 +366,13 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         s[S.prob] = 0.0     # no gyroscope heading to test the field against: the field is all
     if s[S.prob] != 0.0 and not lost:
         # a return after a refusal is confirmed by a consistent field over a real turn: its
-        # heading less the gyroscope's, low-passed over HV_SMOOTH (a single sample's noise is
-        # no inconsistency: the range of white noise grows with the number of samples seen),
-        # stays within mag_dip_gate while the phone turns
-        # by PROBATION_TURN (a magnet near or on a turning phone bends the field's heading
-        # by an amount that changes with the attitude; a chance half second "within the
-        # gates" is no evidence). Until then the correction runs at the steady gain (R
-        # scaled by the growth of the heading variance during the refusal), after it the
-        # grown σ lets it catch up at once.
+        # heading less the gyroscope's, low-passed over HV_SMOOTH (one sample's noise is no
+        # inconsistency: the range of white noise grows with the number of samples seen),
+        # stays within mag_dip_gate while the phone turns by PROBATION_TURN (a magnet near or
+        # on a turning phone bends the field's heading by an amount that changes with the
+        # attitude; a chance half second "within the gates" is no evidence). Until then the
+        # correction runs at the steady gain (R scaled by the growth of the heading variance
+        # during the refusal), after it the grown σ lets it catch up at once.
         z = innov[0] + s[S.hv_corr]
         if s[S.prob_lo] > s[S.prob_hi]:
             s[S.prob_z] = z
@@ -392,11 +391,11 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         else:
             # and until then a field whose heading, low-passed over HV_SMOOTH, is farther from
             # the gyroscope's than PROBATION_GATE σ and than mag_dip_gate (the tolerance of a
-            # consistent field) is not used: the heading's σ (grown during
-            # the refusal by what the gyroscope may have drifted) and the field's noise over
-            # HV_SMOOTH cannot explain it (a magnet's chance window within the gates, tens of
-            # degrees off); a field that disagrees but stays consistent over the turn ends the
-            # probation and is taken (the gyroscope drifted), and "never lost" still counts
+            # consistent field) is not used: neither the heading's σ (grown during the refusal
+            # by what the gyroscope may have drifted) nor the field's noise over HV_SMOOTH
+            # explains it (a magnet's chance window within the gates, tens of degrees off). A
+            # field that disagrees but stays consistent over the turn ends the probation and is
+            # taken (the gyroscope drifted); "never lost" still counts beyond mag_lost_angle
             d = wrap_angle(s[S.prob_z] - s[S.hv_corr])
             hph = 0.0
             for i in range(3):

@@ -97,7 +97,7 @@ STATE = (
     ("prob_z", 1, "probation: the field's heading less the gyroscope's, low-passed over HV_SMOOTH (rad)"),
     ("prob_lo", 1, "probation: smallest prob_z seen (rad)"),
     ("prob_hi", 1, "probation: largest prob_z seen (rad)"),
-    ("prob_turn", 1, "probation: turn (rad) over which the innovations stayed consistent"),
+    ("prob_turn", 1, "probation: turn (rad) over which prob_z stayed consistent"),
     ("mag_c", 3, "scratch: the field sample with the offset removed"),
     ("hv_corr", 1, "heading evidence: the heading corrections applied so far (rad)"),
     ("hv", ("fast", "mean", "var"), "heading evidence: the field's heading less the gyroscope's, "
