@@ -119,12 +119,36 @@ def main(argv=None) -> int:
             print(f"| `{f.name}` | {v:.4g} | {cells[0]} | {cells[1]} |", flush=True)
             for col, where in ((0, "BROAD"), (3, "phones")):
                 if len(costs) == 2 and min(c[col] for c in costs) > SHARP * base[col]:
-                    sharp.append(f"{f.name} on {where} ({costs[0][col]:+.2f} / {costs[1][col]:+.2f})")
+                    sharp.append((f.name, v, where, costs[0][col], costs[1][col]))
         print(f"\nAt a sharp optimum (×0.5 and ×2 both cost more than {SHARP:.0%} of the defaults' "
-              f"mean): {', '.join(sharp) if sharp else 'none'}")
+              f"mean): {', '.join(f'{n} on {w} ({a:+.2f} / {b:+.2f})' for n, _, w, a, b in sharp) or 'none'}")
+        if sharp:
+            concentration(sharp)
     if args.only == "vqf":
         vqf_reference()
     return 0
+
+
+def concentration(sharp) -> None:
+    """For each default at a sharp optimum: how much of each side's cost three trials carry
+    (the issue's complaint: a value decided by the chance refusal and acceptance windows of a
+    few trials), and the mean change over the others."""
+    print("\nWhere each of those costs lies (the three trials that change most; the mean change "
+          "over the rest):\n")
+    print("| parameter | on | ×0.5: three trials / the rest | ×2: three trials / the rest |")
+    print("|---|---|---|---|")
+    per_set = {}
+    for name, v, where, _, _ in sharp:
+        which = "broad" if where == "BROAD" else "phones"
+        if which not in per_set:
+            per_set[which] = evalkit.evaluate(which)[:, 0]
+        cells = []
+        for k in (0.5, 2.0):
+            d = evalkit.evaluate(which, {name: v * k})[:, 0] - per_set[which]
+            top = np.argsort(-np.abs(d))[:3]
+            rest = np.setdiff1d(np.arange(len(d)), top)
+            cells.append(f"{d[top].sum():+.2f} of {d.sum():+.2f} / {d[rest].mean():+.3f}")
+        print(f"| `{name}` | {where} | {cells[0]} | {cells[1]} |", flush=True)
 
 
 def vqf_reference() -> None:
