@@ -352,11 +352,9 @@ def test_robust_accelerometer_never_turns_the_heading():
     cannot see. When the tilt update could turn the heading (through the cross-covariances)
     the accelerometer's corrections swung it 85° off and back within the minute (and the
     tilt was worse: 4.0° RMS against 2.6°)."""
-    res = simulate(("turn_x", "turn_y", "turn_z") * 3, seed=3, config=SimConfig())
-    rows = samples_to_rows([Sample(m, tag, tuple(v)) for m, tag, v in res.samples])
-    truth = res.truth_at_ms(rows.t * 1000.0)
-    no_field = np.full_like(rows.mag, np.nan)
-    out = make_estimator("robust").run(rows.t - rows.t[0], rows.gyr, rows.acc, no_field, rows.ori)
+    rows, truth = sim_rows(("turn_x", "turn_y", "turn_z") * 3, seed=3)
+    rows.mag[:] = np.nan
+    out = run(make_estimator("robust"), rows)
     _, head, incl = qm.error_angles(out.q, truth)
     drift = (head - head[0]) * DEG
     assert np.max(np.abs(drift)) < abs(drift[-1]) + 3.0, "the heading swings, not drifts"

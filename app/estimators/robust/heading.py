@@ -267,6 +267,25 @@ def _far(s, elapsed):
 
 
 @njit(cache=True)
+def _is_far(p, innov):
+    """The field's heading is farther from the estimate than ``mag_lost_angle``."""
+    return p[PRM.mag_lost_angle] > 0.0 and abs(innov) > p[PRM.mag_lost_angle]
+
+
+@njit(cache=True)
+def _not_used(s, p, f, nis, ok, innov, elapsed):
+    """A field the checks passed that the heading update does not use (its innovation
+    failed a test): flag NIS with its value; a field judged undisturbed (``ok``) that is
+    far from the heading still counts towards "never lost"."""
+    if f[F_MAG] == R_USED or f[F_MAG] == R_OFFSET:
+        f[F_MAG] = R_NIS
+        f[F_MAG_VAL] = nis
+    f[F_MAG_NIS] = nis
+    if ok and _is_far(p, innov):
+        _far(s, elapsed)
+
+
+@njit(cache=True)
 def mag_update(s, P, p, t, mag, rate, has_rate, f):
     """A magnetometer sample: the turn test and the field check; a field judged usable is
     averaged in the world frame and corrects the heading at most at ``update_rate_hz``
@@ -374,7 +393,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         # correction runs at the steady gain (R scaled by the growth of the heading variance
         # during the refusal), after it the grown σ lets it catch up at once.
         z = innov[0] + s[S.hv_corr]
-        if s[S.prob_lo] > s[S.prob_hi]:
+        if s[S.prob_lo] > s[S.prob_hi]:      # its first update (lo = +inf, hi = -inf)
             s[S.prob_z] = z
         else:
             s[S.prob_z] += lp_coef(elapsed, HV_SMOOTH) * wrap_angle(z - s[S.prob_z])
@@ -403,12 +422,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
                     hph += H[0, i] * P[i, j] * H[0, j]
             v = hph + Rm[0, 0] * elapsed / HV_SMOOTH
             if d * d > max(PROBATION_GATE * PROBATION_GATE * v, p[PRM.mag_dip_gate] ** 2):
-                if f[F_MAG] == R_USED or f[F_MAG] == R_OFFSET:
-                    f[F_MAG] = R_NIS
-                    f[F_MAG_VAL] = d * d / v
-                f[F_MAG_NIS] = d * d / v
-                if ok and p[PRM.mag_lost_angle] > 0.0 and abs(innov[0]) > p[PRM.mag_lost_angle]:
-                    _far(s, elapsed)
+                _not_used(s, p, f, d * d / v, ok, innov[0], elapsed)
                 return
             if s[S.p22_pre] > 0.0 and P[2, 2] > s[S.p22_pre]:
                 Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
@@ -434,13 +448,9 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
             f[F_MAG] = R_RECOVER
             f[F_MAG_VAL] = innov[0]
             s[S.far_time] = 0.0
-        elif ok and p[PRM.mag_lost_angle] > 0.0 and abs(innov[0]) > p[PRM.mag_lost_angle]:
+        elif ok and _is_far(p, innov[0]):
             _far(s, elapsed)  # accepted, but still far: the slow correction may not do
         else:
             s[S.far_time] = 0.0
     else:
-        if f[F_MAG] == R_USED or f[F_MAG] == R_OFFSET:
-            f[F_MAG] = R_NIS
-            f[F_MAG_VAL] = nis
-        if ok:
-            _far(s, elapsed)
+        _not_used(s, p, f, nis, ok, innov[0], elapsed)
