@@ -65,11 +65,32 @@ SKIP = {"use_gyr", "use_acc", "use_mag", "gyr_bias", "max_gap", "gyr_hold", "acc
 # a default "at a sharp optimum": ×0.5 and ×2 both cost more than this share of the defaults' mean
 SHARP = 0.02
 
+_RUNS: dict = {}
+
+
+def per_trial(which: str, params: dict | None = None, method: str = "robust") -> np.ndarray:
+    """Total RMSE per trial (each setting run once per process: the sensitivity's runs are
+    read again for where its costs lie)."""
+    key = (which, method, tuple(sorted((params or {}).items())))
+    if key not in _RUNS:
+        _RUNS[key] = evalkit.evaluate(which, params, method=method)[:, 0]
+    return _RUNS[key]
+
+
 def summary(params: dict | None) -> tuple[float, float, float, float]:
-    b = evalkit.evaluate("broad", params)[:, 0]
-    ph = evalkit.evaluate("phones", params)[:, 0]
+    b, ph = per_trial("broad", params), per_trial("phones", params)
     att = np.array(["attached magnet" == evalkit.broad_kind(t) for t in evalkit.trials("broad")])
     return b.mean(), b[~att].mean(), b[att].mean(), ph.mean()
+
+
+def sharp_at(costs, base, cols) -> list[tuple[str, float, float]]:
+    """The sides ``(where, ×0.5 cost, ×2 cost)`` at a sharp optimum: both costs above ``SHARP``
+    of the defaults' mean there; ``costs`` holds the ×0.5 and ×2 changes, ``cols`` maps a
+    column of them to its set's name."""
+    if len(costs) != 2:
+        return []
+    return [(where, costs[0][c], costs[1][c]) for c, where in cols
+            if min(costs[0][c], costs[1][c]) > SHARP * base[c]]
 
 
 def row(label, s, base):
@@ -83,6 +104,9 @@ def main(argv=None) -> int:
     ap.add_argument("--only", choices=("ablation", "sensitivity", "vqf"))
     ap.add_argument("--params", nargs="*", help="sensitivity of these parameters only")
     args = ap.parse_args(argv)
+    if args.only == "vqf":
+        vqf_reference()
+        return 0
     base = summary(None)
     head = ("| {} | BROAD, 17 | BROAD, 14 without attached magnet | BROAD attached magnet, 3 | phones, 42 |\n"
             "|---|---|---|---|---|")
@@ -117,15 +141,11 @@ def main(argv=None) -> int:
                 costs.append(dd)
                 cells.append(" / ".join(f"{x:+.2f}" for x in dd))
             print(f"| `{f.name}` | {v:.4g} | {cells[0]} | {cells[1]} |", flush=True)
-            for col, where in ((0, "BROAD"), (3, "phones")):
-                if len(costs) == 2 and min(c[col] for c in costs) > SHARP * base[col]:
-                    sharp.append((f.name, v, where, costs[0][col], costs[1][col]))
+            sharp += [(f.name, v, *side) for side in sharp_at(costs, base, ((0, "BROAD"), (3, "phones")))]
         print(f"\nAt a sharp optimum (×0.5 and ×2 both cost more than {SHARP:.0%} of the defaults' "
               f"mean): {', '.join(f'{n} on {w} ({a:+.2f} / {b:+.2f})' for n, _, w, a, b in sharp) or 'none'}")
         if sharp:
             concentration(sharp)
-    if args.only == "vqf":
-        vqf_reference()
     return 0
 
 
@@ -137,14 +157,11 @@ def concentration(sharp) -> None:
           "over the rest):\n")
     print("| parameter | on | ×0.5: three trials / the rest | ×2: three trials / the rest |")
     print("|---|---|---|---|")
-    per_set = {}
     for name, v, where, _, _ in sharp:
         which = "broad" if where == "BROAD" else "phones"
-        if which not in per_set:
-            per_set[which] = evalkit.evaluate(which)[:, 0]
         cells = []
         for k in (0.5, 2.0):
-            d = evalkit.evaluate(which, {name: v * k})[:, 0] - per_set[which]
+            d = per_trial(which, {name: v * k}) - per_trial(which)
             top = np.argsort(-np.abs(d))[:3]
             rest = np.setdiff1d(np.arange(len(d)), top)
             cells.append(f"{d[top].sum():+.2f} of {d.sum():+.2f} / {d[rest].mean():+.3f}")
@@ -155,7 +172,7 @@ def vqf_reference() -> None:
     """VQF's published defaults through the same sensitivity and the same rule."""
     from vqf import VQF
 
-    base = [evalkit.evaluate(w, method="VQF")[:, 0].mean() for w in ("broad", "phones")]
+    base = [per_trial(w, method="VQF").mean() for w in ("broad", "phones")]
     print(f"VQF's defaults: BROAD {base[0]:.2f}, phones {base[1]:.2f}\n")
     print("| VQF parameter | default | ×0.5: BROAD, phones | ×2: BROAD, phones |")
     print("|---|---|---|---|")
@@ -163,13 +180,12 @@ def vqf_reference() -> None:
     for name, v in VQF(0.01).params.items():
         if isinstance(v, bool) or not v:
             continue
-        costs = [[evalkit.evaluate(w, {name: v * k}, method="VQF")[:, 0].mean() - b
+        costs = [[per_trial(w, {name: v * k}, method="VQF").mean() - b
                   for w, b in zip(("broad", "phones"), base)] for k in (0.5, 2.0)]
         print(f"| `{name}` | {v:g} | {costs[0][0]:+.2f}, {costs[0][1]:+.2f} | "
               f"{costs[1][0]:+.2f}, {costs[1][1]:+.2f} |", flush=True)
-        for col, where in ((0, "BROAD"), (1, "phones")):
-            if min(c[col] for c in costs) > SHARP * base[col]:
-                sharp.append(f"{name} on {where} ({costs[0][col]:+.2f} / {costs[1][col]:+.2f})")
+        sharp += [f"{name} on {w} ({a:+.2f} / {b:+.2f})"
+                  for w, a, b in sharp_at(costs, base, ((0, "BROAD"), (1, "phones")))]
     print(f"\nVQF at a sharp optimum (the same rule): {', '.join(sharp) if sharp else 'none'}")
 
 
