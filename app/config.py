@@ -165,10 +165,13 @@ def params_table() -> str:
     out = []
     for name in NAMES:
         cls = estimator_class(name)
+        rows = describe(cls.Params)
+        sourced = any(r["default_from"] for r in rows)   # a column only where defaults say
         out += [f"### `{name}`: {cls.title}", "",
-                "| parameter | default | unit | range | shown as | meaning |",
-                "|---|---|---|---|---|---|"]
-        for r in describe(cls.Params):
+                "| parameter | default | unit | range | shown as | meaning |"
+                + (" default from |" if sourced else ""),
+                "|---|---|---|---|---|---|" + ("---|" if sourced else "")]
+        for r in rows:
             rng = "" if r["lo"] is None and r["hi"] is None else f"{_fmt(r['lo'])} … {_fmt(r['hi'])}"
             if r["choices"]:
                 rng = " / ".join(r["choices"])
@@ -176,6 +179,8 @@ def params_table() -> str:
             if shown and isinstance(r["default"], float):
                 shown = f"{shown} ({_fmt(r['default'] * r['user_scale'])})"
             doc = r["doc"].replace("|", "\\|")     # a bare | would end the cell
-            out.append(f"| `{r['name']}` | {_fmt(r['default'])} | {r['unit']} | {rng} | {shown} | {doc} |")
+            src = (" " + r["default_from"].replace("|", "\\|") + " |") if sourced else ""
+            out.append(f"| `{r['name']}` | {_fmt(r['default'])} | {r['unit']} | {rng} | {shown} | {doc} |"
+                       + src)
         out.append("")
     return "\n".join(out)

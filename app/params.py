@@ -155,9 +155,11 @@ def to_dict(params) -> dict[str, Any]:
 
 
 def describe(params_cls) -> list[dict[str, Any]]:
-    """The parameter table: name, default, unit, range, user unit, help."""
+    """The parameter table: name, default, unit, range, user unit, help, and where the default
+    comes from (``default_from``: a class's optional name → source map; "" where none)."""
     rows = []
     defaults = params_cls()
+    sources = getattr(params_cls, "default_from", {})
     for f in dataclasses.fields(params_cls):
         m = f.metadata
         v = getattr(defaults, f.name)
@@ -165,7 +167,8 @@ def describe(params_cls) -> list[dict[str, Any]]:
                          unit=m.get("unit", ""), lo=m.get("lo"), hi=m.get("hi"),
                          user_unit=m.get("user_unit", ""), user_scale=m.get("user_scale", 1.0),
                          choices=m.get("choices"), log=m.get("log", False), doc=m.get("doc", ""),
-                         tunable=m.get("tunable", True), integer=m.get("integer", False)))
+                         tunable=m.get("tunable", True), integer=m.get("integer", False),
+                         default_from=sources.get(f.name, "")))
     return rows
 
 

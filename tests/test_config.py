@@ -73,6 +73,24 @@ def test_params_table_lists_every_parameter_with_its_unit():
     assert "deg/s" in table  # user units shown beside SI ones
 
 
+def test_every_default_of_the_default_filter_says_where_it_comes_from():
+    """Issue 19: a default from physics, a datasheet or a published value, or, said so, from
+    the shared trials. A parameter added without its source, or one dropped while its source
+    stays, fails here; the table users read (`orientlab params`) shows the column."""
+    from app.estimators.robust.params import RobustParams
+    names = [f.name for f in dataclasses.fields(RobustParams)]
+    sources = RobustParams.default_from
+    assert sorted(sources) == sorted(names)
+    kinds = ("VQF:", "physics:", "datasheet:", "design:", "shared trials")
+    for name, src in sources.items():
+        assert src.startswith(kinds), f"{name}: {src!r} names no kind of source"
+    rows = [line for line in params_table().splitlines() if line.startswith("| `mag_new_field_time` |")]
+    assert rows and rows[0].rstrip(" |").endswith("VQF: magNewTime 20 s")
+    # the other estimators, which claim none, get no empty column
+    lab = params_table().split("### `lab`")[1].splitlines()[2]
+    assert "default from" not in lab
+
+
 def test_an_old_preset_with_a_renamed_key_loads_translated(tmp_path, caplog):
     """lab's gyr_noise is now gyr_std (the same per-sample σ): read as the new name with a
     warning saying so; both names at once is refused."""

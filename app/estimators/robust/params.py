@@ -198,6 +198,71 @@ class RobustParams(CommonParams):
                                   user_scale=DEG, doc="σ of the tilt of a start without accelerometer (level)")
 
 
+# Where each default comes from (issue 19: a default from physics, a datasheet or a published value,
+# not from the shared trials' optimum). The first word is the kind: "VQF" (its published default,
+# Laidig & Seel 2023, vqf's pyvqf.py), "physics" or "datasheet" (the reason follows), "design" (a
+# choice the reason gives, no figure behind it), "shared trials" (set with the shared BROAD and
+# phone trials in view: docs/accuracy.md cross-validates it and names its sensitivity). Shown as
+# a column of `orientlab params` and docs/parameters.md.
+RobustParams.default_from = {
+    "use_gyr": "design: every sensor on", "use_acc": "design: every sensor on",
+    "use_mag": "design: every sensor on",
+    "max_gap": "design: 1 s of a 0.1 rad/s bias is 6°, more than a gap should bridge",
+    "gyr_hold": "design: a few samples of a phone sending one sensor per row",
+    "gyr_noise": "shared trials: a model error (scale, misalignment, timing), 40× a phone "
+                 "gyroscope's white noise",
+    "bias_noise": "physics: a MEMS bias drifting by 0.02 °/s over VQF's biasForgettingTime (100 s)",
+    "bias_max": "physics: 3× the largest phone bias (0.1 rad/s)",
+    "gyr_scale_noise": "physics: a 1 % scale error over acc_tau (benchmarks/gyro_scale.py: 0.2-2.3 %)",
+    "refused_turn_noise": "physics: a 1 % scale error per second of turn",
+    "bias_init": "VQF: biasSigmaInit 0.5 °/s (here 0.57 °/s)",
+    "bias_motion_noise": "shared trials",
+    "bias_motion_clip": "VQF: biasClip 2 °/s",
+    "bias_heading_noise": "shared trials: 2 × bias_motion_noise",
+    "gyr_bias": "design: none known",
+    "tilt_noise": "shared trials",
+    "acc_tau": "shared trials: the tilt loop's bandwidth kept when it was damped as VQF's "
+               "(VQF's tauAcc: 3 s)",
+    "tilt_damping": "VQF: its second-order Butterworth low-pass, ζ = 1/√2",
+    "acc_band_rel": "design: off (VQF has no band)",
+    "acc_flag_angle": "design: a flag only, no estimate changes",
+    "acc_flag_rel": "design: a flag only, no estimate changes",
+    "heading_noise": "shared trials: where BROAD's floor (0.07-0.1) meets the phones' (0.1-0.14)",
+    "heading_evidence_tau": "physics: a few strides, short against the heading's tens of seconds",
+    "mag_norm_gate_rel": "shared trials: VQF's magNormTh 10 % widened for a phone's uncalibrated field",
+    "mag_dip_gate": "VQF: magDipTh 10°",
+    "mag_ref_tau": "VQF: magRefTau 20 s",
+    "mag_new_field_time": "VQF: magNewTime 20 s",
+    "mag_new_min_rate": "VQF: magNewMinGyr 20 °/s",
+    "mag_dev_weight": "physics: a deviation Δ turns the horizontal field by at most Δ/|m_h|",
+    "mag_first_field_time": "VQF: magNewFirstTime 5 s",
+    "mag_min_undisturbed": "VQF: magMinUndisturbedTime 0.5 s",
+    "mag_norm_dip_tau": "VQF: magCurrentTau 0.05 s",
+    "mag_turn_gate": "physics: 2.5× a phone's largest gyroscope bias (0.1 rad/s)",
+    "mag_turn_rel": "physics: a saturated gyroscope reads at least 2/3 of a turn",
+    "mag_turn_tau": "design: shorter than a magnet brought in (0.5 s)",
+    "mag_delay": "physics: half the period of a 100 Hz magnetometer (stamped at the end of its "
+                 "conversion)",
+    "hard_iron_window": "physics: 10 s of turning sees the sphere from every side (the window "
+                        "issue 19 measured)",
+    "hard_iron_max_std": "datasheet: a magnetometer's noise, 0.3-1 µT",
+    "hard_iron_tol": "physics: a magnetometer's scale error and a room's variation, a few %",
+    "rest_gyr_th": "VQF: restThGyr 2 °/s",
+    "rest_acc_th": "VQF: restThAcc 0.5 m/s²",
+    "rest_time": "VQF: restMinT 1.5 s",
+    "rest_noise": "VQF: biasSigmaRest 0.03 °/s, as a noise density",
+    "rw_noise": "design: a hand turns a phone by about 0.5 rad in a second",
+    "update_rate_hz": "design: the cost of an update; every sample still enters the low-passes",
+    "rest_lp_tau": "VQF: restFilterTau 0.5 s",
+    "mag_cand_tau": "design: a few seconds, longer than the field's low-pass (0.05 s)",
+    "mag_lost_angle": "design: three times mag_dip_gate",
+    "mag_lost_time": "design: longer than a magnet passing by",
+    "init_tilt_std": "physics: the tilt of a phone aligned while it moves",
+    "init_heading_std": "physics: a field bent indoors by tens of degrees",
+    "noacc_tilt_std": "design: a level start, tilted up to 30°",
+}
+
+
 # ----------------------------------------------------------------- layouts
 
 def layout(name: str, fields) -> tuple:

@@ -145,6 +145,8 @@ def hint_text(row: dict[str, Any], kind: str) -> str:
     effect = EFFECT.get(row["name"], "")
     if effect:
         parts.append(effect[0].upper() + effect[1:] + ".")
+    if row.get("default_from"):
+        parts.append(f"Default from {row['default_from']}.")
     parts.append(f"API name: {row['name']}.")
     return " ".join(parts)
 
