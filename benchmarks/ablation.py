@@ -154,18 +154,20 @@ def concentration(sharp) -> None:
     (the issue's complaint: a value decided by the chance refusal and acceptance windows of a
     few trials), and the mean change over the others."""
     print("\nWhere each of those costs lies (the three trials that change most; the mean change "
-          "over the rest):\n")
-    print("| parameter | on | ×0.5: three trials / the rest | ×2: three trials / the rest |")
-    print("|---|---|---|---|")
+          "over the rest; the mean change ± its standard error over the trials, paired):\n")
+    print("| parameter | on | ×0.5: three trials / the rest | ×2: three trials / the rest | "
+          "×0.5: mean ± SE | ×2: mean ± SE |")
+    print("|---|---|---|---|---|---|")
     for name, v, where, _, _ in sharp:
         which = "broad" if where == "BROAD" else "phones"
-        cells = []
+        cells, se = [], []
         for k in (0.5, 2.0):
             d = per_trial(which, {name: v * k}) - per_trial(which)
             top = np.argsort(-np.abs(d))[:3]
             rest = np.setdiff1d(np.arange(len(d)), top)
             cells.append(f"{d[top].sum():+.2f} of {d.sum():+.2f} / {d[rest].mean():+.3f}")
-        print(f"| `{name}` | {where} | {cells[0]} | {cells[1]} |", flush=True)
+            se.append(f"{d.mean():+.2f} ± {d.std(ddof=1) / np.sqrt(len(d)):.2f}")
+        print(f"| `{name}` | {where} | {cells[0]} | {cells[1]} | {se[0]} | {se[1]} |", flush=True)
 
 
 def vqf_reference() -> None:
