@@ -5,7 +5,7 @@ receiver and the engine) in a thread on 127.0.0.1; ``srv.url``, ``srv.phone_port
 ``srv.viewer_port`` and ``srv.app`` (the FastAPI app, its ``state`` holds the engine)
 are available; leaving the block stops everything. :class:`Phone` is a TCP client that
 sends lines as the Sensor Fusion app does; :func:`play_paced` plays a log through it at the
-log's own pace.
+log's own pace. :func:`sim_rows` gives the simulator's samples as the rows a phone sends.
 """
 
 from __future__ import annotations
@@ -207,3 +207,16 @@ def feed_lines(core, session, lines) -> list:
     for reason, n in bad.items():
         session.count_malformed(reason, n)
     return core.feed(session, samples)
+
+
+def sim_rows(scenes, seed=0, config=None):
+    """The simulator's samples as rows (one per sample, as a phone sends them, time from 0)
+    and the truth at each row."""
+    from app.sources.ordering import samples_to_rows
+    from app.sources.samples import Sample
+    from app.sources.simulate import simulate
+    res = simulate(scenes, seed=seed, config=config)
+    rows = samples_to_rows([Sample(m, tag, tuple(v)) for m, tag, v in res.samples])
+    truth = res.truth_at_ms(rows.t * 1000.0)
+    rows.t = rows.t - rows.t[0]
+    return rows, truth

@@ -11,8 +11,8 @@ import pytest
 from app.config import ConfigError, defaults_toml, estimator_params, load_config, params_table
 from app.estimators import NAMES, estimator_class, make_estimator
 from app.params import CONFIG_DIR, DEFAULT_CONFIG, load_toml, param, to_dict
-from app.sources.simulate import simulate
 from app.toolkit.variants import no_rejection_changes
+from harness import sim_rows
 
 
 def test_default_toml_is_the_parameter_definitions():
@@ -29,10 +29,7 @@ def test_default_toml_is_the_parameter_definitions():
 @pytest.mark.parametrize("preset", sorted(p.stem for p in CONFIG_DIR.glob("*.toml")))
 def test_every_shipped_preset_loads_and_runs(preset):
     cfg = load_config(preset)
-    res = simulate(("still", "turn_x", "shake"), seed=1)
-    from app.sources.samples import Sample
-    from app.sources.ordering import samples_to_rows
-    rows = samples_to_rows([Sample(m, t, tuple(v)) for m, t, v in res.samples])
+    rows, _ = sim_rows(("still", "turn_x", "shake"), seed=1)
     for name in NAMES:
         est = make_estimator(name, estimator_params(cfg, name))
         out = est.run(rows.t, rows.gyr, rows.acc, rows.mag, rows.ori)

@@ -23,9 +23,8 @@ from app.estimators.lab import _jacobian
 from app.estimators.robust import (heading_innovation, heading_jacobian, tilt_innovation,
                                    tilt_jacobian)
 from app.params import ParamError
-from app.sources.samples import Sample
-from app.sources.simulate import SimConfig, simulate
-from app.sources.ordering import samples_to_rows
+from app.sources.simulate import SimConfig
+from harness import sim_rows
 
 ROOT = Path(__file__).resolve().parents[2]
 FILTERS = [n for n in NAMES if n != "phone"]  # the ones that estimate from the sensors
@@ -36,15 +35,6 @@ M_WORLD = np.array([0.0, 20.0, -45.0])
 
 def random_q(rng) -> np.ndarray:
     return qm.normalize(rng.standard_normal(4))
-
-
-def sim_rows(scenes, seed=0, config=None):
-    """Rows (one per sample, as a phone sends them) and the truth at each row."""
-    res = simulate(scenes, seed=seed, config=config)
-    rows = samples_to_rows([Sample(m, tag, tuple(v)) for m, tag, v in res.samples])
-    truth = res.truth_at_ms(rows.t * 1000.0)
-    rows.t = rows.t - rows.t[0]
-    return rows, truth
 
 
 def run(est, rows):
@@ -556,7 +546,8 @@ _REFERENCE_SCRIPT = r"""
 import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
-from tests.estimators.test_estimators import sim_rows
+sys.path.insert(0, sys.argv[1] + "/tests")
+from harness import sim_rows
 from app.estimators import make_estimator
 rows, _ = sim_rows(("still", "turn_x", "shake", "magnet", "gyro_dropout"), seed=15)
 res = make_estimator("robust").run(rows.t, rows.gyr, rows.acc, rows.mag)

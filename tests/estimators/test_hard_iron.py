@@ -12,9 +12,8 @@ import numpy as np
 from app.estimators import Reason, make_estimator
 from app.estimators.base import F_MAG, F_MAG_VAL
 from app.quaternion import error_angles
-from app.sources.ordering import samples_to_rows
-from app.sources.samples import Sample
-from app.sources.simulate import SimConfig, simulate
+from app.sources.simulate import SimConfig
+from harness import sim_rows
 
 DEG = 180.0 / np.pi
 TURNS = ("turn_x", "turn_y", "turn_z") * 7          # 126 s of turning
@@ -24,11 +23,7 @@ OFFSET = np.array([18.0, -12.0, 20.0])                # µT, sensor frame (|o| =
 
 def _rows(magnet=True, scenes=TURNS, seed=3):
     # a gyroscope bias about the vertical the field must correct: 0.5 °/s
-    cfg = SimConfig(gyr_bias=(0.0, 0.0, 0.5 / DEG))
-    res = simulate(scenes, seed=seed, config=cfg)
-    rows = samples_to_rows([Sample(m, tag, tuple(v)) for m, tag, v in res.samples])
-    truth = res.truth_at_ms(rows.t * 1000.0)
-    rows.t = rows.t - rows.t[0]
+    rows, truth = sim_rows(scenes, seed=seed, config=SimConfig(gyr_bias=(0.0, 0.0, 0.5 / DEG)))
     if magnet:
         on = (rows.t >= ON) & (rows.t < OFF) & np.isfinite(rows.mag[:, 0])
         rows.mag[on] += OFFSET
