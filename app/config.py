@@ -36,22 +36,30 @@ class ConfigError(ValueError):
 
 
 def renamed_message(estimator: str, old: str, params_cls) -> str | None:
-    """``"gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"`` or None."""
+    """``"gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"``, or for a parameter the
+    estimator no longer has (``Params.removed``) ``"... was removed from robust (why)"``, or None."""
     new = getattr(params_cls, "renamed", {}).get(old)
-    if new is None:
-        return None
-    return f"{old} was renamed {new[0]} in {estimator} ({new[1]})"
+    if new is not None:
+        return f"{old} was renamed {new[0]} in {estimator} ({new[1]})"
+    why = getattr(params_cls, "removed", {}).get(old)
+    if why is not None:
+        return f"{old} was removed from {estimator} ({why})"
+    return None
 
 
 def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source: str) -> dict[str, Any]:
-    """``values`` with the estimator's former parameter names replaced by the new ones
-    (a warning each); both names at once is a :class:`ConfigError`."""
+    """``values`` with the estimator's former parameter names replaced by the new ones and its
+    removed parameters left out (a warning each: a preset saved by an older version still
+    loads); a former and a new name at once is a :class:`ConfigError`."""
     renamed = getattr(params_cls, "renamed", {})
-    if not any(k in renamed for k in values):
+    removed = getattr(params_cls, "removed", {})
+    if not any(k in renamed or k in removed for k in values):
         return values
     out = {}
     for k, v in values.items():
-        if k in renamed:
+        if k in removed:
+            log.warning("%s: [%s] %s: left out", source, estimator, renamed_message(estimator, k, params_cls))
+        elif k in renamed:
             new = renamed[k][0]
             if new in values:
                 raise ConfigError(f"{source}: [{estimator}] has both {k} and {new}; "

@@ -136,6 +136,9 @@ def replace_params(params, changes: dict[str, Any]):
             new = getattr(type(params), "renamed", {}).get(name)
             if new is not None:
                 raise ParamError(name, f"was renamed {new[0]} ({new[1]})")
+            why = getattr(type(params), "removed", {}).get(name)
+            if why is not None:
+                raise ParamError(name, f"was removed ({why})")
             raise ParamError(name, f"unknown parameter for {type(params).__name__} "
                                    f"(known: {', '.join(sorted(fmap))})")
         clean[name] = coerce(name, value, getattr(params, name), fmap[name].metadata)

@@ -49,7 +49,7 @@ MECHANISMS = {
     "scale-factor tilt noise": {"gyr_scale_noise": 0.0},
     "tilt loop damping": {"tilt_damping": 0.0},
     "bias from tilt corrections": {"bias_motion_noise": 0.0},
-    "bias from heading corrections": {"bias_heading_noise": 0.0},
+    "bias from the heading's drift": {"heading_drift_window": 0.0},
     "rest detection": {"rest_time": 0.0},
     "bias reset (bias_max)": {"bias_max": 0.0},
     "acc flags": {"acc_flag_angle": 0.0, "acc_flag_rel": 0.0},

@@ -103,6 +103,24 @@ def test_an_old_preset_with_a_renamed_key_loads_translated(tmp_path, caplog):
     assert "both gyr_noise and gyr_std" in str(e.value)
 
 
+def test_a_preset_saved_before_a_parameter_was_removed_still_loads(tmp_path, caplog):
+    """A saved preset holds every parameter of its day: one robust no longer has is left out
+    with a warning saying why (the rest of the preset applies); a key no version had is still
+    refused."""
+    path = tmp_path / "saved_last_term.toml"
+    path.write_text("[robust]\nbias_heading_noise = 0.0349\nmag_max_reject = 60.0\nheading_noise = 0.12\n")
+    with caplog.at_level("WARNING", logger="orientlab.config"):
+        cfg = load_config(path)
+    assert cfg["robust"]["heading_noise"] == 0.12
+    assert "bias_heading_noise" not in cfg["robust"] and "mag_max_reject" not in cfg["robust"]
+    assert "bias_heading_noise was removed from robust (the bias about the vertical is learned " \
+           "from the heading's drift now" in caplog.text
+    assert "mag_max_reject was removed from robust" in caplog.text
+    path.write_text("[robust]\nbias_heading_nosie = 0.03\n")
+    with pytest.raises(ConfigError, match="bias_heading_nosie: unknown parameter"):
+        load_config(path)
+
+
 def test_every_rejecting_parameter_is_declared_and_the_no_rejection_variant_turns_it_off():
     """A gate, a band or a de-weighting declares itself (``param(rejects=True)``): the
     no-rejection variant switches off exactly those, each to its off value, and nothing

@@ -191,6 +191,11 @@ def test_patch_refuses_bad_input_and_applies_nothing(srv, api):
     r = api.patch("/api/params", json={"estimators": {"lab": {"gyr_noise": 0.02}}})
     assert r.status_code == 422
     assert r.json()["detail"][0]["msg"] == "gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"
+    # a removed one says why, and what replaced it
+    r = api.patch("/api/params", json={"estimators": {"robust": {"bias_heading_noise": 0.02}}})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["msg"].startswith("bias_heading_noise was removed from robust (the bias "
+                                                   "about the vertical is learned from the heading's drift")
     r = api.patch("/api/params", json={"gyr_noise": 0.01})
     assert r.status_code == 422 and "robust's own" in r.json()["detail"][0]["msg"]
     assert api.get("/api/params").json() == before

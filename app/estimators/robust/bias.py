@@ -1,20 +1,23 @@
-"""The gyroscope bias: learned at rest, and in motion from the rate of the corrections.
+"""The gyroscope bias: learned at rest, and in motion from the tilt corrections and the heading's drift.
 
 - **Rest detection** (gyroscope and accelerometer both quiet for ``rest_time``, and the
   gyroscope reading no more than a plausible bias, ``bias_max``: a steady turn about the
   vertical is as quiet as rest): the low-passed gyroscope is then a direct measurement of
   the bias.
-- **Bias in motion from the correction rates** (VQF's motion bias estimation, through
-  the same ``correct``). The tilt and heading updates correct the attitude only: their
-  errors (specific force left in the low-pass, a field bent indoors) last for seconds,
-  and a white-noise model would let the bias absorb them (it wandered by 1.5 °/s on a
-  phone held still in the hand). Instead, the rate of the tilt corrections (x, y) and
-  of the heading corrections (about the vertical) measures the bias error, with their
-  own noise densities (``bias_motion_noise``, ``bias_heading_noise``) and a clip
-  (``bias_motion_clip``): the bias follows the corrections over a minute, not seconds.
-  The tilt update (:mod:`.tilt`) and the heading update (:mod:`.heading`) sum their
-  corrections and call :func:`motion_bias_update` / :func:`heading_bias_update` every
-  ``BIAS_UPD_S``.
+- **Bias in motion from the tilt corrections' rate** (VQF's motion bias estimation, through
+  the same ``correct``). The tilt update corrects the attitude only: its errors (specific
+  force left in the low-pass) last for seconds, and a white-noise model would let the bias
+  absorb them (it wandered by 1.5 °/s on a phone held still in the hand). Instead, the rate
+  of the tilt corrections (x, y) measures the bias error, with its own noise density
+  (``bias_motion_noise``) and a clip (``bias_motion_clip``): the bias follows the corrections
+  over a minute, not seconds. The tilt update (:mod:`.tilt`) sums its corrections and calls
+  :func:`motion_bias_update` every ``BIAS_UPD_S``.
+- **The bias about the vertical from the heading's drift** (``heading_drift_window``,
+  ``heading_drift_corr``): the heading update (:mod:`.heading`) fits a line to the field's
+  heading less the raw gyroscope's; its slope is the bias along the vertical, its residual
+  (a field bent indoors, a stride's swing) its uncertainty; :func:`heading_drift_update` learns
+  it. A rest-learned bias is not the bias in motion (a MEMS gyroscope's bias changes with the
+  gravity it feels, 0.1 °/s/g); this learns the one in motion where the field allows.
 """
 
 from __future__ import annotations
@@ -151,24 +154,25 @@ def motion_bias_update(s, P, p, dx0, dx1, dt):
 
 
 @njit(cache=True)
-def heading_bias_update(s, P, p, dz, dt):
-    """The bias about the vertical from the rate of the heading corrections, as
-    :func:`motion_bias_update` does for x and y: a bias error δb turns the heading at
-    -(R δb)_z, the corrections follow at that rate. The heading update itself corrects the
-    heading only: through the cross-covariances a field bent for seconds (and, with a dipping
-    field, the tilt columns of its Jacobian) would pull every axis of the bias."""
-    q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
+def heading_drift_update(s, P, p, y, var, dt):
+    """The bias about the vertical from the heading drift fit (:func:`.heading._drift_fit`): ``y``
+    (rad/s) is the slope of the field's heading less the raw gyroscope's over
+    ``heading_drift_window``, which measures the bias along the world's vertical as the window
+    saw it (``dr_H``), with variance ``var`` from the fit's residual. Fed every ``dt`` (about
+    ``BIAS_UPD_S``) while the fit spans its window of time, its noise is that of one window's fit
+    spread over it (``var`` × 2 window / ``dt``): a window's slope is learned once, not once per
+    update. A slope off the estimate by more than ``bias_motion_clip`` counts as that much."""
     H = np.zeros((1, 6))
-    H[0, 3] = 2.0 * (q1 * q3 - q0 * q2)
-    H[0, 4] = 2.0 * (q2 * q3 + q0 * q1)
-    H[0, 5] = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    H[0, 3] = s[S.dr_H_x]
+    H[0, 4] = s[S.dr_H_y]
+    H[0, 5] = s[S.dr_H_z]
     innov = np.empty(1)
-    innov[0] = -dz / dt
+    innov[0] = y - (s[S.dr_H_x] * s[S.bias_x] + s[S.dr_H_y] * s[S.bias_y] + s[S.dr_H_z] * s[S.bias_z])
     clip = p[PRM.bias_motion_clip]
     if clip > 0.0:
         innov[0] = min(clip, max(-clip, innov[0]))
     Rm = np.empty((1, 1))
-    Rm[0, 0] = p[PRM.bias_heading_noise] ** 2 / dt
+    Rm[0, 0] = var * 2.0 * p[PRM.heading_drift_window] / dt
     ok, nis, db = correct(P, H, Rm, innov, 0.0, _MASK_BIAS, s[S.kf_work:S.kf_work + KF_WORK])
     if ok:
         for i in range(3):

@@ -29,6 +29,9 @@
   ``mag_dip_gate``) over a quarter turn; until then the steady gain, and a field farther from
   the gyroscope's heading than 3σ and ``mag_dip_gate`` is not used (flag NIS): a magnet's
   chance window within the gates.
+- **The gyroscope's drift about the vertical from the data** (:func:`_drift_fit`,
+  ``heading_drift_window``): a line fitted to the field's heading less the raw gyroscope's;
+  its slope is the bias about the vertical (learned by :func:`.bias.heading_drift_update`).
 - **Never lost.** An undisturbed field farther than ``mag_lost_angle`` from the heading
   for ``mag_lost_time`` means the estimate is wrong: the heading σ grows to the error,
   the field's heading is taken, the bias learned meanwhile is dropped (flag RECOVER);
@@ -43,7 +46,7 @@ from numba import njit
 from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD, R_NIS, R_NORM,
                                 R_OFFSET, R_RECOVER, R_TURN, R_USED)
 from app.estimators.kalman import correct
-from app.estimators.robust.bias import BIAS_UPD_S, heading_bias_update
+from app.estimators.robust.bias import BIAS_UPD_S, heading_drift_update
 from app.estimators.robust.hardiron import HI_APPLIED, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, update_is_due
@@ -257,6 +260,76 @@ def evidence_density(v):
     return 2.0 * v * HV_SMOOTH
 
 
+# the heading drift fit's time origin moves on after this long (s): its sums of t² keep their digits
+DRIFT_T_SHIFT = 600.0
+
+
+@njit(cache=True)
+def _drift_fit(s, p, t, innov, elapsed):
+    """The gyroscope's drift about the vertical, from the data. The innovation plus the
+    corrections applied so far plus the bias removed about the vertical (integrated in the
+    time update) is the field's heading less the *raw* gyroscope's: a real field is fixed in
+    the world, so its slope is minus the bias along the vertical (whatever the estimate is),
+    and what else it does (a stride's swing, a field bent where the phone walks) is noise. A
+    line is fitted to it over ``heading_drift_window`` (exponential forgetting, the sums of 1,
+    t, t², z, t z, z² low-passed); once the fit spans its window its slope, as a measurement of
+    the bias along the vertical the window saw (``dr_H``), and the slope's variance (the
+    residual's, one independent sample per ``heading_drift_corr``) are summed for the next
+    bias update. Samples the heading update does not use never reach it."""
+    T = p[PRM.heading_drift_window]
+    q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
+    h0 = 2.0 * (q1 * q3 - q0 * q2)             # the world's vertical in the sensor frame
+    h1 = 2.0 * (q2 * q3 + q0 * q1)
+    h2 = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    z = innov + s[S.hv_corr] - s[S.dr_bint]
+    if s[S.dr_ok] == 0.0:
+        s[S.dr_z] = z
+        s[S.dr_ok] = 1.0
+        s[S.dr_t0] = t
+        s[S.dr_start] = t
+        s[S.dr_sums:S.dr_sums + 6] = 0.0
+        s[S.dr_y] = 0.0
+        s[S.dr_var] = 0.0
+        s[S.dr_n] = 0.0
+        s[S.dr_H_x], s[S.dr_H_y], s[S.dr_H_z] = h0, h1, h2
+        return
+    s[S.dr_z] += wrap_angle(z - s[S.dr_z])     # headings wrap; the fit needs the unwrapped one
+    zu = s[S.dr_z]
+    tt = t - s[S.dr_t0]
+    if tt > DRIFT_T_SHIFT:                     # move the origin on: t → t - d in every sum
+        d = tt
+        w, st = s[S.dr_sums_w], s[S.dr_sums_t]
+        s[S.dr_sums_tt] += -2.0 * d * st + d * d * w
+        s[S.dr_sums_t] = st - d * w
+        s[S.dr_sums_tz] -= d * s[S.dr_sums_z]
+        s[S.dr_t0] = t
+        tt = 0.0
+    k = lp_coef(elapsed, T)
+    s[S.dr_sums_w] += k * (1.0 - s[S.dr_sums_w])
+    s[S.dr_sums_t] += k * (tt - s[S.dr_sums_t])
+    s[S.dr_sums_tt] += k * (tt * tt - s[S.dr_sums_tt])
+    s[S.dr_sums_z] += k * (zu - s[S.dr_sums_z])
+    s[S.dr_sums_tz] += k * (tt * zu - s[S.dr_sums_tz])
+    s[S.dr_sums_zz] += k * (zu * zu - s[S.dr_sums_zz])
+    s[S.dr_H_x] += k * (h0 - s[S.dr_H_x])
+    s[S.dr_H_y] += k * (h1 - s[S.dr_H_y])
+    s[S.dr_H_z] += k * (h2 - s[S.dr_H_z])
+    if t - s[S.dr_start] < T:
+        return                                  # not yet a window of time
+    w = s[S.dr_sums_w]
+    mt, mz = s[S.dr_sums_t] / w, s[S.dr_sums_z] / w
+    vt = s[S.dr_sums_tt] / w - mt * mt
+    if vt <= 1e-9:
+        return
+    cov = s[S.dr_sums_tz] / w - mt * mz
+    slope = cov / vt
+    vr = max(s[S.dr_sums_zz] / w - mz * mz - slope * cov, 1e-12)
+    n_ind = max(2.0 * T / p[PRM.heading_drift_corr], 1.0)
+    s[S.dr_y] += -slope
+    s[S.dr_var] += vr / (vt * n_ind)
+    s[S.dr_n] += 1.0
+
+
 @njit(cache=True)
 def _far(s, elapsed):
     """The heading disagrees with an undisturbed field: count the time; at its start,
@@ -426,23 +499,30 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
                 return
             if s[S.p22_pre] > 0.0 and P[2, 2] > s[S.p22_pre]:
                 Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
+    if p[PRM.heading_drift_window] > 0.0 and has_rate and not lost:
+        _drift_fit(s, p, t, innov[0], elapsed)
     if lost:
         # an undisturbed field has disagreed with the estimate for long: the estimate is
         # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
         # the bias learned meanwhile (from a heading that was wrong) is dropped.
         P[2, 2] += innov[0] ** 2
         s[S.bias:S.bias + 3] = s[S.bias_good:S.bias_good + 3]
+        s[S.dr_ok] = 0.0        # and so is the drift fit: it starts afresh
     ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING, s[S.kf_work:S.kf_work + KF_WORK])
     f[F_MAG_NIS] = nis
     if ok2:
         inject(s, P, dx)
         s[S.hv_corr] += dx[2]
-        if not lost and p[PRM.bias_heading_noise] > 0.0 and s[S.rest] == 0.0:
-            s[S.mb_sum_z] += dx[2]
+        if not lost and s[S.dr_n] > 0.0 and s[S.rest] == 0.0:
+            # the bias about the vertical from the drift fit, every BIAS_UPD_S (at rest the
+            # gyroscope itself measures it: rest_update)
             s[S.mb_time_heading] += elapsed
             if s[S.mb_time_heading] >= BIAS_UPD_S:
-                heading_bias_update(s, P, p, s[S.mb_sum_z], s[S.mb_time_heading])
-                s[S.mb_sum_z] = 0.0
+                heading_drift_update(s, P, p, s[S.dr_y] / s[S.dr_n], s[S.dr_var] / s[S.dr_n],
+                                     s[S.mb_time_heading])
+                s[S.dr_y] = 0.0
+                s[S.dr_var] = 0.0
+                s[S.dr_n] = 0.0
                 s[S.mb_time_heading] = 0.0
         if lost:
             f[F_MAG] = R_RECOVER

@@ -52,7 +52,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
     s[S.turn_lp:S.turn_lp + 2] = 0.0
     s[S.mb_ok] = 0.0
-    s[S.mb_sum:S.mb_sum + 3] = 0.0
+    s[S.mb_sum:S.mb_sum + 2] = 0.0
     s[S.mb_time:S.mb_time + 2] = 0.0
     P[:, :] = 0.0
     tilt0 = p[PRM.init_tilt_std]
@@ -83,6 +83,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.hv_ok] = 0.0
     s[S.prob] = 0.0
     s[S.p22_pre] = 0.0
+    s[S.dr_ok] = 0.0
 
 
 @njit(cache=True)
@@ -126,6 +127,8 @@ def _predict(s, P, p, w, dt):
     r21 = 2.0 * (q2 * q3 + q0 * q1)
     r22 = 2.0 * (q0 * q0 + q3 * q3) - 1.0
     wx, wy, wz = w[0] - s[S.bias_x], w[1] - s[S.bias_y], w[2] - s[S.bias_z]
+    # the bias removed about the vertical, integrated: the heading drift fit adds it back
+    s[S.dr_bint] += (r20 * s[S.bias_x] + r21 * s[S.bias_y] + r22 * s[S.bias_z]) * dt
     _integrate(s, wx * dt, wy * dt, wz * dt)
     # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
     # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]

@@ -59,11 +59,19 @@ class RobustParams(CommonParams):
                                         "(a first correction after a moving start, a shake, is no bias); "
                                         "the estimate itself is not clipped: a phone's 3-6 °/s is learned "
                                         "at rest at once, in motion in steps of this; 0: no clip")
-    bias_heading_noise: float = param(2.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
-                                      user_scale=DEG,
-                                      doc="likewise for the bias about the vertical, seen in the rate of the "
-                                          "heading corrections (indoor fields bend the heading by degrees "
-                                          "for many seconds: larger than the tilt's); 0: off")
+    heading_drift_window: float = param(20.0, unit="s", lo=0.0, hi=600.0,
+                                        doc="the gyroscope's drift about the vertical measured from the data: "
+                                            "the field's heading less the raw gyroscope's (its bias not removed) "
+                                            "is fitted with a line over this window (exponential forgetting); the "
+                                            "line's slope is the bias about the vertical, the fit's residual its "
+                                            "uncertainty. The heading's time constant (heading_noise / gyr_noise): "
+                                            "a field bent for less than that is told from a drift; 0: no bias "
+                                            "learning from the heading")
+    heading_drift_corr: float = param(4.0, unit="s", lo=0.01, hi=600.0,
+                                      doc="correlation time of what the field's heading does besides the drift "
+                                          "(a stride's swing, a bend walked through, an arm's turn): the fit's "
+                                          "residual counts one independent sample per this long, so the slope's σ "
+                                          "grows with it")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="initial gyroscope bias (calibration)")
     tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
@@ -204,6 +212,19 @@ class RobustParams(CommonParams):
 # choice the reason gives, no figure behind it), "shared trials" (set with the shared BROAD and
 # phone trials in view: docs/accuracy.md cross-validates it and names its sensitivity). Shown as
 # a column of `orientlab params` and docs/parameters.md.
+# Parameters removed from robust, and why: a preset that still sets one loads without it (a
+# warning says so); the API refuses it with this reason (app.config.renamed_message)
+RobustParams.removed = {
+    "bias_heading_noise": "the bias about the vertical is learned from the heading's drift now: "
+                          "heading_drift_window, heading_drift_corr",
+    "acc_nis_gate": "it never acted: the tilt update has no NIS gate",
+    "mag_nis_gate": "it never acted: the field's own tests judge it",
+    "mag_max_reject": "a field that stays is taken by the new-field acceptance (mag_new_field_time)",
+    "mag_reject_factor": "a field that stays is taken by the new-field acceptance (mag_new_field_time)",
+    "mag_cand_norm_rel": "it acted only below the strength gate (mag_norm_gate_rel)",
+    "mag_cand_dip": "it acted only below the dip gate (mag_dip_gate)",
+}
+
 RobustParams.default_from = {
     "use_gyr": "design: every sensor on", "use_acc": "design: every sensor on",
     "use_mag": "design: every sensor on",
@@ -218,7 +239,8 @@ RobustParams.default_from = {
     "bias_init": "VQF: biasSigmaInit 0.5 °/s (here 0.57 °/s)",
     "bias_motion_noise": "shared trials",
     "bias_motion_clip": "VQF: biasClip 2 °/s",
-    "bias_heading_noise": "shared trials: 2 × bias_motion_noise",
+    "heading_drift_window": "physics: the heading's time constant, heading_noise / gyr_noise",
+    "heading_drift_corr": "physics: a few strides or turns of the arm (0.5-1 s each)",
     "gyr_bias": "design: none known",
     "tilt_noise": "shared trials",
     "acc_tau": "shared trials: the tilt loop's bandwidth kept when it was damped as VQF's "

@@ -67,8 +67,9 @@ STATE = (
     ("mb_ok", 1, "1 once the motion-bias low-passes hold a value"),
     ("mb_R", 9, "motion bias: low-passed rotation matrix (rows of R, sensor to world)"),
     ("mb_Rb", "xy", "motion bias: low-passed horizontal rows of R b (rad/s)"),
-    ("mb_sum", "xyz", "tilt (x, y) and heading (z) corrections since the last bias update (rad)"),
-    ("mb_time", ("tilt", "heading"), "s of tilt / heading corrections summed there"),
+    ("mb_sum", "xy", "tilt corrections since the last bias update (rad)"),
+    ("mb_time", ("tilt", "heading"), "s of tilt corrections / of heading drift fits summed since the "
+                                     "last bias update"),
     ("mt_lp", "xyz", "field turn test: the world-frame field (µT, estimate's frame) low-passed over "
                      "mag_norm_dip_tau"),
     ("mt_lp_slow", "xyz", "field turn test: mt_lp low-passed again over mag_turn_tau"),
@@ -98,6 +99,19 @@ STATE = (
     ("prob_lo", 1, "probation: smallest prob_z seen (rad)"),
     ("prob_hi", 1, "probation: largest prob_z seen (rad)"),
     ("prob_turn", 1, "probation: turn (rad) over which prob_z stayed consistent"),
+    ("dr_bint", 1, "heading drift: the bias removed from the gyroscope about the vertical, integrated "
+                   "(rad): added back, the field's heading less the gyroscope's is the raw gyroscope's"),
+    ("dr_z", 1, "heading drift: the field's heading less the raw gyroscope's, unwrapped (rad)"),
+    ("dr_ok", 1, "heading drift: 1 once the fit holds a sample"),
+    ("dr_t0", 1, "heading drift: the fit's time origin (phone clock, s; moved on as time passes)"),
+    ("dr_start", 1, "heading drift: when the fit started (phone clock, s)"),
+    ("dr_sums", ("w", "t", "tt", "z", "tz", "zz"), "heading drift: the fit's low-passed sums "
+                                                   "(1, t, t², z, t z, z²)"),
+    ("dr_H", "xyz", "heading drift: the world's vertical in the sensor frame, low-passed as the sums "
+                    "(the slope measures the bias along it)"),
+    ("dr_y", 1, "heading drift: slopes (as bias, rad/s) summed since the last bias update"),
+    ("dr_var", 1, "heading drift: their variances summed likewise ((rad/s)²)"),
+    ("dr_n", 1, "heading drift: how many"),
     ("mag_c", 3, "scratch: the field sample with the offset removed"),
     ("hv_corr", 1, "heading evidence: the heading corrections applied so far (rad)"),
     ("hv", ("fast", "mean", "var"), "heading evidence: the field's heading less the gyroscope's, "
