@@ -159,9 +159,8 @@ def heading_drift_update(s, P, p, y, var, dt):
     (rad/s) is the slope of the field's heading less the raw gyroscope's over
     ``heading_drift_window``, which measures the bias along the world's vertical as the window
     saw it (``dr_H``), with variance ``var`` from the fit's residual. Fed every ``dt`` (about
-    ``BIAS_UPD_S``) while the fit spans its window of time, its noise is that of one window's fit
-    spread over it (``var`` × 2 window / ``dt``): a window's slope is learned once, not once per
-    update. A slope off the estimate by more than ``bias_motion_clip`` counts as that much."""
+    ``BIAS_UPD_S``), its noise is that of one window's fit spread over the window's length
+    (``var`` × 2 window / ``dt``): a window's slope is learned once, not once per update. A slope off the estimate by more than ``bias_motion_clip`` counts as that much."""
     H = np.zeros((1, 6))
     H[0, 3] = s[S.dr_H_x]
     H[0, 4] = s[S.dr_H_y]

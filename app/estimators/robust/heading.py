@@ -272,10 +272,11 @@ def _drift_fit(s, p, t, innov, elapsed):
     the world, so its slope is minus the bias along the vertical (whatever the estimate is),
     and what else it does (a stride's swing, a field bent where the phone walks) is noise. A
     line is fitted to it over ``heading_drift_window`` (exponential forgetting, the sums of 1,
-    t, t², z, t z, z² low-passed); once the fit spans its window its slope, as a measurement of
-    the bias along the vertical the window saw (``dr_H``), and the slope's variance (the
-    residual's, one independent sample per ``heading_drift_corr``) are summed for the next
-    bias update. Samples the heading update does not use never reach it."""
+    t, t², z, t z, z² low-passed); once it spans two ``heading_drift_corr`` its slope, as a
+    measurement of the bias along the vertical the window saw (``dr_H``), and the slope's
+    variance (the residual's, one independent sample per ``heading_drift_corr`` of the span,
+    up to twice the window) are summed for the next bias update: a short span's slope is
+    uncertain by its own arithmetic. Samples the heading update does not use never reach it."""
     T = p[PRM.heading_drift_window]
     q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
     h0 = 2.0 * (q1 * q3 - q0 * q2)             # the world's vertical in the sensor frame
@@ -314,8 +315,9 @@ def _drift_fit(s, p, t, innov, elapsed):
     s[S.dr_H_x] += k * (h0 - s[S.dr_H_x])
     s[S.dr_H_y] += k * (h1 - s[S.dr_H_y])
     s[S.dr_H_z] += k * (h2 - s[S.dr_H_z])
-    if t - s[S.dr_start] < T:
-        return                                  # not yet a window of time
+    span = t - s[S.dr_start]
+    if span < 2.0 * p[PRM.heading_drift_corr]:
+        return                                  # not yet two independent samples
     w = s[S.dr_sums_w]
     mt, mz = s[S.dr_sums_t] / w, s[S.dr_sums_z] / w
     vt = s[S.dr_sums_tt] / w - mt * mt
@@ -324,7 +326,7 @@ def _drift_fit(s, p, t, innov, elapsed):
     cov = s[S.dr_sums_tz] / w - mt * mz
     slope = cov / vt
     vr = max(s[S.dr_sums_zz] / w - mz * mz - slope * cov, 1e-12)
-    n_ind = max(2.0 * T / p[PRM.heading_drift_corr], 1.0)
+    n_ind = max(min(span, 2.0 * T) / p[PRM.heading_drift_corr], 1.0)
     s[S.dr_y] += -slope
     s[S.dr_var] += vr / (vt * n_ind)
     s[S.dr_n] += 1.0
