@@ -74,6 +74,11 @@ EFFECT = {
     "tilt_damping": "raising it makes the tilt loop slower to answer a drifting gyroscope, with less "
                     "overshoot (none from 1); 0: off (overdamped)",
     "heading_noise": "raising it trusts the magnetometer heading less: slower heading corrections",
+    "heading_drift_window": "raise it to learn the gyroscope's drift about the vertical from a longer "
+                            "stretch of the field (steadier, slower to follow a change); 0 stops "
+                            "learning it from the field",
+    "heading_drift_corr": "raise it to trust the drift fit less where the field's heading wanders "
+                          "(the bias is learned more slowly in a bent field)",
     "refused_turn_noise": "raising it makes the heading jump back sooner when the field returns after "
                           "a long refusal while the phone turned; 0: off (the steady, slow rate)",
     "mag_norm_gate_rel": "raising it accepts field strengths farther from the learned one "
