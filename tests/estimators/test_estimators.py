@@ -590,3 +590,29 @@ def test_compiled_robust_filter_equals_its_numpy_reference(tmp_path):
     np.testing.assert_allclose(res.q, ref[:, :4], atol=1e-9, rtol=0)
     np.testing.assert_array_equal(res.flags[:, [F_GYR, F_ACC, F_MAG, F_TIME]],
                                   ref[:, 4:][:, [F_GYR, F_ACC, F_MAG, F_TIME]])
+
+
+def test_robust_heading_drift_fit_holds_its_bias_over_a_long_lesson():
+    """A flat phone turning steadily about the vertical for 25 minutes (no rest) with a bias of
+    0.3 °/s about z: the drift fit learns it and keeps it through the fit's time-origin moves
+    (every 600 s: the sums of t² are re-centred so they keep their digits); a wrong re-centring
+    would throw the slope, and the bias with it, at the first move."""
+    rate, seconds, bias_z = 100.0, 1500.0, 0.3 / DEG
+    t = np.arange(int(seconds * rate)) / rate
+    w = 0.5                                           # rad/s about the vertical
+    q = qm.quat_from_rotvec_many(np.outer(w * t, [0.0, 0.0, 1.0]))
+    rng = np.random.default_rng(7)
+    gyr = np.tile([0.0, 0.0, w + bias_z], (len(t), 1)) + 0.002 * rng.standard_normal((len(t), 3))
+    acc = qm.rotate_inv_many(q, G) + 0.05 * rng.standard_normal((len(t), 3))
+    mag = qm.rotate_inv_many(q, M_WORLD) + 0.3 * rng.standard_normal((len(t), 3))
+    est = make_estimator("robust", {"rest_time": 0.0})
+    learned = []
+    for end in (300.0, 590.0, 610.0, 700.0, 1190.0, 1210.0, 1300.0, seconds):
+        k0 = int(round((learned[-1][0] if learned else 0.0) * rate))
+        k1 = int(round(end * rate))
+        est.run(t[k0:k1], gyr[k0:k1], acc[k0:k1], mag[k0:k1])
+        learned.append((end, est.gyr_bias[2] * DEG))
+    for end, b in learned[1:]:
+        assert b == pytest.approx(0.3, abs=0.02), learned
+    res = est.run(t[-1:] + 0.01, gyr[-1:], acc[-1:], mag[-1:])
+    assert float(qm.error_angles(res.q, q[-1:])[1][0]) * DEG < 1.0

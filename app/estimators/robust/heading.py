@@ -503,6 +503,8 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
                 Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
     if p[PRM.heading_drift_window] > 0.0 and has_rate and not lost:
         _drift_fit(s, p, t, innov[0], elapsed)
+    elif not has_rate:
+        s[S.dr_ok] = 0.0    # no gyroscope: nothing to fit against; the fit starts afresh after
     if lost:
         # an undisturbed field has disagreed with the estimate for long: the estimate is
         # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
