@@ -230,22 +230,29 @@ def _turn_check(s, p, mw, dt, rate, has_rate):
 
 
 @njit(cache=True)
-def _heading_evidence(s, p, innov, elapsed):
-    """The field's heading noise now, from the data (a noise density, rad²·s). The innovation
-    plus the corrections applied so far is the field's heading less the gyroscope's alone:
-    the filter's own corrections do not move it, the gyroscope drifts it slowly (its bias, at
-    most a few 0.01 rad/s), the field moves it as fast as the phone meets its unevenness
-    (indoors, near steel) or turns a residual offset about. Low-passed over ``HV_SMOOTH``
-    (white noise out), its variance ``v`` about its mean over ``heading_evidence_tau`` is the
-    field's wander: as noise correlated over ``HV_SMOOTH`` its density is ``2 v HV_SMOOTH``."""
-    z = innov + s[S.hv_corr]
+def _field_heading_lp(s, z, elapsed):
+    """``z``, the innovation plus the corrections applied so far, is the field's heading less
+    the gyroscope's alone: the filter's own corrections do not move it, the gyroscope drifts it
+    slowly (its bias, at most a few 0.01 rad/s), the field moves it as fast as the phone meets
+    its unevenness (indoors, near steel) or turns a residual offset about. Low-passed here over
+    ``HV_SMOOTH`` (white noise out) into ``hv_fast``, the one copy the heading evidence and the
+    return's probation read. Returns True on its first sample (it started afresh)."""
     if s[S.hv_ok] == 0.0:
         s[S.hv_fast] = z
         s[S.hv_mean] = z
         s[S.hv_var] = 0.0
         s[S.hv_ok] = 1.0
-        return 0.0
+        return True
     s[S.hv_fast] += lp_coef(elapsed, HV_SMOOTH) * wrap_angle(z - s[S.hv_fast])   # headings wrap
+    return False
+
+
+@njit(cache=True)
+def _heading_evidence(s, p, elapsed):
+    """The field's heading noise now, from the data (a noise density, rad²·s): the variance
+    ``v`` of the low-passed field heading (:func:`_field_heading_lp`) about its mean over
+    ``heading_evidence_tau`` is the field's wander; as noise correlated over ``HV_SMOOTH`` its
+    density is ``2 v HV_SMOOTH``."""
     k = lp_coef(elapsed, p[PRM.heading_evidence_tau])
     d = s[S.hv_fast] - s[S.hv_mean]
     s[S.hv_mean] += k * d
@@ -265,10 +272,10 @@ DRIFT_T_SHIFT = 600.0
 
 
 @njit(cache=True)
-def _drift_fit(s, p, t, innov, elapsed):
-    """The gyroscope's drift about the vertical, from the data. The innovation plus the
-    corrections applied so far plus the bias removed about the vertical (integrated in the
-    time update) is the field's heading less the *raw* gyroscope's: a real field is fixed in
+def _drift_fit(s, p, t, z_field, elapsed):
+    """The gyroscope's drift about the vertical, from the data. The field's heading less the
+    gyroscope's (``z_field``, :func:`_field_heading_lp`) plus the bias removed about the
+    vertical (integrated in the time update) is the field's heading less the *raw* gyroscope's: a real field is fixed in
     the world, so its slope is minus the bias along the vertical (whatever the estimate is),
     and what else it does (a stride's swing, a field bent where the phone walks) is noise. A
     line is fitted to it over ``heading_drift_window`` (exponential forgetting, the sums of 1,
@@ -282,7 +289,7 @@ def _drift_fit(s, p, t, innov, elapsed):
     h0 = 2.0 * (q1 * q3 - q0 * q2)             # the world's vertical in the sensor frame
     h1 = 2.0 * (q2 * q3 + q0 * q1)
     h2 = 2.0 * (q0 * q0 + q3 * q3) - 1.0
-    z = innov + s[S.hv_corr] - s[S.dr_bint]
+    z = z_field - s[S.dr_bint]
     if s[S.dr_ok] == 0.0:
         s[S.dr_z] = z
         s[S.dr_ok] = 1.0
@@ -450,12 +457,16 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     H = heading_jacobian(m_mean)
     gate = 0.0      # no NIS gate: the field's own tests judge it (a gate was inert on every trial)
     lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]
-    if p[PRM.heading_evidence_tau] > 0.0 and has_rate and not lost:
-        Rm[0, 0] += _heading_evidence(s, p, innov[0], elapsed) / elapsed
+    z = innov[0] + s[S.hv_corr]     # the field's heading less the gyroscope's alone
+    if has_rate and not lost:
+        first = _field_heading_lp(s, z, elapsed)
+        if p[PRM.heading_evidence_tau] > 0.0 and not first:
+            Rm[0, 0] += _heading_evidence(s, p, elapsed) / elapsed
     else:
         # without a gyroscope there is no heading to measure the field against; a lost
-        # estimate's jump is no wander of the field: the evidence starts afresh
+        # estimate's jump is no wander of the field nor a drift: both start afresh
         s[S.hv_ok] = 0.0
+        s[S.dr_ok] = 0.0
     if s[S.prob] != 0.0 and not has_rate:
         s[S.prob] = 0.0     # no gyroscope heading to test the field against: the field is all
     if s[S.prob] != 0.0 and not lost:
@@ -467,12 +478,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         # attitude; a chance half second "within the gates" is no evidence). Until then the
         # correction runs at the steady gain (R scaled by the growth of the heading variance
         # during the refusal), after it the grown σ lets it catch up at once.
-        z = innov[0] + s[S.hv_corr]
-        if s[S.prob_lo] > s[S.prob_hi]:      # its first update (lo = +inf, hi = -inf)
-            s[S.prob_z] = z
-        else:
-            s[S.prob_z] += lp_coef(elapsed, HV_SMOOTH) * wrap_angle(z - s[S.prob_z])
-        iv = s[S.prob_z]
+        iv = s[S.hv_fast]
         s[S.prob_lo] = min(s[S.prob_lo], iv)
         s[S.prob_hi] = max(s[S.prob_hi], iv)
         if s[S.prob_hi] - s[S.prob_lo] > p[PRM.mag_dip_gate]:
@@ -490,7 +496,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
             # explains it (a magnet's chance window within the gates, tens of degrees off). A
             # field that disagrees but stays consistent over the turn ends the probation and is
             # taken (the gyroscope drifted); "never lost" still counts beyond mag_lost_angle
-            d = wrap_angle(s[S.prob_z] - s[S.hv_corr])
+            d = wrap_angle(s[S.hv_fast] - s[S.hv_corr])
             hph = 0.0
             for i in range(3):
                 for j in range(3):
@@ -502,16 +508,13 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
             if s[S.p22_pre] > 0.0 and P[2, 2] > s[S.p22_pre]:
                 Rm[0, 0] *= P[2, 2] / s[S.p22_pre]
     if p[PRM.heading_drift_window] > 0.0 and has_rate and not lost:
-        _drift_fit(s, p, t, innov[0], elapsed)
-    elif not has_rate:
-        s[S.dr_ok] = 0.0    # no gyroscope: nothing to fit against; the fit starts afresh after
+        _drift_fit(s, p, t, z, elapsed)
     if lost:
         # an undisturbed field has disagreed with the estimate for long: the estimate is
         # what is wrong. Admit it (heading σ up to the error) and take the field's heading;
         # the bias learned meanwhile (from a heading that was wrong) is dropped.
         P[2, 2] += innov[0] ** 2
         s[S.bias:S.bias + 3] = s[S.bias_good:S.bias_good + 3]
-        s[S.dr_ok] = 0.0        # and so is the drift fit: it starts afresh
     ok2, nis, dx = correct(P, H, Rm, innov, gate, _MASK_HEADING, s[S.kf_work:S.kf_work + KF_WORK])
     f[F_MAG_NIS] = nis
     if ok2:

@@ -95,10 +95,9 @@ STATE = (
     ("hi_solve_t", 1, "hard iron: s since the fit was last solved"),
     ("p22_pre", 1, "heading variance when the field was last refused (the steady one)"),
     ("prob", 1, "1 while a return to the field after a refusal awaits evidence"),
-    ("prob_z", 1, "probation: the field's heading less the gyroscope's, low-passed over HV_SMOOTH (rad)"),
-    ("prob_lo", 1, "probation: smallest prob_z seen (rad)"),
-    ("prob_hi", 1, "probation: largest prob_z seen (rad)"),
-    ("prob_turn", 1, "probation: turn (rad) over which prob_z stayed consistent"),
+    ("prob_lo", 1, "probation: smallest hv_fast seen (rad)"),
+    ("prob_hi", 1, "probation: largest hv_fast seen (rad)"),
+    ("prob_turn", 1, "probation: turn (rad) over which hv_fast stayed consistent"),
     ("dr_bint", 1, "heading drift: the bias removed from the gyroscope about the vertical, integrated "
                    "(rad): added back, the field's heading less the gyroscope's is the raw gyroscope's"),
     ("dr_z", 1, "heading drift: the field's heading less the raw gyroscope's, unwrapped (rad)"),
@@ -114,11 +113,12 @@ STATE = (
     ("dr_n", 1, "heading drift: how many"),
     ("mag_c", 3, "scratch: the field sample with the offset removed"),
     ("hv_corr", 1, "heading evidence: the heading corrections applied so far (rad)"),
-    ("hv", ("fast", "mean", "var"), "heading evidence: the field's heading less the gyroscope's, "
-                                    "low-passed over HV_SMOOTH (rad); that low-passed over "
+    ("hv", ("fast", "mean", "var"), "the field's heading less the gyroscope's, low-passed over "
+                                    "HV_SMOOTH (rad: the heading evidence and the return's "
+                                    "probation read it); that low-passed over "
                                     "heading_evidence_tau (rad); its squared deviation from it, "
                                     "low-passed likewise (rad²)"),
-    ("hv_ok", 1, "1 once the heading evidence's low-passes hold a value"),
+    ("hv_ok", 1, "1 once the hv low-passes hold a value"),
     ("kf_work", KF_WORK, "scratch of the measurement updates (kalman.correct): no array per update"),
 )
 # slots that start as NaN ("not yet")
