@@ -53,6 +53,7 @@ bench: $(VENV)/.installed-bench
 	$(BIN)/python benchmarks/accuracy_phones.py
 	$(BIN)/python benchmarks/accuracy_broad.py
 	$(BIN)/python benchmarks/gyro_scale.py
+	$(BIN)/python benchmarks/heading_drift.py
 	$(BIN)/python benchmarks/throughput.py
 
 clean:
