@@ -224,19 +224,21 @@ def test_robust_keeps_its_tilt_through_a_shake():
     assert np.max(total) < 5.0
 
 
-def _turning_with_a_scale_error(scale_err=0.01, rate=1.0, seconds=120.0, fs=100.0, swing_hz=0.0):
-    """A phone turning about a horizontal axis (its x axis, the world's x) whose gyroscope
-    reads ``scale_err`` too much: steadily at ``rate`` (the tilt drifts by scale_err × rate),
-    or with ``swing_hz`` back and forth, ±``rate`` rad at that frequency (the drift cancels)."""
+def _turning_with_a_scale_error(scale_err=0.01, rate=1.0, seconds=120.0, fs=100.0, swing_hz=0.0,
+                                axis=0):
+    """A phone turning about a fixed axis (by default its x axis, the world's x: horizontal)
+    whose gyroscope reads ``scale_err`` too much: steadily at ``rate`` (the tilt drifts by
+    scale_err × rate), or with ``swing_hz`` back and forth, ±``rate`` rad at that frequency
+    (the drift cancels)."""
     t = np.arange(int(seconds * fs)) / fs
     if swing_hz:
         w = 2.0 * np.pi * swing_hz
         angle, w_x = rate * np.sin(w * t), rate * w * np.cos(w * t)
     else:
         angle, w_x = rate * t, np.full(t.shape, rate)
-    q = qm.quat_from_rotvec_many(np.outer(angle, [1.0, 0.0, 0.0]))
+    q = qm.quat_from_rotvec_many(np.outer(angle, np.eye(3)[axis]))
     gyr = np.zeros((len(t), 3))
-    gyr[:, 0] = (1.0 + scale_err) * w_x          # about a fixed axis, body rate = world rate
+    gyr[:, axis] = (1.0 + scale_err) * w_x       # about a fixed axis, body rate = world rate
     acc = qm.rotate_inv_many(q, G)
     mag = qm.rotate_inv_many(q, M_WORLD)
     return t, gyr, acc, mag, q
@@ -598,13 +600,13 @@ def test_robust_heading_drift_fit_holds_its_bias_over_a_long_lesson():
     (every 600 s: the sums of t² are re-centred so they keep their digits); a wrong re-centring
     would throw the slope, and the bias with it, at the first move."""
     rate, seconds, bias_z = 100.0, 1500.0, 0.3 / DEG
-    t = np.arange(int(seconds * rate)) / rate
-    w = 0.5                                           # rad/s about the vertical
-    q = qm.quat_from_rotvec_many(np.outer(w * t, [0.0, 0.0, 1.0]))
+    t, gyr, acc, mag, q = _turning_with_a_scale_error(scale_err=0.0, rate=0.5, seconds=seconds,
+                                                      fs=rate, axis=2)
     rng = np.random.default_rng(7)
-    gyr = np.tile([0.0, 0.0, w + bias_z], (len(t), 1)) + 0.002 * rng.standard_normal((len(t), 3))
-    acc = qm.rotate_inv_many(q, G) + 0.05 * rng.standard_normal((len(t), 3))
-    mag = qm.rotate_inv_many(q, M_WORLD) + 0.3 * rng.standard_normal((len(t), 3))
+    gyr[:, 2] += bias_z
+    gyr += 0.002 * rng.standard_normal(gyr.shape)
+    acc += 0.05 * rng.standard_normal(acc.shape)
+    mag += 0.3 * rng.standard_normal(mag.shape)
     est = make_estimator("robust", {"rest_time": 0.0})
     learned = []
     for end in (300.0, 590.0, 610.0, 700.0, 1190.0, 1210.0, 1300.0, seconds):
