@@ -328,6 +328,8 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
     def _watch_only(client) -> None:
         if access.viewer_allowed(client.client_id):
             return
+        if client.client_id not in viewer.get_clients():
+            return   # already gone (a WebSocket refused for its Origin is closed at once)
         client.add_notification("Watch-only", "Only the presenter can change the session "
                                 "(the presenter's link holds a token).", color="blue",
                                 auto_close_seconds=8.0)
