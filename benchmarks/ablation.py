@@ -55,6 +55,7 @@ MECHANISMS = {
     "acc flags": {"acc_flag_angle": 0.0, "acc_flag_rel": 0.0},
     "field delay compensation (mag_delay 0)": {"mag_delay": 0.0},
     "(another value) field delay 3.5 ms instead of 5 ms": {"mag_delay": 0.0035},
+    "accelerometer lag compensation (acc_delay_periods 0)": {"acc_delay_periods": 0.0},
 }
 
 # not scaled: switches, sensor selection, initial conditions without a physical scale

@@ -4,6 +4,10 @@
   lags by 10 ms, a 5 rad/s spin puts the field's heading behind by rate × lag (2.9°), and the
   estimate follows the field. Turned forward by the gyroscope's rate × the delay, the field gives
   the heading back.
+- The accelerometer's lag (``acc_delay_periods``, issue 19 item 4): a phone tumbling about a
+  horizontal axis (a wheel, a rotisserie) with an accelerometer that lags by one sample period
+  sees gravity turned back by rate × lag, a constant tilt. An accelerometer that stands for the
+  specific force over its period and is stamped at its end lags by half a period: the default.
 - A steady spin is no rest (found while writing the first test)."""
 
 from __future__ import annotations
@@ -64,3 +68,47 @@ def test_a_steady_spin_is_no_rest():
         _, h, _ = qm.error_angles(res.q, q)
         assert np.max(np.abs(h[t > 2.0])) * DEG < 3.0, f"{rate} rad/s: heading {np.max(np.abs(h)) * DEG:.1f}°"
         assert np.linalg.norm(est.gyr_bias) < 0.01
+
+
+def _tumble(acc_at, seconds=40.0, rate=3.0, seed=5):
+    """A phone tumbling about the world's x axis at ``rate``; ``acc_at(t)``: the times whose
+    gravity each accelerometer sample shows (rows: samples, columns: averaged together)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(seconds * FS)) / FS
+    axis = np.array([1.0, 0.0, 0.0])
+    turn = lambda tt: qm.quat_from_rotvec_many(np.outer(rate * tt, axis))  # noqa: E731
+    q = turn(t)
+    ta = acc_at(t)
+    acc = np.mean([qm.rotate_inv_many(turn(ta[:, j]), np.tile(G, (len(t), 1))) for j in range(ta.shape[1])],
+                  axis=0) + 0.05 * rng.standard_normal((len(t), 3))
+    gyr = qm.rotate_inv_many(q, np.tile(rate * axis, (len(t), 1))) + 0.003 * rng.standard_normal((len(t), 3))
+    mag = qm.rotate_inv_many(q, np.tile(M_WORLD, (len(t), 1))) + 0.3 * rng.standard_normal((len(t), 3))
+    return t, gyr, acc, mag, q
+
+
+def _inclination_rms(data, periods: float) -> float:
+    t, gyr, acc, mag, q = data
+    res = make_estimator("robust", {"acc_delay_periods": periods}).run(t, gyr, acc, mag)
+    late = t > 20.0
+    _, _, incl = qm.error_angles(res.q[late], q[late])
+    return float(np.sqrt(np.mean(incl ** 2)) * DEG)
+
+
+def test_a_lagging_accelerometer_is_turned_forward():
+    """3 rad/s × a 10 ms lag is 1.7° of tilt, gone when the sample is turned forward by the
+    gyroscope's rate × the lag (one period of the 100 Hz stream, measured from it)."""
+    lagged = _tumble(lambda t: (t - 1.0 / FS)[:, None])
+    off = _inclination_rms(lagged, 0.0)
+    assert off > 1.2, f"uncompensated inclination {off:.2f}°: the lag should show (1.7°)"
+    assert _inclination_rms(lagged, 1.0) < 0.2
+
+
+def test_the_default_lag_is_half_a_period_of_an_averaging_accelerometer():
+    """An accelerometer whose sample is the mean over its period, stamped at its end, stands for
+    the middle of the period: the default (half a period) takes the tilt it leaves away."""
+    averaging = _tumble(lambda t: t[:, None] - (np.arange(10)[None, :] + 0.5) / (10 * FS))
+    default = make_estimator("robust").params.acc_delay_periods
+    assert default == 0.5
+    off = _inclination_rms(averaging, 0.0)
+    assert off > 0.6, f"uncompensated inclination {off:.2f}° (half of 1.7°)"
+    assert _inclination_rms(averaging, default) < 0.2 * off

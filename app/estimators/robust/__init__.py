@@ -11,7 +11,7 @@ explained in the module that does it:
 
 - :mod:`.tilt`: **tilt from an inertial low-pass of the accelerometer** (it corrects the
   tilt only, never the heading), **a damped tilt loop** (``tilt_damping``), **specific force
-  flagged** (ACCEL).
+  flagged** (ACCEL), **the accelerometer's lag** (``acc_delay_periods``: half its sample period).
 - :mod:`.kernel` (the time update): **scale-factor noise along the net turn**
   (``gyr_scale_noise``), **the heading's σ grows with the turn while the field is
   refused** (``refused_turn_noise``), the reset of an implausible bias (``bias_max``).

@@ -93,6 +93,15 @@ class RobustParams(CommonParams):
                                                       "the low-pass); 0: off")
     acc_flag_rel: float = param(0.1, lo=0.0, hi=5.0,
                                 doc="likewise when | |a| - g | > this × g; 0: off")
+    acc_delay_periods: float = param(0.5, lo=-5.0, hi=5.0,
+                                     doc="the accelerometer's samples lag the attitude by this many of its "
+                                         "sample periods (measured from the stream): each sample is turned "
+                                         "forward by the gyroscope's rate × the lag before it enters the "
+                                         "low-pass. A sample stands for the specific force over its period, "
+                                         "stamped at its end, while the attitude at the stamp is propagated "
+                                         "with the gyroscope's rate over that same period: half a period "
+                                         "behind (a steady turn about a horizontal axis leaves rate × lag of "
+                                         "tilt); 0: off")
     heading_noise: float = param(0.1, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                                  user_scale=DEG,
                                  doc="noise density of the magnetometer heading in a steady field (the "
@@ -249,6 +258,8 @@ RobustParams.default_from = {
     "acc_band_rel": "design: off (VQF has no band)",
     "acc_flag_angle": "design: a flag only, no estimate changes",
     "acc_flag_rel": "design: a flag only, no estimate changes",
+    "acc_delay_periods": "physics: a sample stands for its period and is stamped at its end: half a "
+                         "period behind the attitude at its stamp",
     "heading_noise": "shared trials: where BROAD's floor (0.07-0.1) meets the phones' (0.1-0.14)",
     "heading_evidence_tau": "physics: a few strides, short against the heading's tens of seconds",
     "mag_norm_gate_rel": "shared trials: VQF's magNormTh 10 % widened for a phone's uncalibrated field",

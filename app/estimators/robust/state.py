@@ -45,6 +45,7 @@ STATE = (
     ("t0", 1, "time of the alignment"),
     ("mag_t", 1, "time of the last magnetometer update attempt"),
     ("acc_t", 1, "time of the last accelerometer sample"),
+    ("acc_period", 1, "the accelerometer's sample period, low-passed over 100 samples (s; acc_delay_periods)"),
     ("gyr_lp_t", 1, "time of the last gyroscope sample in the rest low-pass (NaN: none yet)"),
     ("rest", 1, "1 at rest"),
     ("far_time", 1, "s the heading has disagreed with an undisturbed field (far or NIS-refused)"),
@@ -122,7 +123,7 @@ STATE = (
     ("kf_work", KF_WORK, "scratch of the measurement updates (kalman.correct): no array per update"),
 )
 # slots that start as NaN ("not yet")
-STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "gyr_lp_t", "acc_lp_rest_t")
+STATE_NAN = ("t", "gyr_held_t", "wait_t", "t0", "mag_t", "acc_t", "acc_period", "gyr_lp_t", "acc_lp_rest_t")
 
 S, NSTATE = layout("StateLayout", ((n, k) for n, k, _ in STATE))
 

@@ -20,6 +20,13 @@
   the bandwidth the overdamped loop had (ωn ≈ 0.28 rad/s at rest: τ = 4.5 s, τc =
   ``tilt_noise / gyr_noise`` = 3 s, before τ = 3 s, τc = 4 s): the same rejection of
   the specific force, ~30 % less lag where the gyroscope drifts (fast turns).
+- **The accelerometer's lag** (``acc_delay_periods``, 0.5). A sample stands for the specific
+  force over its period and is stamped at its end, while the attitude at the stamp has been
+  propagated with the gyroscope's rate over that same period: the sample is half a period
+  behind. In a steady turn about a horizontal axis that lag turns gravity back by rate × lag,
+  a constant tilt (3 rad/s × 5 ms is 0.9°). Each sample is turned forward by the gyroscope's
+  rate × the lag before it enters the low-pass; the period is measured from the stream (a
+  low-pass of the sample intervals), so the lag follows the phone's rate.
 - **Specific force flagged.** An accelerometer sample far from the low-passed gravity
   (``acc_flag_angle``, ``acc_flag_rel``) is flagged ACCEL with the angle (it still
   enters the low-pass): a shake shows.
@@ -89,6 +96,9 @@ def acc_update(s, P, p, t, acc, f):
     f[F_ACC_VAL] = n
     dt = t - s[S.acc_t] if np.isfinite(s[S.acc_t]) else 0.0
     s[S.acc_t] = t
+    # the sample period, for the sample's lag (acc_delay_periods); not across a gap
+    if 0.0 < dt < 0.1:
+        s[S.acc_period] = dt if np.isnan(s[S.acc_period]) else s[S.acc_period] + 0.01 * (dt - s[S.acc_period])
     if dt <= 0.0:
         dt = 1e-3
     # inertial low-pass, with a running mean while younger than acc_tau (fast start)
@@ -96,7 +106,20 @@ def acc_update(s, P, p, t, acc, f):
     age = t - s[S.t0]
     if age > 0.0 and dt / (age + dt) > k:
         k = dt / (age + dt)
-    aw = rotate3(s, acc)
+    # the sample's lag behind the attitude: acc_delay_periods of its own period (module doc)
+    d = p[PRM.acc_delay_periods] * s[S.acc_period]
+    if d != 0.0 and not np.isnan(d) and not np.isnan(s[S.w_cur_x]):
+        # measured at t - d, when the sensor frame was turned by -ω d from now
+        wx = s[S.w_cur_x] - s[S.bias_x]
+        wy = s[S.w_cur_y] - s[S.bias_y]
+        wz = s[S.w_cur_z] - s[S.bias_z]
+        ac = np.empty(3)
+        ac[0] = acc[0] - d * (wy * acc[2] - wz * acc[1])
+        ac[1] = acc[1] - d * (wz * acc[0] - wx * acc[2])
+        ac[2] = acc[2] - d * (wx * acc[1] - wy * acc[0])
+        aw = rotate3(s, ac)
+    else:
+        aw = rotate3(s, acc)
     for i in range(3):
         s[S.acc_lp + i] += k * (aw[i] - s[S.acc_lp + i])
     f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
