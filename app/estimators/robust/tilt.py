@@ -113,11 +113,9 @@ def acc_update(s, P, p, t, acc, f):
         wx = s[S.w_cur_x] - s[S.bias_x]
         wy = s[S.w_cur_y] - s[S.bias_y]
         wz = s[S.w_cur_z] - s[S.bias_z]
-        ac = np.empty(3)
-        ac[0] = acc[0] - d * (wy * acc[2] - wz * acc[1])
-        ac[1] = acc[1] - d * (wz * acc[0] - wx * acc[2])
-        ac[2] = acc[2] - d * (wx * acc[1] - wy * acc[0])
-        aw = rotate3(s, ac)
+        aw = rotate3(s, (acc[0] - d * (wy * acc[2] - wz * acc[1]),     # a tuple: no array per sample
+                         acc[1] - d * (wz * acc[0] - wx * acc[2]),
+                         acc[2] - d * (wx * acc[1] - wy * acc[0])))
     else:
         aw = rotate3(s, acc)
     for i in range(3):
