@@ -21,6 +21,10 @@ white noise, MAG µT (Earth field 50 µT with a dip of 65°, plus noise), ORI th
 phone's own estimate (the truth turned by a slowly wandering error of about 1°).
 ACC, GYR and ORI run at 100 Hz, MAG at 50 Hz; timestamps are integer milliseconds of
 a phone's boot clock, and each sensor samples at its own offset within the period.
+Each sample is the value at its stamp: a real sensor's stands for its period and is stamped
+at its end, which the filter's lag terms (``mag_delay``, ``acc_delay_periods``) turn forward.
+Here they turn a lag that is not there: in a 1 rad/s turn about a horizontal axis, half a
+10 ms period is 0.3° of tilt (tests that measure a single effect set them to 0).
 
 Use :func:`simulate` for a finite run with its truth (tests, benchmarks) and
 :func:`stream` for the dashboard's endless demo.
