@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from app.estimators import DEFAULT, NAMES, estimator_class
-from app.params import DEFAULT_CONFIG, ParamError, describe, load_toml, replace_params, to_dict
+from app.params import DEFAULT_CONFIG, ParamError, describe, load_toml, replace_params, retired, to_dict
 
 
 log = logging.getLogger("orientlab.config")
@@ -38,13 +38,13 @@ class ConfigError(ValueError):
 def renamed_message(estimator: str, old: str, params_cls) -> str | None:
     """``"gyr_noise was renamed gyr_std in lab (per-sample σ, rad/s)"``, or for a parameter the
     estimator no longer has (``Params.removed``) ``"... was removed from robust (why)"``, or None."""
-    new = getattr(params_cls, "renamed", {}).get(old)
-    if new is not None:
-        return f"{old} was renamed {new[0]} in {estimator} ({new[1]})"
-    why = getattr(params_cls, "removed", {}).get(old)
-    if why is not None:
-        return f"{old} was removed from {estimator} ({why})"
-    return None
+    gone = retired(params_cls, old)
+    if gone is None:
+        return None
+    new, why = gone
+    if new:
+        return f"{old} was renamed {new} in {estimator} ({why})"
+    return f"{old} was removed from {estimator} ({why})"
 
 
 def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source: str) -> dict[str, Any]:

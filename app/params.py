@@ -126,6 +126,16 @@ def fields_of(params_or_cls) -> dict[str, dataclasses.Field]:
     return {f.name: f for f in dataclasses.fields(params_or_cls)}
 
 
+def retired(params_cls, name: str) -> tuple[str | None, str] | None:
+    """A name the class no longer has: ``(new name, why)`` for a renamed parameter
+    (``Params.renamed``), ``(None, why)`` for a removed one (``Params.removed``), else None."""
+    new = getattr(params_cls, "renamed", {}).get(name)
+    if new is not None:
+        return new[0], new[1]
+    why = getattr(params_cls, "removed", {}).get(name)
+    return None if why is None else (None, why)
+
+
 def replace_params(params, changes: dict[str, Any]):
     """A new parameter set with ``changes`` applied, or ParamError naming the first
     refused field. Unknown keys are refused; nothing is applied unless all pass."""
@@ -133,12 +143,10 @@ def replace_params(params, changes: dict[str, Any]):
     clean = {}
     for name, value in changes.items():
         if name not in fmap:
-            new = getattr(type(params), "renamed", {}).get(name)
-            if new is not None:
-                raise ParamError(name, f"was renamed {new[0]} ({new[1]})")
-            why = getattr(type(params), "removed", {}).get(name)
-            if why is not None:
-                raise ParamError(name, f"was removed ({why})")
+            gone = retired(type(params), name)
+            if gone is not None:
+                raise ParamError(name, f"was renamed {gone[0]} ({gone[1]})" if gone[0]
+                                 else f"was removed ({gone[1]})")
             raise ParamError(name, f"unknown parameter for {type(params).__name__} "
                                    f"(known: {', '.join(sorted(fmap))})")
         clean[name] = coerce(name, value, getattr(params, name), fmap[name].metadata)
