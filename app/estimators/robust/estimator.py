@@ -11,7 +11,7 @@ import numpy as np
 
 from app.estimators.base import Diagnostics, Estimator, vec3
 from app.estimators.robust.hardiron import HI_STATUS
-from app.estimators.robust.heading import evidence_density
+from app.estimators.robust.heading import deviation_density, evidence_density
 from app.estimators.robust.kernel import robust_run, robust_step
 from app.estimators.robust.params import GRAVITY, RobustParams, param_vector
 from app.estimators.robust.state import S, new_state
@@ -80,7 +80,8 @@ class RobustEKF(Estimator):
             mag_offset=vec3(s[S.hi_o:S.hi_o + 3]),
             mag_offset_status=HI_STATUS[int(s[S.hi_status])],
             heading_wander=float(np.sqrt(wander)),
-            heading_noise_now=float(np.sqrt(p.heading_noise ** 2 + evidence_density(wander))),
+            heading_noise_now=float(np.sqrt(p.heading_noise ** 2 + evidence_density(wander)
+                                             + deviation_density(s, self._p))),
         )
 
     @property

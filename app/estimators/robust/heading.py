@@ -267,6 +267,23 @@ def evidence_density(v):
     return 2.0 * v * HV_SMOOTH
 
 
+@njit(cache=True)
+def deviation_density(s, p):
+    """The heading noise density (rad²·s) of a field off its reference, within the gates
+    too. A deviation Δ (strength change, or |m|·Δdip) shows a disturbance δ of any
+    direction by about √(2/3)|δ|, which turns the horizontal field by about |δ|/√3: a
+    heading error of Δ/(√2 |m_h|) (``mag_dev_weight``). It lasts while the phone is where
+    the field is bent: an error correlated over ``HV_SMOOTH`` as the measured wander, so a
+    density, the same at any update rate (taken per update, as it once was, it was 50× too
+    small at 50 Hz and inert on every trial)."""
+    if s[S.ref_ok] == 0.0 or p[PRM.mag_dev_weight] <= 0.0:
+        return 0.0
+    nh = s[S.ref_norm] * np.cos(s[S.ref_dip])
+    dn = s[S.mag_nd_norm] - s[S.ref_norm]
+    dd = s[S.mag_nd_norm] * (s[S.mag_nd_dip] - s[S.ref_dip])
+    return evidence_density(p[PRM.mag_dev_weight] ** 2 * (dn * dn + dd * dd) / max(nh * nh, 1e-6))
+
+
 # the heading drift fit's time origin moves on after this long (s): its sums of t² keep their digits
 DRIFT_T_SHIFT = 600.0
 
@@ -447,13 +464,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     innov = heading_innovation(m_mean)
     Rm = np.empty((1, 1))
     Rm[0, 0] = p[PRM.heading_noise] ** 2 / elapsed
-    if s[S.ref_ok] != 0.0 and p[PRM.mag_dev_weight] > 0.0:
-        # a field off its reference by Δ (strength change, or |m|·Δdip) can turn the
-        # horizontal field by up to Δ/|m_h|: that much heading noise, within the gates too
-        nh = s[S.ref_norm] * np.cos(s[S.ref_dip])
-        dn = s[S.mag_nd_norm] - s[S.ref_norm]
-        dd = s[S.mag_nd_norm] * (s[S.mag_nd_dip] - s[S.ref_dip])
-        Rm[0, 0] += p[PRM.mag_dev_weight] ** 2 * (dn * dn + dd * dd) / max(nh * nh, 1e-6)
+    Rm[0, 0] += deviation_density(s, p) / elapsed
     H = heading_jacobian(m_mean)
     gate = 0.0      # no NIS gate: the field's own tests judge it (a gate was inert on every trial)
     lost = ok and p[PRM.mag_lost_time] > 0.0 and s[S.far_time] > p[PRM.mag_lost_time]

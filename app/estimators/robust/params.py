@@ -127,9 +127,15 @@ class RobustParams(CommonParams):
                                       doc="a new homogeneous field is accepted after this long while turning")
     mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
                                     user_scale=DEG, doc="turn rate that counts towards accepting a new field")
-    mag_dev_weight: float = param(1.0, lo=0.0, hi=100.0,
-                                  doc="heading σ added per relative deviation of the field from its "
-                                      "reference (Δ/|m_h|), within the gates too; 0: off", rejects=True)
+    mag_dev_weight: float = param(math.sqrt(0.5), lo=0.0, hi=100.0,
+                                  doc="heading σ per relative deviation of the field from its reference "
+                                      "(Δ/|m_h|), within the gates too: a disturbance δ of any direction "
+                                      "shows a deviation Δ of about √(2/3) |δ| (strength and dip) and turns "
+                                      "the horizontal field by about |δ|/√3, so 1/√2 × Δ/|m_h|. The "
+                                      "deviation lasts as long as the phone is where the field is bent: as "
+                                      "the field's measured wander, a noise correlated over 0.5 s (its "
+                                      "density adds to heading_noise²: an update rate does not change it); "
+                                      "0: off", rejects=True)
     mag_first_field_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
                                         doc="the first field reference is a field stable this long (until "
                                             "then every sample corrects the heading: nothing to judge it by)")
@@ -267,7 +273,8 @@ RobustParams.default_from = {
     "mag_ref_tau": "VQF: magRefTau 20 s",
     "mag_new_field_time": "VQF: magNewTime 20 s",
     "mag_new_min_rate": "VQF: magNewMinGyr 20 °/s",
-    "mag_dev_weight": "physics: a deviation Δ turns the horizontal field by at most Δ/|m_h|",
+    "mag_dev_weight": "physics: a disturbance of any direction turns the horizontal field by "
+                      "about 1/√2 of the deviation it shows in strength and dip, Δ/|m_h|",
     "mag_first_field_time": "VQF: magNewFirstTime 5 s",
     "mag_min_undisturbed": "VQF: magMinUndisturbedTime 0.5 s",
     "mag_norm_dip_tau": "VQF: magCurrentTau 0.05 s",
