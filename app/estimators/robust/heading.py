@@ -268,20 +268,40 @@ def evidence_density(v):
 
 
 @njit(cache=True)
+def _deviation_lp(s, elapsed):
+    """The field's deviation from its reference now (strength, and |m|·dip, relative to the
+    horizontal field), signed and low-passed over ``HV_SMOOTH`` as the field's heading is for
+    the evidence: a bend of the field the phone is carried through lasts seconds and stays;
+    a magnet on a turning phone swings the deviation to and fro with each turn, and what
+    swings faster than the low-pass averages out in the heading too."""
+    if s[S.ref_ok] == 0.0:
+        s[S.dev_n] = 0.0
+        s[S.dev_d] = 0.0
+        return
+    nh = max(s[S.ref_norm] * np.cos(s[S.ref_dip]), 1e-3)
+    dn = (s[S.mag_nd_norm] - s[S.ref_norm]) / nh
+    dd = s[S.mag_nd_norm] * (s[S.mag_nd_dip] - s[S.ref_dip]) / nh
+    if s[S.hv_ok] == 0.0:           # started afresh (a return, a lost estimate): no history
+        s[S.dev_n] = dn
+        s[S.dev_d] = dd
+        return
+    k = lp_coef(elapsed, HV_SMOOTH)
+    s[S.dev_n] += k * (dn - s[S.dev_n])
+    s[S.dev_d] += k * (dd - s[S.dev_d])
+
+
+@njit(cache=True)
 def deviation_density(s, p):
     """The heading noise density (rad²·s) of a field off its reference, within the gates
     too. A deviation Δ (strength change, or |m|·Δdip) shows a disturbance δ of any
     direction by about √(2/3)|δ|, which turns the horizontal field by about |δ|/√3: a
-    heading error of Δ/(√2 |m_h|) (``mag_dev_weight``). It lasts while the phone is where
-    the field is bent: an error correlated over ``HV_SMOOTH`` as the measured wander, so a
-    density, the same at any update rate (taken per update, as it once was, it was 50× too
-    small at 50 Hz and inert on every trial)."""
+    heading error of Δ/(√2 |m_h|) (``mag_dev_weight``). Low-passed over ``HV_SMOOTH``
+    (:func:`_deviation_lp`) it is an error correlated over that long, as the measured
+    wander, so a density, the same at any update rate (taken per update, as it once was,
+    it was 50× too small at 50 Hz and inert on every trial)."""
     if s[S.ref_ok] == 0.0 or p[PRM.mag_dev_weight] <= 0.0:
         return 0.0
-    nh = s[S.ref_norm] * np.cos(s[S.ref_dip])
-    dn = s[S.mag_nd_norm] - s[S.ref_norm]
-    dd = s[S.mag_nd_norm] * (s[S.mag_nd_dip] - s[S.ref_dip])
-    return evidence_density(p[PRM.mag_dev_weight] ** 2 * (dn * dn + dd * dd) / max(nh * nh, 1e-6))
+    return evidence_density(p[PRM.mag_dev_weight] ** 2 * (s[S.dev_n] ** 2 + s[S.dev_d] ** 2))
 
 
 # the heading drift fit's time origin moves on after this long (s): its sums of t² keep their digits
@@ -464,6 +484,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     innov = heading_innovation(m_mean)
     Rm = np.empty((1, 1))
     Rm[0, 0] = p[PRM.heading_noise] ** 2 / elapsed
+    _deviation_lp(s, elapsed)
     Rm[0, 0] += deviation_density(s, p) / elapsed
     H = heading_jacobian(m_mean)
     gate = 0.0      # no NIS gate: the field's own tests judge it (a gate was inert on every trial)

@@ -120,6 +120,9 @@ STATE = (
                                     "heading_evidence_tau (rad); its squared deviation from it, "
                                     "low-passed likewise (rad²)"),
     ("hv_ok", 1, "1 once the hv low-passes hold a value"),
+    ("dev", ("n", "d"), "the field's deviation from its reference (strength, |m|·dip) relative to "
+                        "the horizontal field, low-passed over HV_SMOOTH as the heading evidence "
+                        "(mag_dev_weight); started afresh with the hv low-passes"),
     ("kf_work", KF_WORK, "scratch of the measurement updates (kalman.correct): no array per update"),
 )
 # slots that start as NaN ("not yet")
