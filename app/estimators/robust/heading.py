@@ -298,7 +298,7 @@ def deviation_density(s, p):
     heading error of Δ/(√2 |m_h|) (``mag_dev_weight``). Low-passed over ``HV_SMOOTH``
     (:func:`_deviation_lp`) it is an error correlated over that long, as the measured
     wander, so a density, the same at any update rate (taken per update, as it once was,
-    it was 50× too small at 50 Hz and inert on every trial)."""
+    it was 50× too small at 50 Hz and all but inert)."""
     if s[S.ref_ok] == 0.0 or p[PRM.mag_dev_weight] <= 0.0:
         return 0.0
     return evidence_density(p[PRM.mag_dev_weight] ** 2 * (s[S.dev_n] ** 2 + s[S.dev_d] ** 2))

@@ -132,10 +132,11 @@ class RobustParams(CommonParams):
                                       "(Δ/|m_h|), within the gates too: a disturbance δ of any direction "
                                       "shows a deviation Δ of about √(2/3) |δ| (strength and dip) and turns "
                                       "the horizontal field by about |δ|/√3, so 1/√2 × Δ/|m_h|. The "
-                                      "deviation lasts as long as the phone is where the field is bent: as "
-                                      "the field's measured wander, a noise correlated over 0.5 s (its "
-                                      "density adds to heading_noise²: an update rate does not change it); "
-                                      "0: off", rejects=True)
+                                      "deviation is low-passed over 0.5 s as the field's wander is (a magnet "
+                                      "on a turning phone swings it to and fro: that averages out; a bend "
+                                      "the phone is carried through stays) and counts as a noise correlated "
+                                      "over that long (its density adds to heading_noise²: an update rate "
+                                      "does not change it); 0: off", rejects=True)
     mag_first_field_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
                                         doc="the first field reference is a field stable this long (until "
                                             "then every sample corrects the heading: nothing to judge it by)")
