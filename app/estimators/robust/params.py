@@ -127,7 +127,7 @@ class RobustParams(CommonParams):
                                       doc="a new homogeneous field is accepted after this long while turning")
     mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
                                     user_scale=DEG, doc="turn rate that counts towards accepting a new field")
-    mag_dev_weight: float = param(math.sqrt(0.5), lo=0.0, hi=100.0,
+    mag_dev_weight: float = param(math.sqrt(0.5), lo=0.0, hi=2.0,
                                   doc="heading σ per relative deviation of the field from its reference "
                                       "(Δ/|m_h|), within the gates too: a disturbance δ of any direction "
                                       "shows a deviation Δ of about √(2/3) |δ| (strength and dip) and turns "
