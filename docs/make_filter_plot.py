@@ -148,7 +148,7 @@ def main() -> int:
                        y1, "", x0, x1)
         parts.append(_poly(rows[:, 0], rows[:, 2] * DEG, x0, x1, 0, y1, top, COLORS["density"]))
         parts.append(_poly(rows[:, 0], rows[:, 1] * DEG, x0, x1, 0, y1, top, COLORS["wander"]))
-        parts += _legend(top, [("density √(heading_noise² + 2v·0.5 s)", COLORS["density"]),
+        parts += _legend(top, [("density √(heading_noise² + 2(v + d²)·0.5 s)", COLORS["density"]),
                                ("wander √v", COLORS["wander"])])
         top += PANEL_H + GAP
         y1 = max(5.0, float(np.nanpercentile(np.concatenate(list(h.values())), 99)) * 1.1)
