@@ -346,8 +346,8 @@ def test_a_magnet_is_rejected_counted_and_heading_kept(name):
 def _carried_through_a_bent_field():
     """A phone turning about the vertical is carried, from 20 s to 35 s, where the field is
     bent by 4 µT (2.3 µT along each world axis, coming and going over 3 s): within every
-    gate (strength 4 %, dip 3°, slow for the turn test), yet it turns the horizontal field's
-    direction by 6°."""
+    gate (strength 2 %, dip 3.5°, slow for the turn test), yet it turns the horizontal
+    field's direction by 6°."""
     rows, truth = sim_rows(("still",) + ("turn_z",) * 6, seed=21)
     u = np.clip((rows.t - 20.0) / 3.0, 0.0, 1.0) - np.clip((rows.t - 32.0) / 3.0, 0.0, 1.0)
     bend = np.outer(0.5 - 0.5 * np.cos(np.pi * u), [2.3, 2.3, 2.3])
