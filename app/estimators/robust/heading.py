@@ -49,7 +49,8 @@ from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_drift_update
 from app.estimators.robust.hardiron import HI_APPLIED, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
-from app.estimators.robust.state import DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, update_is_due
+from app.estimators.robust.state import (DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
+                                         update_is_due)
 from app.quaternion import wrap_angle
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
@@ -420,19 +421,8 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     # sensor's own would turn the turn's angular accelerations into field turns
     mw_turn = rotate3(s, mc)
     if has_rate and p[PRM.mag_delay] != 0.0:
-        # the field lags the gyroscope by mag_delay: it was measured at t - d, when the
-        # sensor frame was turned by -ω d from now; m(t) = m(t - d) - d ω × m(t - d)
-        d = p[PRM.mag_delay]
-        wx = s[S.w_cur_x] - s[S.bias_x]
-        wy = s[S.w_cur_y] - s[S.bias_y]
-        wz = s[S.w_cur_z] - s[S.bias_z]
-        c0 = wy * mc[2] - wz * mc[1]
-        c1 = wz * mc[0] - wx * mc[2]
-        c2 = wx * mc[1] - wy * mc[0]
-        mc[0] -= d * c0
-        mc[1] -= d * c1
-        mc[2] -= d * c2
-        mw = rotate3(s, mc)
+        # the field lags the gyroscope by mag_delay
+        mw = rotate3(s, turned_forward(s, mc, p[PRM.mag_delay]))
     else:
         mw = mw_turn
     n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])

@@ -42,7 +42,8 @@ from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_N
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
 from app.estimators.robust.params import GRAVITY, PRM
-from app.estimators.robust.state import KF_WORK, S, inject, lp_coef, rotate3, update_is_due
+from app.estimators.robust.state import (KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
+                                         update_is_due)
 
 # The tilt update corrects the tilt only, never the heading, as the heading update never tilts:
 # through the cross-covariances a dipping field's heading updates leave between tilt and heading,
@@ -109,13 +110,7 @@ def acc_update(s, P, p, t, acc, f):
     # the sample's lag behind the attitude: acc_delay_periods of its own period (module doc)
     d = p[PRM.acc_delay_periods] * s[S.acc_period]
     if d != 0.0 and not np.isnan(d) and not np.isnan(s[S.w_cur_x]):
-        # measured at t - d, when the sensor frame was turned by -ω d from now
-        wx = s[S.w_cur_x] - s[S.bias_x]
-        wy = s[S.w_cur_y] - s[S.bias_y]
-        wz = s[S.w_cur_z] - s[S.bias_z]
-        aw = rotate3(s, (acc[0] - d * (wy * acc[2] - wz * acc[1]),     # a tuple: no array per sample
-                         acc[1] - d * (wz * acc[0] - wx * acc[2]),
-                         acc[2] - d * (wx * acc[1] - wy * acc[0])))
+        aw = rotate3(s, turned_forward(s, acc, d))
     else:
         aw = rotate3(s, acc)
     for i in range(3):
