@@ -1,13 +1,14 @@
 """docs/filter_evidence.svg and the figures docs/filter.md quotes: robust's heading noise measured
 from the data on real trials, beside the heading error it leads to.
 
-First the table of time constants docs/filter.md quotes. Then, for each trial named below (a phone carried through a building's uneven field, the research IMU
-turned with rests), robust runs in 0.1 s slices and its state is read after each: the field's
-heading wander (√v, the evidence of ``heading_evidence_tau``) and the heading noise density it
-sets with the field's deviation from its reference (d, ``mag_dev_weight``),
-√(heading_noise² + 2 (v + d²) · 0.5 s). Beside them the heading error against the optical truth
-of robust (defaults), robust with the evidence off (``heading_evidence_tau=0``,
-``mag_dev_weight=0``, ``heading_noise`` 0.15 as before issue 19's item 2) and VQF (defaults). The figure is plain SVG (no plotting
+First the table of time constants docs/filter.md quotes. Then, for each trial named below (a
+phone carried through a building's uneven field, the research IMU carried through a lab), robust
+runs in 0.1 s slices and its state is read after each: the field's heading wander (√v, the
+evidence of ``heading_evidence_tau``) and the heading noise density it sets with the field's
+deviation from its reference (d, ``mag_dev_weight``), √(heading_noise² + 2 (v + d²) · 0.5 s).
+Beside them the heading error against the optical truth of robust (defaults), robust with the
+evidence off (``heading_evidence_tau=0``, ``mag_dev_weight=0``, ``heading_noise`` 0.15 as before
+issue 19's item 2) and VQF (defaults). The figure is plain SVG (no plotting
 library); the script prints each trial's RMSE and the share of time the correction ran slower.
 
 Data: ``../shared/data`` (phones: Michel et al., IEEE PerCom 2017, CeCILL 2.1; BROAD: Laidig et

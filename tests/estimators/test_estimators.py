@@ -361,7 +361,7 @@ def test_robust_trusts_a_field_off_its_reference_less_at_any_update_rate():
     is bent in heading too: the deviation slows the heading correction (mag_dev_weight),
     as a noise correlated for as long as the phone is where the field is bent, so the same
     at any update rate. Taken per update, as it was before, it was 50× too small at 50 Hz:
-    the heading followed the bend as if the term were off (max 3.5°)."""
+    the heading followed the bend as if the term were off, and this test failed."""
     rows, truth, bent = _carried_through_a_bent_field()
 
     def worst(params):
