@@ -31,21 +31,30 @@ DIFF_S = 0.05        # s between the two truth samples of a rate
 MIN_RATE = 0.5       # rad/s RMS about an axis before its scale is judged
 
 
-def scale_errors(trial: dict) -> list[tuple[int, float, float]]:
-    """(axis, scale error, RMS rate) for each axis that turned enough."""
+def rates(trial: dict, moving_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The body-frame turn rate from the truth (the rotation between two truth samples
+    ``DIFF_S`` apart, over that time) and the gyroscope averaged over the same spans (rad/s,
+    bias not removed), where both are known (and, with ``moving_only``, the trial moves)."""
     t, q, g = trial["t"], trial["ref"], trial["gyr"]
     d = max(1, int(round(DIFF_S * trial["fs"])))
-    ok = (np.all(np.isfinite(q[:-d]), 1) & np.all(np.isfinite(q[d:]), 1)
-          & np.all(np.isfinite(g[:-d]), 1) & trial["mask"][:-d])
-    if ok.sum() < 100:
-        return []
+    ok = np.all(np.isfinite(q[:-d]), 1) & np.all(np.isfinite(q[d:]), 1) & np.all(np.isfinite(g[:-d]), 1)
+    if moving_only:
+        ok &= trial["mask"][:-d]
     dq = quat_mul_many(quat_conj_many(q[:-d][ok]), q[d:][ok])        # q_k⁻¹ ⊗ q_k+d
     span = t[d:][ok] - t[:-d][ok]
     w_true = rotvec_from_quat_many(dq) / span[:, None]
     # the gyroscope averaged over the same span (samples k+1 .. k+d integrate it)
     csum = np.vstack([np.zeros(3), np.cumsum(np.nan_to_num(g), axis=0)])
     idx = np.nonzero(ok)[0]
-    w_gyr = (csum[idx + d + 1] - csum[idx + 1]) / d
+    return w_true, (csum[idx + d + 1] - csum[idx + 1]) / d
+
+
+def scale_errors(trial: dict) -> list[tuple[int, float, float]]:
+    """(axis, scale error, RMS rate) for each axis that turned enough."""
+    w_true, w_gyr = rates(trial)
+    if len(w_true) < 100:
+        return []
+    g = trial["gyr"]
     still = ~trial["mask"]
     bias = np.nanmean(g[still[: len(g)]], axis=0) if still.sum() > trial["fs"] else np.zeros(3)
     w_gyr = w_gyr - bias

@@ -246,8 +246,9 @@ RobustParams.default_from = {
     "use_mag": "design: every sensor on",
     "max_gap": "design: 1 s of a 0.1 rad/s bias is 6°, more than a gap should bridge",
     "gyr_hold": "design: a few samples of a phone sending one sensor per row",
-    "gyr_noise": "shared trials: a model error (scale, misalignment, timing), 40× a phone "
-                 "gyroscope's white noise",
+    "gyr_noise": "physics: the gyroscope's attitude random walk against BROAD's optical truth, "
+                 "0.0036-0.0056 rad/√s over 2-20 s in a steady field (benchmarks/noise_densities.py): "
+                 "a model error (scale, misalignment, timing), 40× a phone gyroscope's white noise",
     "bias_noise": "physics: a MEMS bias drifting by 0.02 °/s over VQF's biasForgettingTime (100 s)",
     "bias_max": "physics: 3× the largest phone bias (0.1 rad/s)",
     "gyr_scale_noise": "physics: a 1 % scale error over acc_tau (benchmarks/gyro_scale.py: 0.2-2.3 %)",
@@ -258,7 +259,8 @@ RobustParams.default_from = {
     "heading_drift_window": "physics: the heading's time constant, heading_noise / gyr_noise",
     "heading_drift_corr": "physics: a few strides or turns of the arm (0.5-1 s each)",
     "gyr_bias": "design: none known",
-    "tilt_noise": "shared trials",
+    "tilt_noise": "shared trials: the accelerometer's direction against BROAD's optical truth is "
+                  "0.01 (median) to 0.05 (RMS) rad·√s (benchmarks/noise_densities.py), not one value",
     "acc_tau": "shared trials: the tilt loop's bandwidth kept when it was damped as VQF's "
                "(VQF's tauAcc: 3 s)",
     "tilt_damping": "VQF: its second-order Butterworth low-pass, ζ = 1/√2",
@@ -267,7 +269,9 @@ RobustParams.default_from = {
     "acc_flag_rel": "design: a flag only, no estimate changes",
     "acc_delay_periods": "physics: a sample stands for its period and is stamped at its end: half a "
                          "period behind the attitude at its stamp",
-    "heading_noise": "shared trials: where BROAD's floor (0.07-0.1) meets the phones' (0.1-0.14)",
+    "heading_noise": "physics: the field's heading against BROAD's optical truth in a steady field, "
+                     "0.09-0.10 rad·√s at the heading's time scale, 10-20 s "
+                     "(benchmarks/noise_densities.py); a noisier field's wander adds to it",
     "heading_evidence_tau": "physics: a few strides, short against the heading's tens of seconds",
     "mag_norm_gate_rel": "shared trials: VQF's magNormTh 10 % widened for a phone's uncalibrated field",
     "mag_dip_gate": "VQF: magDipTh 10°",
