@@ -88,6 +88,26 @@ def test_every_default_of_the_default_filter_says_where_it_comes_from():
     assert "default from" not in lab
 
 
+@pytest.mark.parametrize("ts", [0.01, 1 / 285.7])
+def test_the_bias_measurement_noises_are_vqfs_published_sigmas_as_densities(ts):
+    """bias_motion_noise and rest_noise say they are VQF's biasSigmaMotion (0.1 °/s) and
+    biasSigmaRest (0.03 °/s) as noise densities. VQF turns each σ into a per-sample
+    measurement variance W = p²/V + p (p = σ², V the bias's growth per sample from
+    biasForgettingTime); W · Ts is the density², the same at any rate. Read from vqf's own
+    coefficients, so a default that drifts from the published value fails here."""
+    vqf = pytest.importorskip("vqf")
+    from app.estimators.robust.params import RobustParams
+    c = vqf.PyVQF(ts).coeffs            # VQF keeps its biases in 0.01 °/s
+    p = RobustParams()
+    deg = 180.0 / np.pi
+    motion = np.sqrt(c.biasMotionW * c.accTs) / 100.0
+    rest = np.sqrt(c.biasRestW * c.accTs) / 100.0
+    assert p.bias_motion_noise * deg == pytest.approx(motion, rel=0.01)
+    assert p.rest_noise * deg == pytest.approx(rest, rel=0.03)
+    assert RobustParams.default_from["bias_motion_noise"].startswith("VQF: biasSigmaMotion")
+    assert RobustParams.default_from["rest_noise"].startswith("VQF: biasSigmaRest")
+
+
 def test_an_old_preset_with_a_renamed_key_loads_translated(tmp_path, caplog):
     """lab's gyr_noise is now gyr_std (the same per-sample σ): read as the new name with a
     warning saying so; both names at once is refused."""

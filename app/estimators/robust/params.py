@@ -51,8 +51,9 @@ class RobustParams(CommonParams):
     bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
                                      user_scale=DEG,
                                      doc="noise density of the bias seen in the rate of the tilt corrections "
-                                         "(during motion the specific force left after the low-pass makes "
-                                         "the corrections wander for seconds); 0: no bias learning in motion")
+                                         "(VQF's biasSigmaMotion 0.1 °/s as a density, 1 °/s·√s: during "
+                                         "motion the specific force left after the low-pass makes the "
+                                         "corrections wander for seconds); 0: no bias learning in motion")
     bias_motion_clip: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s",
                                     user_scale=DEG,
                                     doc="a correction rate is taken to show at most this much bias error "
@@ -254,7 +255,8 @@ RobustParams.default_from = {
     "gyr_scale_noise": "physics: a 1 % scale error over acc_tau (benchmarks/gyro_scale.py: 0.2-2.3 %)",
     "refused_turn_noise": "physics: a 1 % scale error per second of turn",
     "bias_init": "VQF: biasSigmaInit 0.5 °/s (here 0.57 °/s)",
-    "bias_motion_noise": "shared trials",
+    "bias_motion_noise": "VQF: biasSigmaMotion 0.1 °/s as a noise density (VQF's per-sample "
+                         "W = σ⁴/V + σ², with biasForgettingTime 100 s: 1 °/s·√s)",
     "bias_motion_clip": "VQF: biasClip 2 °/s",
     "heading_drift_window": "physics: the heading's time constant, heading_noise / gyr_noise",
     "heading_drift_corr": "physics: a few strides or turns of the arm (0.5-1 s each)",
