@@ -188,6 +188,13 @@ class RobustParams(CommonParams):
                                      "rms residual is below this fraction of it (the corrected field is "
                                      "the earth's, to a sensor's scale error and a room's variation of "
                                      "a few %)")
+    hard_iron_ratio: float = param(3.0, lo=1.0, hi=100.0,
+                                   doc="the offset is applied only when the raw field's rms deviation from "
+                                       "the learned strength is this many times the corrected field's (over "
+                                       "mag_cand_tau): an offset that explains the strength's swing, not one "
+                                       "a window with little turning or a room's unevenness leaves (it moves "
+                                       "the strength about as much as it fixes); 1: whenever the corrected "
+                                       "field is closer")
     rest_gyr_th: float = param(2.0 / DEG, unit="rad/s", lo=0.0, hi=1.0, user_unit="deg/s", user_scale=DEG,
                                doc="rest: gyroscope deviation from its low-pass below this")
     rest_acc_th: float = param(0.5, unit="m/s²", lo=0.0, hi=10.0,
@@ -294,6 +301,8 @@ RobustParams.default_from = {
                         "issue 19 measured)",
     "hard_iron_max_std": "datasheet: a magnetometer's noise, 0.3-1 µT",
     "hard_iron_tol": "physics: a magnetometer's scale error and a room's variation, a few %",
+    "hard_iron_ratio": "design: the offset explains most of the strength's deviation (the corrected "
+                       "field at most a third as far off, the 3 of a 3σ test)",
     "rest_gyr_th": "VQF: restThGyr 2 °/s",
     "rest_acc_th": "VQF: restThAcc 0.5 m/s²",
     "rest_time": "VQF: restMinT 1.5 s",
