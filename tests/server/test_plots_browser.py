@@ -163,7 +163,7 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path, browser):
             tip.wait_for(state="visible", timeout=10_000)
             text = tip.inner_text()
             assert text.startswith("Gyroscope noise density") and "Raising it trusts the gyroscope less" in text
-            assert "Default from shared trials" in text     # where the default comes from
+            assert "Default from physics: the gyroscope's attitude random walk" in text  # its source
             frame.get_by_role("button", name="Calibrate gyro bias (last N s at rest)").click()
             note = frame.get_by_text("Gyroscope bias set").or_(frame.get_by_text("Bias not set"))
             note.first.wait_for(state="visible", timeout=10_000)

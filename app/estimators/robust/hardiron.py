@@ -37,8 +37,8 @@ offset is removed from every sample before anything else looks at it, and the fi
   about as much as it fixes, and is left alone: removing one cost 0.3-0.9° on BROAD's
   tapping and vibrating-phone trials. This test is its own: the strength gate
   (``mag_norm_gate_rel``) decides only whether a field is refused, not whether its offset
-  is removed (a magnet 3 cm off the sensor swings the strength by about 16 %: with a wider
-  gate it would be used with its offset in).
+  is removed (a magnet on the phone that keeps the strength inside the gate would be used
+  with its offset in: ``tests/estimators/test_hard_iron.py``, a 10 µT magnet).
 
 A change is detected when new samples leave the fit's sphere by more than 3 × its
 residual (and the sensor's noise), low-passed over ``mag_min_undisturbed``, or when the
