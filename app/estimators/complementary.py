@@ -86,7 +86,8 @@ from app.estimators.base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_A
                    begin_row)
 
 TWO_PI = 2.0 * np.pi
-GIMBAL_EPS = 1e-9    # cos(pitch) below this is gimbal lock (eq. 22)
+GIMBAL_EPS = 1e-12   # cos(pitch) below this is gimbal lock (eq. 22)
+POLE_BAND = 1e-5     # below this cos(pitch), yaw from R's well-conditioned elements (euler_from_matrix)
 
 
 @dataclass(frozen=True)
@@ -166,6 +167,13 @@ def euler_from_matrix(R):
     if cp < GIMBAL_EPS:
         out[0] = np.arctan2(-R[1, 0], R[0, 0])        # eq. 23, roll := 0
         out[2] = 0.0
+    elif cp < POLE_BAND:
+        # near a pole yaw and roll turn about almost the same axis: roll alone (eq. 21) is
+        # known to rounding / cos(pitch), but yaw - sin(pitch)·roll is R's own (r1, r4, as
+        # eq. 23): yaw follows from both, so R is rebuilt to rounding
+        out[2] = np.arctan2(R[2, 0], R[2, 2])
+        y = np.arctan2(-R[1, 0], R[0, 0]) + (1.0 if R[2, 1] < 0.0 else -1.0) * out[2]
+        out[0] = np.arctan2(np.sin(y), np.cos(y))
     else:
         out[0] = np.arctan2(R[0, 1], R[1, 1])         # eq. 19
         out[2] = np.arctan2(R[2, 0], R[2, 2])         # eq. 21
