@@ -154,12 +154,23 @@ def hard_iron(s, p, mag, dt, rate, out):
     write the field to use into ``out`` (the sample, minus the offset when applied).
     ``rate`` is the bias-corrected turn rate (rad/s), ``dt`` the time since the last
     magnetometer sample. Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
+    dt = min(max(dt, 0.0), DT_MAX)
+    # how well the raw and the corrected field match the learned earth field's strength (the
+    # reference learns only from a field within hard_iron_tol of it: heading._field_check)
+    ref = s[S.ref_norm]
+    n_raw = np.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
+    ox, oy, oz = s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2]
+    cx, cy, cz = mag[0] - ox, mag[1] - oy, mag[2] - oz
+    n_cor = np.sqrt(cx * cx + cy * cy + cz * cz)
+    if s[S.ref_ok] != 0.0:
+        k = lp_coef(dt, p[PRM.mag_cand_tau])
+        s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
+        s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
     win = p[PRM.hard_iron_window]
     if win <= 0.0:
         for i in range(3):
             out[i] = mag[i]
         return HI_NONE
-    dt = min(max(dt, 0.0), DT_MAX)
     # turning time: a still phone neither teaches nor makes the fit forget
     mr = p[PRM.mag_new_min_rate]
     s[S.hi_w_acc] += dt * (min(1.0, rate / mr) if mr > 0.0 else 1.0)
@@ -183,16 +194,6 @@ def hard_iron(s, p, mag, dt, rate, out):
             s[S.hi_b + i] = lam * s[S.hi_b + i] + wi * y
         s[S.hi_yy] = lam * s[S.hi_yy] + w * y * y
         s[S.hi_W] = lam * s[S.hi_W] + w
-    # how well the raw and the corrected field match the learned earth field's strength
-    ref = s[S.ref_norm]
-    n_raw = np.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
-    ox, oy, oz = s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2]
-    cx, cy, cz = mag[0] - ox, mag[1] - oy, mag[2] - oz
-    n_cor = np.sqrt(cx * cx + cy * cy + cz * cz)
-    if s[S.ref_ok] != 0.0:
-        k = lp_coef(dt, p[PRM.mag_cand_tau])
-        s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
-        s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
     status = s[S.hi_status]
     # change detection: new samples far off the current fit's sphere (beyond 3 × its own
     # residual and the sensor's noise) mean the offset changed (a magnet put on, taken off,

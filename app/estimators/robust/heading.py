@@ -161,7 +161,14 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
             s[S.disturbed] = 0.0
             # a field with a sensor-fixed offset found in it (not yet removed) is not the
             # earth's: it does not teach the reference
-            kr = lp_coef(dt, p[PRM.mag_ref_tau]) if dt > 0 and s[S.hi_status] != HI_TRACKING else 0.0
+            # nor does a field whose strength has been off the reference by more than a
+            # room's variation (hard_iron_tol, rms over mag_cand_tau): a bend the phone is
+            # carried through, a magnet on it not yet found. The reference is the earth's; a
+            # field that stays is taken by the new-field acceptance
+            dev = s[S.hi_dev_cor] if s[S.hi_status] == HI_APPLIED else s[S.hi_dev_raw]
+            off = dev > (p[PRM.hard_iron_tol] * s[S.ref_norm]) ** 2
+            kr = (lp_coef(dt, p[PRM.mag_ref_tau])
+                  if dt > 0 and s[S.hi_status] != HI_TRACKING and not off else 0.0)
             s[S.ref_norm] += kr * (nf - s[S.ref_norm])
             s[S.ref_dip] += kr * (df - s[S.ref_dip])
     else:

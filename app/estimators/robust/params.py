@@ -187,7 +187,10 @@ class RobustParams(CommonParams):
                                      "the learned earth field's strength to this fraction and the fit's "
                                      "rms residual is below this fraction of it (the corrected field is "
                                      "the earth's, to a sensor's scale error and a room's variation of "
-                                     "a few %)")
+                                     "a few %); and the field's reference learns only from a field "
+                                     "whose strength is within this fraction of it (rms over "
+                                     "mag_cand_tau): a bend the phone is carried through, or a magnet "
+                                     "on it not yet found, does not teach it")
     hard_iron_ratio: float = param(3.0, lo=1.0, hi=100.0,
                                    doc="the offset is applied only when the raw field's rms deviation from "
                                        "the learned strength is this many times the corrected field's (over "
