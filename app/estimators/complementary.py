@@ -172,8 +172,7 @@ def euler_from_matrix(R):
         # known to rounding / cos(pitch), but yaw - sin(pitch)·roll is R's own (r1, r4, as
         # eq. 23): yaw follows from both, so R is rebuilt to rounding
         out[2] = np.arctan2(R[2, 0], R[2, 2])
-        y = np.arctan2(-R[1, 0], R[0, 0]) + (1.0 if R[2, 1] < 0.0 else -1.0) * out[2]
-        out[0] = np.arctan2(np.sin(y), np.cos(y))
+        out[0] = wrap_angle(np.arctan2(-R[1, 0], R[0, 0]) + (1.0 if R[2, 1] < 0.0 else -1.0) * out[2])
     else:
         out[0] = np.arctan2(R[0, 1], R[1, 1])         # eq. 19
         out[2] = np.arctan2(R[2, 0], R[2, 2])         # eq. 21

@@ -149,28 +149,36 @@ def _solve(s, p):
 
 
 @njit(cache=True)
+def strength_deviations(s, p, mag, dt):
+    """How far the raw field's strength and the offset-corrected one are from the learned
+    reference: their squared deviations low-passed over ``mag_cand_tau`` (``hi_dev_raw``,
+    ``hi_dev_cor``). The fit applies an offset when it explains the strength
+    (``hard_iron_ratio``, :func:`hard_iron`), and the reference learns only while the field
+    as used stays within ``hard_iron_tol`` of it (``heading._field_check``). Every
+    magnetometer sample, before :func:`hard_iron`, with the tracking off too."""
+    if s[S.ref_ok] == 0.0:
+        return
+    ref = s[S.ref_norm]
+    n_raw = norm3s(mag[0], mag[1], mag[2])
+    n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
+    k = lp_coef(min(max(dt, 0.0), DT_MAX), p[PRM.mag_cand_tau])
+    s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
+    s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
+
+
+@njit(cache=True)
 def hard_iron(s, p, mag, dt, rate, out):
     """Feed one magnetometer sample (sensor frame, µT) to the fit, judge the offset, and
     write the field to use into ``out`` (the sample, minus the offset when applied).
     ``rate`` is the bias-corrected turn rate (rad/s), ``dt`` the time since the last
     magnetometer sample. Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
-    dt = min(max(dt, 0.0), DT_MAX)
-    # how well the raw and the corrected field match the learned earth field's strength (the
-    # reference learns only from a field within hard_iron_tol of it: heading._field_check)
-    ref = s[S.ref_norm]
-    n_raw = np.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
-    ox, oy, oz = s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2]
-    cx, cy, cz = mag[0] - ox, mag[1] - oy, mag[2] - oz
-    n_cor = np.sqrt(cx * cx + cy * cy + cz * cz)
-    if s[S.ref_ok] != 0.0:
-        k = lp_coef(dt, p[PRM.mag_cand_tau])
-        s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
-        s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
     win = p[PRM.hard_iron_window]
     if win <= 0.0:
         for i in range(3):
             out[i] = mag[i]
         return HI_NONE
+    dt = min(max(dt, 0.0), DT_MAX)
+    ref = s[S.ref_norm]
     # turning time: a still phone neither teaches nor makes the fit forget
     mr = p[PRM.mag_new_min_rate]
     s[S.hi_w_acc] += dt * (min(1.0, rate / mr) if mr > 0.0 else 1.0)
@@ -201,6 +209,7 @@ def hard_iron(s, p, mag, dt, rate, out):
     changed = False
     if np.isfinite(s[S.hi_std]) and s[S.hi_r] > 0.0:
         k = lp_coef(dt, p[PRM.mag_min_undisturbed])
+        n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
         s[S.hi_dev_fit] += k * ((n_cor - s[S.hi_r]) ** 2 - s[S.hi_dev_fit])
         lim = 3.0 * max(s[S.hi_rms], p[PRM.hard_iron_max_std])
         changed = s[S.hi_dev_fit] > lim * lim
