@@ -9,8 +9,8 @@ low-passed squared deviations, the quantity ``hard_iron_ratio`` is compared with
 over the moments of each status). Trials where nothing was found are summed up in one line.
 
 Then the simulator (no data needed): the turning phone of ``tests/estimators/test_hard_iron.py``
-(126 s of turns about each axis, a 0.5 °/s gyroscope bias about z) with a magnet of each size
-stuck on it from 30 s to 100 s: the heading's RMS error from 60 s to 100 s with the tracking
+(``harness.magnet_rows``: 126 s of turns about each axis, a 0.5 °/s gyroscope bias about z) with
+a magnet of each size stuck on it from 30 s to 100 s: the heading's RMS error from 60 s to 100 s with the tracking
 and without it (``hard_iron_window=0``), and the share of those samples with the offset removed.
 
 Usage: ``python benchmarks/hard_iron.py [--which broad|phones|sim]``.
@@ -27,6 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "tests"))          # harness: the simulator's magnet scenario
 
 from accuracy_phones import BROAD, PHONES, load_broad, load_phones  # noqa: E402
 from app.estimators import make_estimator  # noqa: E402
@@ -37,8 +38,6 @@ from app.estimators.robust.state import S  # noqa: E402
 
 EVERY_S = 0.5
 SIM_MAGNETS_UT = (6.0, 8.0, 9.0, 10.0, 12.0, 15.0, 30.0)
-SIM_DIRECTION = np.array([18.0, -12.0, 20.0]) / np.linalg.norm([18.0, -12.0, 20.0])  # the test's
-SIM_ON_S, SIM_OFF_S = 30.0, 100.0
 
 
 def trace(tr: dict) -> np.ndarray:
@@ -84,28 +83,20 @@ def simulator() -> None:
     from app.estimators import Reason
     from app.estimators.base import F_MAG
     from app.quaternion import error_angles
-    from app.sources.ordering import samples_to_rows
-    from app.sources.samples import Sample
-    from app.sources.simulate import SimConfig, simulate
+    from harness import MAGNET_OFF_S, MAGNET_ON_S, magnet_rows
 
-    res = simulate(("turn_x", "turn_y", "turn_z") * 7, seed=3,
-                   config=SimConfig(gyr_bias=(0.0, 0.0, 0.5 * np.pi / 180.0)))
-    base = samples_to_rows([Sample(m, tag, tuple(v)) for m, tag, v in res.samples])
-    truth = res.truth_at_ms(base.t * 1000.0)
-    base.t = base.t - base.t[0]
-    late = (base.t > SIM_ON_S + 30.0) & (base.t < SIM_OFF_S)
+    base, truth = magnet_rows(0.0)
+    late = (base.t > MAGNET_ON_S + 30.0) & (base.t < MAGNET_OFF_S)
     has = np.isfinite(base.mag[:, 0])
-    on = (base.t >= SIM_ON_S) & (base.t < SIM_OFF_S) & has
-    print(f"simulator: a magnet on the turning phone from {SIM_ON_S:.0f} s to {SIM_OFF_S:.0f} s "
+    print(f"simulator: a magnet on the turning phone from {MAGNET_ON_S:.0f} s to {MAGNET_OFF_S:.0f} s "
           f"(field {np.nanmean(np.linalg.norm(base.mag, axis=1)):.0f} µT); heading RMS error "
-          f"{SIM_ON_S + 30:.0f}-{SIM_OFF_S:.0f} s")
+          f"{MAGNET_ON_S + 30:.0f}-{MAGNET_OFF_S:.0f} s")
     print(f"  {'magnet µT':>9} {'tracked °':>10} {'not tracked °':>14} {'removed':>8}")
     for size in SIM_MAGNETS_UT:
-        mag = base.mag.copy()
-        mag[on] += size * SIM_DIRECTION
+        rows, _ = magnet_rows(size)
         out = []
         for params in ({}, {"hard_iron_window": 0.0}):
-            r = make_estimator("robust", params).run(base.t, base.gyr, base.acc, mag, base.ori)
+            r = make_estimator("robust", params).run(rows.t, rows.gyr, rows.acc, rows.mag, rows.ori)
             _, h, _ = error_angles(r.q[late], truth[late])
             out.append((float(np.degrees(np.sqrt(np.mean(h ** 2)))),
                         float(np.mean(r.flags[late & has, F_MAG] == Reason.OFFSET))))

@@ -220,3 +220,25 @@ def sim_rows(scenes, seed=0, config=None):
     truth = res.truth_at_ms(rows.t * 1000.0)
     rows.t = rows.t - rows.t[0]
     return rows, truth
+
+
+# ---- a magnet stuck on the simulator's turning phone (tests/estimators/test_hard_iron.py,
+# benchmarks/hard_iron.py): turns about each axis, a 0.5 °/s gyroscope bias about z the field
+# must correct; from MAGNET_ON_S to MAGNET_OFF_S a constant offset in the *sensor* frame
+MAGNET_TURNS = ("turn_x", "turn_y", "turn_z") * 7        # 126 s of turning
+MAGNET_ON_S, MAGNET_OFF_S = 30.0, 100.0
+MAGNET_OFFSET_UT = (18.0, -12.0, 20.0)                    # |o| = 29.5 µT
+
+
+def magnet_rows(size_ut=None, scenes=MAGNET_TURNS, seed=3):
+    """``sim_rows`` of the turning phone with a magnet on it from MAGNET_ON_S to MAGNET_OFF_S:
+    MAGNET_OFFSET_UT, or that direction scaled to ``size_ut`` µT; 0: no magnet."""
+    import numpy as np
+    from app.sources.simulate import SimConfig
+    rows, truth = sim_rows(scenes, seed=seed, config=SimConfig(gyr_bias=(0.0, 0.0, np.radians(0.5))))
+    offset = np.asarray(MAGNET_OFFSET_UT)
+    if size_ut is not None:
+        offset = offset * (size_ut / np.linalg.norm(offset))
+    on = (rows.t >= MAGNET_ON_S) & (rows.t < MAGNET_OFF_S) & np.isfinite(rows.mag[:, 0])
+    rows.mag[on] += offset
+    return rows, truth

@@ -13,22 +13,16 @@ import pytest
 from app.estimators import Reason, make_estimator
 from app.estimators.base import F_MAG, F_MAG_VAL
 from app.quaternion import error_angles
-from app.sources.simulate import SimConfig
-from harness import sim_rows
+from harness import MAGNET_OFF_S as OFF
+from harness import MAGNET_OFFSET_UT, MAGNET_TURNS as TURNS, magnet_rows
+from harness import MAGNET_ON_S as ON
 
 DEG = 180.0 / np.pi
-TURNS = ("turn_x", "turn_y", "turn_z") * 7          # 126 s of turning
-ON, OFF = 30.0, 100.0                                 # the magnet on the phone (s)
-OFFSET = np.array([18.0, -12.0, 20.0])                # µT, sensor frame (|o| = 29.5 µT)
+OFFSET = np.array(MAGNET_OFFSET_UT)                   # µT, sensor frame (|o| = 29.5 µT)
 
 
 def _rows(magnet=True, scenes=TURNS, seed=3):
-    # a gyroscope bias about the vertical the field must correct: 0.5 °/s
-    rows, truth = sim_rows(scenes, seed=seed, config=SimConfig(gyr_bias=(0.0, 0.0, 0.5 / DEG)))
-    if magnet:
-        on = (rows.t >= ON) & (rows.t < OFF) & np.isfinite(rows.mag[:, 0])
-        rows.mag[on] += OFFSET
-    return rows, truth
+    return magnet_rows(None if magnet else 0.0, scenes=scenes, seed=seed)
 
 
 def _heading(res, truth, mask):
@@ -74,10 +68,7 @@ def test_a_magnet_too_weak_for_the_strength_gate_is_removed_too(size):
     stopped learning from a field off it by more than hard_iron_tol, the 6 µT magnet's field
     taught the reference before the fit had seen enough turning, and the corrected field was
     then no closer to it than the raw one (9.6°)."""
-    weak = OFFSET * size / np.linalg.norm(OFFSET)
-    rows, truth = _rows(magnet=False)
-    on = (rows.t >= ON) & (rows.t < OFF) & np.isfinite(rows.mag[:, 0])
-    rows.mag[on] += weak
+    rows, truth = magnet_rows(size)
     res = make_estimator("robust").run(rows.t, rows.gyr, rows.acc, rows.mag, rows.ori)
     kept = make_estimator("robust", {"hard_iron_window": 0.0}).run(rows.t, rows.gyr, rows.acc,
                                                                      rows.mag, rows.ori)
