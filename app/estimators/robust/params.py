@@ -77,7 +77,7 @@ class RobustParams(CommonParams):
                             doc="initial gyroscope bias (calibration)")
     tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                               user_scale=DEG, doc="noise density of the low-passed gravity direction")
-    acc_tau: float = param(4.5, unit="s", lo=0.0, hi=60.0,
+    acc_tau: float = param(3.0, unit="s", lo=0.0, hi=60.0,
                            doc="time constant of the inertial low-pass of the accelerometer")
     tilt_damping: float = param(math.sqrt(0.5), lo=0.0, hi=2.0,
                                 doc="damping ratio ζ of the tilt loop (the low-pass and the corrections "
@@ -273,8 +273,7 @@ RobustParams.default_from = {
     "gyr_bias": "design: none known",
     "tilt_noise": "shared trials: the accelerometer's direction against BROAD's optical truth is "
                   "0.01 (median) to 0.05 (RMS) rad·√s (benchmarks/noise_densities.py), not one value",
-    "acc_tau": "shared trials: the tilt loop's bandwidth kept when it was damped as VQF's "
-               "(VQF's tauAcc: 3 s)",
+    "acc_tau": "VQF: tauAcc 3 s, the time constant of its inertial low-pass of the accelerometer",
     "tilt_damping": "VQF: its second-order Butterworth low-pass, ζ = 1/√2",
     "acc_band_rel": "design: off (VQF has no band)",
     "acc_flag_angle": "design: a flag only, no estimate changes",

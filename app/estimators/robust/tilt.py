@@ -1,7 +1,7 @@
 """The tilt: the accelerometer update, its inertial low-pass and the tilt loop's damping.
 
 - **Tilt from an inertial low-pass of the accelerometer.** Each specific-force sample
-  is rotated into the world frame and low-pass filtered there (``acc_tau``, 4.5 s), so
+  is rotated into the world frame and low-pass filtered there (``acc_tau``, 3 s), so
   the phone's accelerations, which average to zero, cancel, while gravity stays. The
   filtered direction is the measurement (2 components, ``h = (-δθy, δθx)``); it corrects
   the tilt only, never the heading (``_MASK_TILT``); the
@@ -16,10 +16,9 @@
   Turning it with a share ρ of each tilt correction gives s² + (1/τ + ρ/τc) s + 1/(τ τc):
   the same rejection of fast specific force (1/(τ τc ω²)), damping ζ set by ρ =
   2ζ√(τc/τ) - τc/τ, a drift error of d·(τc + ρτ) = d·2ζ/ωn with ωn = 1/√(τ τc).
-  The default is VQF's damping, ζ = 1/√2 (its second-order Butterworth low-pass), at
-  the bandwidth the overdamped loop had (ωn ≈ 0.28 rad/s at rest: τ = 4.5 s, τc =
-  ``tilt_noise / gyr_noise`` = 3 s, before τ = 3 s, τc = 4 s): the same rejection of
-  the specific force, ~30 % less lag where the gyroscope drifts (fast turns).
+  The defaults are VQF's: its damping, ζ = 1/√2 (its second-order Butterworth
+  low-pass), and its low-pass time constant, τ = ``tauAcc`` = 3 s. At rest τc =
+  ``tilt_noise / gyr_noise`` = 3 s as well, so ωn = 1/3 rad/s and ρ = 2ζ - 1 ≈ 0.41.
 - **The accelerometer's lag** (``acc_delay_periods``, 0.5). A sample stands for the specific
   force over its period and is stamped at its end, while the attitude at the stamp has been
   propagated with the gyroscope's rate over that same period: the sample is half a period
