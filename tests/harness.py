@@ -26,6 +26,7 @@ from app.sources.sensorfusion import MalformedLine, decode_lines, parse_line
 from app.server.settings import Settings
 
 START_TIMEOUT_S = 300.0   # the first start may compile the estimators (numba)
+START_TRIES = 3           # a server that did not start is started again on fresh ports (running_server)
 
 # ---- the browser (Debian's chromium driven by Playwright; no browser download)
 CHROMIUM = next((p for p in ("/usr/bin/chromium", shutil.which("chromium") or "",
@@ -59,6 +60,19 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def free_ports(n: int) -> list[int]:
+    """``n`` distinct free loopback ports: every socket is held until all are chosen (one
+    at a time, the system may hand out a port just closed again)."""
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_STREAM) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def wait_for(pred: Callable[[], object], timeout: float = 30.0, interval: float = 0.05,
@@ -110,19 +124,30 @@ def running_server(**overrides) -> Iterator[RunningServer]:
     """The dashboard on free loopback ports (``source="none"`` unless told).
 
     ``open_access=True`` unless told (tests of other concerns need no token); tests of
-    the access rules pass ``open_access=False`` (and ``token=...``)."""
-    kw = dict(host="127.0.0.1", port=free_port(), viewer_host="127.0.0.1",
-              viewer_port=free_port(), phone_host="127.0.0.1", phone_port=free_port(),
-              source="none", verbose=False, open_access=True)
-    kw.update(overrides)
-    settings = Settings(**kw)
-    server = make_server(settings)
-    thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
-    thread.start()
-    try:
+    the access rules pass ``open_access=False`` (and ``token=...``).
+
+    A free port can be taken between choosing it and binding it (another test's client, a
+    socket of the run before): when the ports were chosen here and the server did not
+    start, it is started again on fresh ports, at most START_TRIES times in all."""
+    chosen_here = not any(k in overrides for k in ("port", "viewer_port", "phone_port"))
+    for attempt in range(START_TRIES if chosen_here else 1):
+        port, viewer_port, phone_port = free_ports(3)
+        kw = dict(host="127.0.0.1", port=port, viewer_host="127.0.0.1",
+                  viewer_port=viewer_port, phone_host="127.0.0.1", phone_port=phone_port,
+                  source="none", verbose=False, open_access=True)
+        kw.update(overrides)
+        settings = Settings(**kw)
+        server = make_server(settings)
+        thread = threading.Thread(target=server.run, name="uvicorn", daemon=True)
+        thread.start()
         wait_for(lambda: server.started or not thread.is_alive(), START_TIMEOUT_S, what="server start")
-        if not server.started:
-            raise RuntimeError("the dashboard did not start (see the log above)")
+        if server.started:
+            break
+        server.should_exit = True
+        thread.join(10.0)
+    else:
+        raise RuntimeError("the dashboard did not start (see the log above)")
+    try:
         yield RunningServer(settings, server, thread)
     finally:
         server.should_exit = True
