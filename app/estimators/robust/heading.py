@@ -47,7 +47,7 @@ from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD
                                 R_OFFSET, R_RECOVER, R_TURN, R_USED)
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_drift_update
-from app.estimators.robust.hardiron import HI_APPLIED, HI_TRACKING, hard_iron, strength_deviations
+from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, hard_iron, strength_deviations
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import (DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
                                          update_is_due)
@@ -104,7 +104,8 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
     """Judge the field (strength ``n``, dip) against the learned reference, as VQF does:
     a disturbance is a strength or dip off the reference; it ends after the field has been
     within the gates for ``mag_min_undisturbed``; a new homogeneous field (stable strength
-    and dip while the phone turns for ``mag_new_field_time``) becomes the reference; the
+    and dip while the phone turns for ``mag_new_field_time``) becomes the reference, unless
+    an offset fixed to the phone explains it (below); the
     first reference is the first field stable for ``mag_first_field_time`` (a phone that
     starts moving, or next to a desk, must not fix it from its first samples).
     A field that changes faster than the phone turns (``turn`` > 0, the unexplained change
@@ -176,7 +177,16 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         s[S.disturbed] = 1.0
         s[S.dist_reason] = reason
         s[S.dist_val] = turn
-    if s[S.disturbed] != 0.0 and s[S.cand_time] >= p[PRM.mag_new_field_time]:
+    # A field that an offset fixed to the phone explains is no new place: the fit has found an
+    # offset (3σ or more) whose sphere has the reference's radius, so the field less the offset
+    # is the earth's field already known. A magnet of 8-9 µT swings the strength by less than
+    # the gate most of the time, so the candidate stays "stable" and, without this, it became
+    # the reference before the fit had its evidence; the offset then no longer explained the
+    # strength and was dropped (hard_iron_ratio). A new place gives no offset (the sphere of a
+    # homogeneous field is centred) or a radius of its own strength.
+    explained = (s[S.hi_status] != HI_NONE
+                 and abs(s[S.hi_r] - s[S.ref_norm]) <= p[PRM.hard_iron_tol] * s[S.ref_norm])
+    if s[S.disturbed] != 0.0 and s[S.cand_time] >= p[PRM.mag_new_field_time] and not explained:
         # a new homogeneous field: the phone moved to another place (or a magnet stays on it)
         s[S.ref_norm] = s[S.cand_norm]
         s[S.ref_dip] = s[S.cand_dip]
