@@ -125,7 +125,8 @@ class RobustParams(CommonParams):
     mag_ref_tau: float = param(20.0, unit="s", lo=0.1, hi=3600.0,
                                doc="time constant of learning the field reference while undisturbed")
     mag_new_field_time: float = param(20.0, unit="s", lo=0.0, hi=600.0,
-                                      doc="a new homogeneous field is accepted after this long while turning")
+                                      doc="a new homogeneous field is accepted after this long while turning (not "
+                                          "one an offset found on the phone explains)")
     mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
                                     user_scale=DEG, doc="turn rate that counts towards accepting a new field")
     mag_dev_weight: float = param(math.sqrt(0.5), lo=0.0, hi=2.0,
