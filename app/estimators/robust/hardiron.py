@@ -155,23 +155,26 @@ def strength_deviations(s, p, mag, dt):
     ``hi_dev_cor``). The fit applies an offset when it explains the strength
     (``hard_iron_ratio``, :func:`hard_iron`), and the reference learns only while the field
     as used stays within ``hard_iron_tol`` of it (``heading._field_check``). Every
-    magnetometer sample, before :func:`hard_iron`, with the tracking off too."""
+    magnetometer sample, before :func:`hard_iron`, with the tracking off too. Returns the
+    corrected strength |m - o|, which :func:`hard_iron`'s change detection reads too."""
+    n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
     if s[S.ref_ok] == 0.0:
-        return
+        return n_cor
     ref = s[S.ref_norm]
     n_raw = norm3s(mag[0], mag[1], mag[2])
-    n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
     k = lp_coef(min(max(dt, 0.0), DT_MAX), p[PRM.mag_cand_tau])
     s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
     s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
+    return n_cor
 
 
 @njit(cache=True)
-def hard_iron(s, p, mag, dt, rate, out):
+def hard_iron(s, p, mag, dt, rate, n_cor, out):
     """Feed one magnetometer sample (sensor frame, µT) to the fit, judge the offset, and
     write the field to use into ``out`` (the sample, minus the offset when applied).
     ``rate`` is the bias-corrected turn rate (rad/s), ``dt`` the time since the last
-    magnetometer sample. Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
+    magnetometer sample, ``n_cor`` the sample's strength less the offset found
+    (:func:`strength_deviations`). Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
     win = p[PRM.hard_iron_window]
     if win <= 0.0:
         for i in range(3):
@@ -209,7 +212,6 @@ def hard_iron(s, p, mag, dt, rate, out):
     changed = False
     if np.isfinite(s[S.hi_std]) and s[S.hi_r] > 0.0:
         k = lp_coef(dt, p[PRM.mag_min_undisturbed])
-        n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
         s[S.hi_dev_fit] += k * ((n_cor - s[S.hi_r]) ** 2 - s[S.hi_dev_fit])
         lim = 3.0 * max(s[S.hi_rms], p[PRM.hard_iron_max_std])
         changed = s[S.hi_dev_fit] > lim * lim

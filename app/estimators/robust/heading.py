@@ -432,8 +432,8 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     s[S.mag_t] = t
     # a sensor-fixed offset (a magnet on the phone), when one is applied, is removed first
     mc = s[S.mag_c:S.mag_c + 3]
-    strength_deviations(s, p, mag, dt)
-    hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, mc)
+    n_cor = strength_deviations(s, p, mag, dt)
+    hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, n_cor, mc)
     # the turn test judges the field as measured: its allowance for what a turn does to a
     # real field (mag_turn_rel) includes the field's lag, and a delay that is not the
     # sensor's own would turn the turn's angular accelerations into field turns
