@@ -130,7 +130,7 @@ def running_server(**overrides) -> Iterator[RunningServer]:
     socket of the run before): when the ports were chosen here and the server did not
     start, it is started again on fresh ports, at most START_TRIES times in all."""
     chosen_here = not any(k in overrides for k in ("port", "viewer_port", "phone_port"))
-    for attempt in range(START_TRIES if chosen_here else 1):
+    for _ in range(START_TRIES if chosen_here else 1):
         port, viewer_port, phone_port = free_ports(3)
         kw = dict(host="127.0.0.1", port=port, viewer_host="127.0.0.1",
                   viewer_port=viewer_port, phone_host="127.0.0.1", phone_port=phone_port,
