@@ -307,16 +307,12 @@ def test_serve_starts_prints_the_addresses_and_stops_cleanly_on_ctrl_c():
     """`orientlab serve` as a user runs it: the banner names the page and the phone port,
     the API answers, and Ctrl-C (SIGINT) ends the process with status 0."""
     import signal
-    import socket
     import time
     import urllib.request
 
-    def free_port() -> int:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            return s.getsockname()[1]
+    from harness import free_ports
 
-    port, viewer, phone = free_port(), free_port(), free_port()
+    port, viewer, phone = free_ports(3)
     proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--host", "127.0.0.1",
                              "--port", str(port), "--viewer-port", str(viewer),
                              "--phone-port", str(phone), "--source", "demo"],

@@ -33,7 +33,7 @@ from pathlib import Path
 import pytest
 
 from app.estimators import NAMES
-from harness import CHROMIUM, CHROMIUM_ARGS, free_port
+from harness import CHROMIUM, CHROMIUM_ARGS, free_ports
 from venvs import cache_root, http_get, stop_with_sigint
 
 REPO = Path(__file__).resolve().parents[1]
@@ -201,7 +201,7 @@ def _page_says_filters(url: str, tmp_path: Path) -> str | None:
 def test_serve_answers_while_the_filters_compile(tmp_path):
     copy = fresh_copy(tmp_path / "clone")
     cache = tmp_path / "numba-cache"            # cold
-    port, viewer, phone = free_port(), free_port(), free_port()
+    port, viewer, phone = free_ports(3)
     p = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--host", "127.0.0.1",
                           "--port", str(port), "--viewer-port", str(viewer),
                           "--phone-port", str(phone), "--source", "demo"],

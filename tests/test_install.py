@@ -27,7 +27,7 @@ from pathlib import Path
 import pytest
 
 from app.estimators import NAMES
-from harness import free_port
+from harness import free_ports
 from venvs import REPO, bare_venv, clean_env, http_get, run, stop_with_sigint
 
 SLOW_S = 900.0      # a safety net for a cold compile on a loaded machine, not a timing claim
@@ -127,7 +127,7 @@ def test_bare_compile_then_every_filter_estimates(bare, tmp_path):
 
 
 def test_bare_serve_demo_answers_and_stops_on_sigint(bare, tmp_path):
-    port, viewer, phone = free_port(), free_port(), free_port()
+    port, viewer, phone = free_ports(3)
     proc = subprocess.Popen(
         [str(bare.exe("orientlab")), "serve", "--host", "127.0.0.1", "--port", str(port),
          "--viewer-port", str(viewer), "--phone-port", str(phone), "--source", "demo"],

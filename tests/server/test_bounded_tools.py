@@ -22,7 +22,7 @@ from app.sources.readers import read_log_data
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import SimConfig, simulate
 from app.toolkit.recording import read_estimates, read_events
-from harness import Phone, free_port, running_server, wait_for
+from harness import Phone, free_ports, running_server, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 MAGNET = {"kind": "magnet", "strength_uT": 40, "direction": "east", "seconds": 600}
@@ -65,7 +65,7 @@ def test_at_most_a_few_injections_are_on_and_one_more_is_refused_with_a_message(
 
 
 def test_ctrl_c_stops_the_server_within_seconds_with_the_most_injections_on(tmp_path):
-    port, vport, pport = free_port(), free_port(), free_port()
+    port, vport, pport = free_ports(3)
     cmd = [sys.executable, "-c", "import sys; from app.cli import main; sys.exit(main())",
            "serve", "--source", "demo", "--open", "--host", "127.0.0.1",
            "--port", str(port), "--viewer-port", str(vport), "--phone-port", str(pport),

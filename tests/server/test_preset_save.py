@@ -25,7 +25,7 @@ import pytest
 
 from app.params import CONFIG_DIR
 from app.server.presets import shipped_names
-from harness import free_port, running_server, wait_for
+from harness import free_ports, running_server, wait_for
 
 try:
     import tomllib
@@ -221,13 +221,13 @@ def test_a_calibration_preset_is_complete_and_loads_back(lab):
 def _serve(tmp_path: Path, rec: Path, presets: Path) -> tuple[subprocess.Popen, str]:
     """``orientlab serve`` in a process of its own (its file-size limit is set below);
     its output to pipes-free /dev/null (not a regular file: no limit applies)."""
-    port = free_port()
+    port, viewer_port, phone_port = free_ports(3)
     env = {k: v for k, v in os.environ.items() if k not in ("ORIENTLAB_PRESETS",)}
     env["NUMBA_DISABLE_JIT"] = "1"      # the estimators in Python: no compile wait
     proc = subprocess.Popen(
         [sys.executable, "-m", "app.cli", "serve", "--source", "none", "--open",
-         "--host", "127.0.0.1", "--port", str(port), "--viewer-port", str(free_port()),
-         "--phone-port", str(free_port()), "--recordings", str(rec),
+         "--host", "127.0.0.1", "--port", str(port), "--viewer-port", str(viewer_port),
+         "--phone-port", str(phone_port), "--recordings", str(rec),
          "--presets-dir", str(presets)],
         cwd=tmp_path, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL)

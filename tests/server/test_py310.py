@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from harness import free_port
+from harness import free_ports
 from venvs import REPO, bare_venv, clean_env, http_get, python_version, run, stop_with_sigint
 
 START_S = 120.0       # serve without JIT starts in a few seconds
@@ -84,7 +84,7 @@ def test_every_module_of_app_imports_on_310(venv310):
 
 def test_serve_starts_answers_health_and_stops_on_sigint_on_310(venv310, tmp_path):
     venv, env, _ = venv310
-    port, viewer, phone = free_port(), free_port(), free_port()
+    port, viewer, phone = free_ports(3)
     out, err = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
     with open(out, "w") as fo, open(err, "w") as fe:
         proc = subprocess.Popen(
