@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from accuracy_phones import BROAD, PHONES, load_broad, load_phones  # noqa: E402
 from app.estimators.robust import RobustParams  # noqa: E402
 from app.quaternion import (Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul,  # noqa: E402
-                            quat_mul_many, rotvec_from_quat_many)
+                            quat_mul_many, rotvec_from_quat_many, wrap_angle)
 from evalkit import KINDS, broad_kind  # noqa: E402
 from gyro_scale import rates  # noqa: E402
 
@@ -106,7 +106,7 @@ def tilt_and_heading(tr: dict, T: float, mag_delay: float) -> tuple[np.ndarray, 
     m = np.einsum("nij,nj->ni", R, mag)
     h = np.arctan2(m[:, 0], m[:, 1])
     h0 = np.angle(np.mean(np.exp(1j * h[ok])))
-    dh = np.angle(np.exp(1j * (h - h0)))[:, None]
+    dh = wrap_angle(h - h0)[:, None]
     n = max(1, int(round(T * tr["fs"])))
     ok = ok & np.all(np.isfinite(tr["acc"]), axis=1) & np.all(np.isfinite(tr["mag"]), axis=1)
     return _window_means(tilt, ok, n), _window_means(dh, ok, n)
