@@ -1,4 +1,13 @@
-"""numba's on-disk cache, kept true to the sources.
+"""How the kernels are compiled: one decorator, and numba's on-disk cache kept true to the sources.
+
+:data:`compiled` is the one decorator of every numba kernel (``app.quaternion`` and the
+estimators): cached on disk, and with numpy's error model. Under numba's default (Python's)
+error model every float division checks its divisor and may raise ZeroDivisionError; that
+check keeps the compiler from moving work out of the per-sample path, and cost the robust
+filter about 3 % of its batch speed (``benchmarks/throughput.py``). The kernels guard their
+divisions themselves (a strength, a time step, a variance is bounded away from zero before
+it divides), so the estimates are the same to the bit; a division the guards miss gives
+inf or NaN, as numpy does, instead of an exception.
 
 numba checks a cached function against its *own* file only. A compiled function that
 calls one from another file (``robust_run`` calls ``base.align_step``,
@@ -28,14 +37,20 @@ from functools import cache
 from hashlib import sha1, sha256
 from pathlib import Path
 
+from numba import njit
+
 ROOT = Path(__file__).resolve().parent
+
+# the decorator of every compiled kernel (see above)
+compiled = njit(cache=True, error_model="numpy")
 STAMP = "numba-sources.sha256"
 
 
 def compiled_sources(root: Path = ROOT) -> list[Path]:
-    """Every source file with numba-compiled functions (the estimators' packages too:
+    """Every source file the compiled code depends on: this one (its decorator says how
+    they compile) and every file with compiled functions (the estimators' packages too:
     ``estimators/robust/``)."""
-    return [root / "quaternion.py", *sorted((root / "estimators").rglob("*.py"))]
+    return [root / "jitcache.py", root / "quaternion.py", *sorted((root / "estimators").rglob("*.py"))]
 
 
 def sources_digest(root: Path = ROOT) -> str:

@@ -7,7 +7,7 @@ Conventions (used everywhere in orientlab):
   (x right, y top of the screen, z out of the screen);
 - after normalisation ``w >= 0`` (the manual's ``mu_normalizeQ``).
 
-Every function is plain numpy and is also compiled with numba (``njit``), so the
+Every function is plain numpy and is also compiled with numba (``app.jitcache.compiled``), so the
 estimators' hot loops can call the very same code. Formula numbers refer to the
 lab manual (Section 3.1 and Appendix A.2).
 """
@@ -15,16 +15,15 @@ lab manual (Section 3.1 and Appendix A.2).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from app.jitcache import ensure_fresh
+from app.jitcache import compiled, ensure_fresh
 
 ensure_fresh()   # before anything compiled runs: a cache older than its sources is dropped
 
 _SQRT_EPS = np.sqrt(np.finfo(np.float64).eps)
 
 
-@njit(cache=True)
+@compiled
 def normalize(q):
     """Unit quaternion with w >= 0 (manual A.2.1). A zero quaternion becomes identity."""
     n = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -43,7 +42,7 @@ def normalize(q):
     return out
 
 
-@njit(cache=True)
+@compiled
 def Q(q):
     """Rotation matrix of a unit quaternion, formula (2a): v_world = Q(q) v_sensor."""
     q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
@@ -60,7 +59,7 @@ def Q(q):
     return R
 
 
-@njit(cache=True)
+@compiled
 def dQdq(q):
     """Derivatives of Q(q) with respect to q0..q3, formulas (2f)-(2i); shape (4, 3, 3)."""
     q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
@@ -80,7 +79,7 @@ def dQdq(q):
     return 2.0 * D
 
 
-@njit(cache=True)
+@compiled
 def S_omega(w):
     """S(omega) of formula (2d): dq/dt = 1/2 S(omega) q, omega in the sensor frame."""
     wx, wy, wz = w[0], w[1], w[2]
@@ -92,7 +91,7 @@ def S_omega(w):
     return S
 
 
-@njit(cache=True)
+@compiled
 def S_bar(q):
     """S-bar(q) of formula (2e): dq/dt = 1/2 S-bar(q) omega."""
     q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
@@ -104,7 +103,7 @@ def S_bar(q):
     return S
 
 
-@njit(cache=True)
+@compiled
 def F_exact(w, T):
     """Transition matrix of the exact time update (2j): q_next = F q."""
     n = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
@@ -116,25 +115,25 @@ def F_exact(w, T):
     return np.cos(half) * np.eye(4) + (0.5 * T * sinc) * S_omega(w)
 
 
-@njit(cache=True)
+@compiled
 def F_approx(w, T):
     """Transition matrix of the approximate time update (2k): I + T/2 S(omega)."""
     return np.eye(4) + (0.5 * T) * S_omega(w)
 
 
-@njit(cache=True)
+@compiled
 def time_update_exact(q, w, T):
     """Formula (2j) without noise: exp(1/2 S(omega) T) q (not renormalised)."""
     return F_exact(w, T) @ q
 
 
-@njit(cache=True)
+@compiled
 def time_update_approx(q, w, T):
     """Formula (2k) without noise: (I + 1/2 S(omega) T) q (not renormalised)."""
     return F_approx(w, T) @ q
 
 
-@njit(cache=True)
+@compiled
 def quat_mul(p, q):
     """Hamilton product p * q (scalar first)."""
     out = np.empty(4)
@@ -145,7 +144,7 @@ def quat_mul(p, q):
     return out
 
 
-@njit(cache=True)
+@compiled
 def quat_conj(q):
     """Conjugate (the inverse of a unit quaternion)."""
     out = np.empty(4)
@@ -156,7 +155,7 @@ def quat_conj(q):
     return out
 
 
-@njit(cache=True)
+@compiled
 def quat_from_rotvec(v):
     """Unit quaternion of the rotation vector v (axis * angle, rad)."""
     a = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
@@ -172,7 +171,7 @@ def quat_from_rotvec(v):
     return out
 
 
-@njit(cache=True)
+@compiled
 def rotvec_from_quat(q):
     """Rotation vector (axis * angle, rad, angle in [0, pi]) of a unit quaternion."""
     qq = normalize(q)
@@ -186,7 +185,7 @@ def rotvec_from_quat(q):
     return out
 
 
-@njit(cache=True)
+@compiled
 def quat_from_matrix(R):
     """Unit quaternion of a rotation matrix: formula (2b), in its numerically stable
     form (the largest of the four diagonal combinations is used as the pivot)."""
@@ -219,7 +218,7 @@ def quat_from_matrix(R):
     return normalize(q)
 
 
-@njit(cache=True)
+@compiled
 def angle_between(q0, q):
     """Formula (2c): the angle (rad) q must be turned by to obtain q0."""
     d = abs(q0[0] * q[0] + q0[1] * q[1] + q0[2] * q[2] + q0[3] * q[3])
@@ -234,13 +233,13 @@ def angle_between_many(q0: np.ndarray, q: np.ndarray) -> np.ndarray:
     return 2.0 * np.arccos(np.minimum(d, 1.0))
 
 
-@njit(cache=True)
+@compiled
 def wrap_angle(a):
     """a wrapped to [-π, π)."""
     return np.mod(a + np.pi, 2.0 * np.pi) - np.pi
 
 
-@njit(cache=True)
+@compiled
 def q2euler(q):
     """Euler angles exactly as the manual's appendix A.2.2 ``q2euler``.
 
@@ -270,7 +269,7 @@ def q2euler(q):
     return e
 
 
-@njit(cache=True)
+@compiled
 def _q2euler_rows(qs):
     out = np.empty((qs.shape[0], 3))
     for k in range(qs.shape[0]):
@@ -360,7 +359,7 @@ def error_angles(q_est: np.ndarray, q_ref: np.ndarray):
     return total, heading, incl
 
 
-@njit(cache=True)
+@compiled
 def skew(v):
     """[v]×: the matrix with [v]× w = v × w."""
     S = np.zeros((3, 3))
@@ -373,7 +372,7 @@ def skew(v):
     return S
 
 
-@njit(cache=True)
+@compiled
 def compass_matrix(up, ref, R_fallback):
     """The accelerometer/magnetometer rotation matrix (TRIAD, Android's getRotationMatrix):
     rows east, north, up in sensor coordinates, i.e. Q(q) of the sensor-to-world
@@ -402,7 +401,7 @@ def compass_matrix(up, ref, R_fallback):
 _TOP = np.array([0.0, 1.0, 0.0])  # the phone's top: north when there is no field
 
 
-@njit(cache=True)
+@compiled
 def q_from_acc_mag(acc, mag, use_mag):
     """Initial alignment: the orientation whose 'up' is the accelerometer's direction
     and, when ``use_mag``, whose north is the horizontal part of the magnetic field
@@ -431,7 +430,7 @@ def attitude_cov_from_quat_cov(q: np.ndarray, Pq: np.ndarray) -> np.ndarray:
     return T @ Pq @ T.T
 
 
-@njit(cache=True)
+@compiled
 def rotate(q, v):
     """Q(q) v (sensor to world) without forming Q: a few dozen flops, no BLAS call."""
     w, x, y, z = q[0], q[1], q[2], q[3]
@@ -446,7 +445,7 @@ def rotate(q, v):
     return out
 
 
-@njit(cache=True)
+@compiled
 def rotate_inv(q, v):
     """Q(q)ᵀ v (world to sensor)."""
     qc = np.empty(4)
@@ -457,6 +456,6 @@ def rotate_inv(q, v):
     return rotate(qc, v)
 
 
-@njit(cache=True)
+@compiled
 def norm3(v):
     return np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])

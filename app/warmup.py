@@ -1,6 +1,6 @@
 """Compile the numba filters before they are needed, and say so while it happens.
 
-The estimators' inner loops are ``@njit(cache=True)`` functions: the first run after an
+The estimators' inner loops are numba kernels (``app.jitcache.compiled``): the first run after an
 install or a change of their source compiles them (about a minute on 2 cores), later runs load
 numba's on-disk cache (``__pycache__`` beside the sources, ``$NUMBA_CACHE_DIR``, or numba's
 user cache directory when the sources are read-only) in about a second.

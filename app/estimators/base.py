@@ -24,8 +24,8 @@ from enum import IntEnum
 from typing import Any, ClassVar
 
 import numpy as np
-from numba import njit
 
+from app.jitcache import compiled
 from app.params import replace_params, to_dict
 
 
@@ -129,7 +129,7 @@ NFLAGS = len(FLAG_COLUMNS)
 F_GYR, F_ACC, F_ACC_VAL, F_ACC_NIS, F_MAG, F_MAG_VAL, F_MAG_NIS, F_REST, F_TIME = range(NFLAGS)
 
 
-@njit(cache=True)
+@compiled
 def new_flags():
     f = np.full(NFLAGS, np.nan)
     f[F_GYR] = R_ABSENT
@@ -140,7 +140,7 @@ def new_flags():
     return f
 
 
-@njit(cache=True)
+@compiled
 def vector_state(v, enabled):
     """Reason for a sensor sample before any gate: ABSENT (all NaN), DISABLED,
     INVALID (some NaN, inf, or all zero) or USED (fit to try)."""
@@ -162,7 +162,7 @@ def vector_state(v, enabled):
     return R_USED
 
 
-@njit(cache=True)
+@compiled
 def time_step(t_prev, t, max_gap):
     """(dt, TimeIssue) of a row at ``t`` after one at ``t_prev`` (NaN: first row)."""
     if np.isnan(t_prev):
@@ -177,7 +177,7 @@ def time_step(t_prev, t, max_gap):
     return dt, T_OK
 
 
-@njit(cache=True)
+@compiled
 def row_mask(gyr, acc, mag):
     """Bit mask of the sensors present in a row (1 gyr, 2 acc, 4 mag)."""
     m = 0
@@ -190,7 +190,7 @@ def row_mask(gyr, acc, mag):
     return m
 
 
-@njit(cache=True)
+@compiled
 def repeated_time(issue, seen, mask):
     """A row at the same time as the previous one is REPEATED only if it brings a
     sensor already seen at that time (a phone stamps ACC and GYR with the same ms,
@@ -202,7 +202,7 @@ def repeated_time(issue, seen, mask):
     return T_OK, seen | mask
 
 
-@njit(cache=True)
+@compiled
 def row_prologue(t_prev, t, max_gap, seen, gyr, acc, mag, use_gyr, use_acc, use_mag):
     """Everything a row needs before any estimator's own work, in one compiled call:
     ``(dt, time issue, sensors seen at this time, gyr/acc/mag state)``."""
@@ -220,7 +220,7 @@ B_T, B_SEEN, B_W_T, B_W = 0, 1, 2, 3
 B_N = 6
 
 
-@njit(cache=True)
+@compiled
 def begin_row(b, t, gyr, acc, mag, use_gyr, use_acc, use_mag, max_gap, gyr_hold, f):
     """The part of a row every estimator shares, in one compiled call (the one place it
     is decided): the flag record ``f`` reset and filled with the time issue and each
@@ -604,7 +604,7 @@ def _rows(x, n: int, width: int = 3) -> np.ndarray:
     return a
 
 
-@njit(cache=True)
+@compiled
 def align_step(s, i_wait_t, i_wait_acc, t, gs, as_, ms, acc, use_acc, use_mag, f):
     """The initial alignment's decision, made here once for every estimator that aligns
     from its first samples (the manual's filter and ``robust``): which samples align it,
@@ -652,7 +652,7 @@ def align_step(s, i_wait_t, i_wait_acc, t, gs, as_, ms, acc, use_acc, use_mag, f
 # instance's flag records are tallied, each in one compiled call (the live path's per-chunk
 # bookkeeping; :mod:`app.live.ensemble`).
 
-@njit(cache=True)
+@compiled
 def split_rows(kind, values, G, A, M, O):
     """Rows of a chunk: row ``k`` of kind 0/1/2/3 (gyr/acc/mag/ori) gets ``values[k]`` in
     ``G``/``A``/``M`` (3 values) or ``O`` (4), NaN in the others."""
@@ -674,7 +674,7 @@ def split_rows(kind, values, G, A, M, O):
             O[k, :] = values[k, :]
 
 
-@njit(cache=True)
+@compiled
 def tally_rows(kind, t, f, q, counts, last, last_rej, is_rej):
     """One instance's bookkeeping over a chunk's rows: ``counts[sensor, reason] += 1``
     for each sensor row (kind 0/1/2) by the reason in its sensor's flag column; ``last``

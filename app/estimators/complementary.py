@@ -76,9 +76,9 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from numba import njit
 
 from app import quaternion as qm
+from app.jitcache import compiled
 from app.quaternion import wrap_angle
 from app.params import CommonParams, ParamError, param
 from app.estimators.base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
@@ -116,7 +116,7 @@ class ComplementaryParams(CommonParams):
 
 # ------------------------------------------------------------------ the paper's math
 
-@njit(cache=True)
+@compiled
 def _unit_row(r):
     """Row scaled to unit length: the paper's Taylor step (eq. 16-18) when it is close to
     unit length, an exact division otherwise."""
@@ -126,7 +126,7 @@ def _unit_row(r):
     return r / np.sqrt(n2)
 
 
-@njit(cache=True)
+@compiled
 def orthonormalize(R):
     """Section III-B: re-orthonormalise the rows of R (eqs. 12-18)."""
     r1 = R[0].copy()
@@ -142,7 +142,7 @@ def orthonormalize(R):
     return out
 
 
-@njit(cache=True)
+@compiled
 def gyro_step(R, w, dt, exact):
     """Eqs. 6-8 in our convention: R (I + [ω]× dt), or R exp([ω]× dt); then III-B."""
     if exact:
@@ -158,7 +158,7 @@ def gyro_step(R, w, dt, exact):
     return orthonormalize(R @ inc)
 
 
-@njit(cache=True)
+@compiled
 def euler_from_matrix(R):
     """Eqs. 19-21 with the gimbal-lock case (22-23): ``[yaw, pitch, roll]`` in rad."""
     cp = np.sqrt(R[2, 0] * R[2, 0] + R[2, 2] * R[2, 2])
@@ -179,7 +179,7 @@ def euler_from_matrix(R):
     return out
 
 
-@njit(cache=True)
+@compiled
 def matrix_from_euler(e):
     """Eq. 5: R = Rz Rx Ry of ``[yaw, pitch, roll]``."""
     cy, sy = np.cos(e[0]), np.sin(e[0])
@@ -198,7 +198,7 @@ def matrix_from_euler(e):
     return R
 
 
-@njit(cache=True)
+@compiled
 def blend_angles(theta_g, theta_am, alpha):
     """Eq. 24 per angle, θ = θ_am + α (θ_gyro - θ_am), across the ±π wrap (see the module
     doc: the yaw/roll representatives that are shortest as a rotation)."""
@@ -222,7 +222,7 @@ def blend_angles(theta_g, theta_am, alpha):
     return out
 
 
-@njit(cache=True)
+@compiled
 def dnrf_row(R, w, dt, has_w, exact, up, has_up, ref, has_ref, tau):
     """One row of the DNRF after the alignment. ``R`` is the fused matrix of the last row;
     ``w`` the rate over ``dt`` (``has_w``); ``up``/``ref`` the filtered accelerometer and
@@ -261,7 +261,7 @@ C_NSTATE = 19
 CP_N = 8
 
 
-@njit(cache=True)
+@compiled
 def _ma_push(buf, s, n_slot, i_slot, v):
     k = buf.shape[0]
     i = int(s[i_slot])
@@ -270,7 +270,7 @@ def _ma_push(buf, s, n_slot, i_slot, v):
     s[n_slot] = min(s[n_slot] + 1.0, k)
 
 
-@njit(cache=True)
+@compiled
 def _ma_mean(buf, n):
     """MovingAverage.mean: the last sample for a window of 1, else the mean of the n held."""
     if buf.shape[0] == 1:
@@ -281,12 +281,12 @@ def _ma_mean(buf, n):
     return out / n
 
 
-@njit(cache=True)
+@compiled
 def _fresh(t_sample, t, enabled, hold):
     return enabled and t - t_sample <= hold
 
 
-@njit(cache=True)
+@compiled
 def _dnrf_align(s, R, p, abuf, mbuf, t, as_, ms, f):
     has_acc = _fresh(s[C_ACC_T], t, p[CP_USE_ACC] > 0.5, p[CP_AM_HOLD])
     has_mag = _fresh(s[C_MAG_T], t, p[CP_USE_MAG] > 0.5, p[CP_AM_HOLD])
@@ -313,7 +313,7 @@ def _dnrf_align(s, R, p, abuf, mbuf, t, as_, ms, f):
         f[F_GYR] = R_INIT
 
 
-@njit(cache=True)
+@compiled
 def _dnrf_row(s, R, p, abuf, mbuf, t, gyr, acc, mag, f):
     """One row of the DNRF (see the module doc): the valid accelerometer/magnetometer
     samples into the pre-filters, then the alignment or the gyroscope step and the blend.
@@ -365,7 +365,7 @@ def _dnrf_row(s, R, p, abuf, mbuf, t, gyr, acc, mag, f):
         s[C_THETA:C_THETA + 3] = theta_am
 
 
-@njit(cache=True)
+@compiled
 def dnrf_run(s, R, p, abuf, mbuf, T, G, A, M, Qout, Fout):
     """Batch: ``_dnrf_row`` for every row; the estimate and flags after each."""
     for k in range(T.shape[0]):

@@ -14,16 +14,17 @@ would cost more in overhead than the arithmetic itself.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from app.jitcache import compiled
 
 
-@njit(cache=True)
+@compiled
 def work_size(n: int, m: int) -> int:
     """Floats of the scratch :func:`correct` needs for n states and m measurements."""
     return 2 * n * m + 3 * m * m + n + m
 
 
-@njit(cache=True)
+@compiled
 def correct(P, H, R, innov, nis_gate, mask=None, work=None):
     """Generic EKF measurement update with an innovation gate; updates ``P`` in place.
 
@@ -118,7 +119,7 @@ def correct(P, H, R, innov, nis_gate, mask=None, work=None):
     return True, nis, dx
 
 
-@njit(cache=True)
+@compiled
 def _inv_small(w, o_s, o_out, o_a, m):
     """Inverse of the small symmetric positive definite m x m matrix at ``w[o_s:]`` into
     ``w[o_out:]`` (row-major; closed form up to 2x2, Gauss-Jordan with partial pivoting

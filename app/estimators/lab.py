@@ -27,9 +27,9 @@ from typing import ClassVar
 import math
 
 import numpy as np
-from numba import njit
 
 from app import quaternion as qm
+from app.jitcache import compiled
 from app.params import CommonParams, DEG, ParamError, param
 from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
                    F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
@@ -107,7 +107,7 @@ def _cov(full, sigma) -> np.ndarray:
     return np.array(full, dtype=float).reshape(3, 3) if full is not None else sigma ** 2 * np.eye(3)
 
 
-@njit(cache=True)
+@compiled
 def _jacobian(q, v0):
     """d/dq of Q(q)ᵀ v0: column i is dQ/dq_i ᵀ v0 (the manual's mu_g / mu_m)."""
     D = qm.dQdq(q)
@@ -117,7 +117,7 @@ def _jacobian(q, v0):
     return H
 
 
-@njit(cache=True)
+@compiled
 def tu_qw(x, P, omega, T, Rw, exact):
     """The manual's time update (Section 4.1): x <- F x, P <- F P Fᵀ + G Rw Gᵀ with
     F from (2j) or (2k) and G = T/2 S̄(x); x normalised (4.4)."""
@@ -126,7 +126,7 @@ def tu_qw(x, P, omega, T, Rw, exact):
     return qm.normalize(F @ x), F @ P @ F.T + G @ Rw @ G.T
 
 
-@njit(cache=True)
+@compiled
 def mu_h(x, P, y, v0, R, nis_gate):
     """The manual's measurement updates mu_g (v0 = g0) and mu_m (v0 = m0):
     h(x) = Q(x)ᵀ v0 through the shared ``correct`` (P in place), then normalised.
@@ -155,7 +155,7 @@ L_NSTATE = 22
 LP_G0, LP_BIAS, LP_N = 17, 20, 23      # g0 (3), gyr_bias (3)
 
 
-@njit(cache=True)
+@compiled
 def _lab_align(s, x, P, p, acc, mag, use_mag):
     if use_mag:
         q = qm.q_from_acc_mag(acc, mag, True)
@@ -170,7 +170,7 @@ def _lab_align(s, x, P, p, acc, mag, use_mag):
     s[L_T_ALIGN] = s[L_T]
 
 
-@njit(cache=True)
+@compiled
 def _lab_row(s, x, P, p, Rw, Ra, Rm, t, gyr, acc, mag, f):
     """One row: the time update (4.1), the accelerometer (4.2) and magnetometer (4.3)
     updates with their gates, after the initial alignment; ``s`` the state slots above,
@@ -250,7 +250,7 @@ def _lab_row(s, x, P, p, Rw, Ra, Rm, t, gyr, acc, mag, f):
             f[F_MAG] = R_USED if ok else R_NIS
 
 
-@njit(cache=True)
+@compiled
 def lab_run(s, x, P, p, Rw, Ra, Rm, T, G, A, M, Qout, Fout):
     """Batch: ``_lab_row`` for every row; the estimate and flags after each."""
     for k in range(T.shape[0]):

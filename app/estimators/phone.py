@@ -12,9 +12,9 @@ and its estimate is the identity.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app import quaternion as qm
+from app.jitcache import compiled
 from app.params import CommonParams
 from app.estimators.base import (B_N, B_SEEN, F_ACC, F_GYR, F_MAG, R_DISABLED, R_USED,
                    Diagnostics, Estimator, begin_row)
@@ -43,7 +43,7 @@ def ori_quaternion(ori) -> np.ndarray | None:
     return qm.normalize(v)
 
 
-@njit(cache=True)
+@compiled
 def _ori_valid(v):
     """The 4-value case of :func:`ori_quaternion`: finite and not all zero."""
     nz = False
@@ -55,7 +55,7 @@ def _ori_valid(v):
     return nz
 
 
-@njit(cache=True)
+@compiled
 def phone_run(s, q, use, max_gap, gyr_hold, T, G, A, M, O, Qout, Fout):
     """Batch: every row's bookkeeping (``begin_row``; a present sensor sample is "switched
     off" for this estimator), and each valid ORI sample normalised and held. ``s``: the

@@ -10,6 +10,7 @@ from app.jitcache import STAMP, cache_files, compiled_sources, refresh
 def _tree(tmp_path):
     (tmp_path / "estimators" / "__pycache__").mkdir(parents=True)
     (tmp_path / "__pycache__").mkdir()
+    (tmp_path / "jitcache.py").write_text("compiled = 1\n")
     (tmp_path / "quaternion.py").write_text("def q(): pass\n")
     (tmp_path / "estimators" / "base.py").write_text("def align(): pass\n")
     (tmp_path / "estimators" / "robust.py").write_text("def run(): pass\n")
@@ -26,7 +27,7 @@ def _cache(root):
 
 def test_a_changed_source_drops_every_compiled_cache_entry_and_nothing_else(tmp_path):
     root = _tree(tmp_path)
-    assert [p.name for p in compiled_sources(root)] == ["quaternion.py", "base.py", "robust.py"]
+    assert [p.name for p in compiled_sources(root)] == ["jitcache.py", "quaternion.py", "base.py", "robust.py"]
     assert not refresh(root)                   # a fresh install: no cache, nothing dropped
     assert (root / "estimators" / "__pycache__" / STAMP).is_file()
     (root / "estimators" / "__pycache__" / STAMP).unlink()
@@ -42,3 +43,7 @@ def test_a_changed_source_drops_every_compiled_cache_entry_and_nothing_else(tmp_
     assert cache_files(root) == []
     assert (root / "estimators" / "__pycache__" / "robust.cpython-311.pyc").is_file()
     assert not refresh(root)
+    _cache(root)
+    (root / "jitcache.py").write_text("compiled = 2\n")
+    assert refresh(root)                       # how they compile changed: every entry goes
+    assert cache_files(root) == []

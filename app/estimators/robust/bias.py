@@ -23,12 +23,12 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app.estimators.base import F_GYR, F_REST, R_REST
 from app.estimators.kalman import correct
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import DT_MAX, KF_WORK, S, inject, lp_coef
+from app.jitcache import compiled
 
 # The bias learned in motion follows the correction rates over a minute: it is updated
 # with the corrections summed over this long (s), not after every correction.
@@ -40,7 +40,7 @@ _MASK_BIAS = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0])
 H_BIAS = np.hstack((np.zeros((3, 3)), np.eye(3)))  # at rest the low-passed gyroscope measures b
 
 
-@njit(cache=True)
+@compiled
 def _lp_sensor(s, idx, idx_t, v, t, tau):
     """Low-pass ``s[idx:idx+3]`` towards v with the time since that sensor's last
     sample (a phone sends one sensor per row); returns |v - low-pass|² (squared: the
@@ -58,7 +58,7 @@ def _lp_sensor(s, idx, idx_t, v, t, tau):
     return d2
 
 
-@njit(cache=True)
+@compiled
 def rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
     """Rest detection on the deviation of gyroscope and accelerometer from their
     low-passes; at rest the low-passed gyroscope measures the bias directly."""
@@ -99,7 +99,7 @@ def rest_update(s, P, p, t, gyr, acc, dt, has_gyr, has_acc, f):
         f[F_GYR] = R_REST
 
 
-@njit(cache=True)
+@compiled
 def motion_bias_update(s, P, p, dx0, dx1, dt):
     """Gyroscope bias during motion from the rate of the tilt corrections (VQF's motion bias
     estimation, through the one ``correct``). A bias error δb turns the estimate at -R δb in
@@ -153,7 +153,7 @@ def motion_bias_update(s, P, p, dx0, dx1, dt):
             s[S.bias + i] += db[3 + i]
 
 
-@njit(cache=True)
+@compiled
 def heading_drift_update(s, P, p, y, var, dt):
     """The bias about the vertical from the heading drift fit (:func:`.heading._drift_fit`): ``y``
     (rad/s) is the slope of the field's heading less the raw gyroscope's over

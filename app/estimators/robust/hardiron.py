@@ -52,10 +52,10 @@ goes back to ``tracking`` when the fit fails the tests above by more than a fact
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import DT_MAX, INITIAL, S, lp_coef
+from app.jitcache import compiled
 
 # How often the fit is solved (s): the offset changes over seconds
 HI_SOLVE_S = 0.1
@@ -72,7 +72,7 @@ HI_NONE, HI_TRACKING, HI_APPLIED = 0.0, 1.0, 2.0
 HI_STATUS = ("none", "tracking", "applied")
 
 
-@njit(cache=True)
+@compiled
 def _reset_fit(s):
     s[S.hi_A:S.hi_A + 16] = 0.0
     s[S.hi_b:S.hi_b + 4] = 0.0
@@ -80,7 +80,7 @@ def _reset_fit(s):
     s[S.hi_W] = 0.0
 
 
-@njit(cache=True)
+@compiled
 def hard_iron_reset(s):
     """Start over (alignment): no fit, nothing applied; every hard iron slot (``hi_A`` to
     ``hi_solve_t``, one block of the state) back to its initial value."""
@@ -88,7 +88,7 @@ def hard_iron_reset(s):
         s[i] = INITIAL[i]
 
 
-@njit(cache=True)
+@compiled
 def _solve(s, p):
     """Solve the normal equations (Gauss-Jordan on 4x4, no pivoting needed: A is
     positive definite once the sphere is seen); the offset, radius, residual and σ into
@@ -148,7 +148,7 @@ def _solve(s, p):
     return True
 
 
-@njit(cache=True)
+@compiled
 def strength_deviations(s, p, mag, dt):
     """How far the raw field's strength and the offset-corrected one are from the learned
     reference: their squared deviations low-passed over ``mag_cand_tau`` (``hi_dev_raw``,
@@ -168,7 +168,7 @@ def strength_deviations(s, p, mag, dt):
     return n_cor
 
 
-@njit(cache=True)
+@compiled
 def hard_iron(s, p, mag, dt, rate, n_cor, out):
     """Feed one magnetometer sample (sensor frame, µT) to the fit, judge the offset, and
     write the field to use into ``out`` (the sample, minus the offset when applied).
@@ -267,6 +267,6 @@ def hard_iron(s, p, mag, dt, rate, n_cor, out):
     return status
 
 
-@njit(cache=True)
+@compiled
 def norm3s(x, y, z):
     return np.sqrt(x * x + y * y + z * z)

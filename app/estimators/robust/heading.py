@@ -41,7 +41,6 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD, R_NIS, R_NORM,
                                 R_OFFSET, R_RECOVER, R_TURN, R_USED)
@@ -51,6 +50,7 @@ from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, har
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import (DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
                                          update_is_due)
+from app.jitcache import compiled
 from app.quaternion import wrap_angle
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
@@ -77,7 +77,7 @@ PROBATION_TURN = 0.5 * np.pi
 PROBATION_GATE = 3.0
 
 
-@njit(cache=True)
+@compiled
 def heading_jacobian(m_world):
     """d heading_innovation / dx (1x6): (-mx mz, -my mz, mx² + my²) / (mx² + my²).
     The tilt columns are not zero (a tilt error changes the apparent heading of a
@@ -91,7 +91,7 @@ def heading_jacobian(m_world):
     return H
 
 
-@njit(cache=True)
+@compiled
 def heading_innovation(m_world):
     """Angle (rad) of the horizontal field east of north: zero when the heading is right."""
     out = np.empty(1)
@@ -99,7 +99,7 @@ def heading_innovation(m_world):
     return out
 
 
-@njit(cache=True)
+@compiled
 def _field_check(s, p, n, dip, dt, rate, turn, f):
     """Judge the field (strength ``n``, dip) against the learned reference, as VQF does:
     a disturbance is a strength or dip off the reference; it ends after the field has been
@@ -203,7 +203,7 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
     return True
 
 
-@njit(cache=True)
+@compiled
 def _turn_check(s, p, mw, dt, rate, has_rate):
     """The field turn test: a real field is fixed in the world; seen through the estimate
     (whose turn is the gyroscope's) it stays put while the phone turns. Its change rate is
@@ -247,7 +247,7 @@ def _turn_check(s, p, mw, dt, rate, has_rate):
     return np.sqrt(dd / l2) / tau - p[PRM.mag_turn_rel] * s[S.mt_rate]
 
 
-@njit(cache=True)
+@compiled
 def _field_heading_lp(s, z, elapsed):
     """``z``, the innovation plus the corrections applied so far, is the field's heading less
     the gyroscope's alone: the filter's own corrections do not move it, the gyroscope drifts it
@@ -265,7 +265,7 @@ def _field_heading_lp(s, z, elapsed):
     return False
 
 
-@njit(cache=True)
+@compiled
 def _heading_evidence(s, p, elapsed):
     """The field's heading noise now, from the data (a noise density, rad²·s): the variance
     ``v`` of the low-passed field heading (:func:`_field_heading_lp`) about its mean over
@@ -278,14 +278,14 @@ def _heading_evidence(s, p, elapsed):
     return evidence_density(s[S.hv_var])
 
 
-@njit(cache=True)
+@compiled
 def evidence_density(v):
     """The heading noise density (rad²·s) a wander of variance ``v`` (rad²), correlated over
     ``HV_SMOOTH``, stands for: ``2 v HV_SMOOTH`` (the filter's term and the diagnostics')."""
     return 2.0 * v * HV_SMOOTH
 
 
-@njit(cache=True)
+@compiled
 def _deviation_lp(s, elapsed):
     """The field's deviation from its reference now (strength, and |m|·dip, relative to the
     horizontal field), signed and low-passed over ``HV_SMOOTH`` as the field's heading is for
@@ -308,7 +308,7 @@ def _deviation_lp(s, elapsed):
     s[S.dev_d] += k * (dd - s[S.dev_d])
 
 
-@njit(cache=True)
+@compiled
 def deviation_density(s, p):
     """The heading noise density (rad²·s) of a field off its reference, within the gates
     too. A deviation Δ (strength change, or |m|·Δdip) shows a disturbance δ of any
@@ -326,7 +326,7 @@ def deviation_density(s, p):
 DRIFT_T_SHIFT = 600.0
 
 
-@njit(cache=True)
+@compiled
 def _drift_fit(s, p, t, z_field, elapsed):
     """The gyroscope's drift about the vertical, from the data. The field's heading less the
     gyroscope's (``z_field``, :func:`_field_heading_lp`) plus the bias removed about the
@@ -394,7 +394,7 @@ def _drift_fit(s, p, t, z_field, elapsed):
     s[S.dr_n] += 1.0
 
 
-@njit(cache=True)
+@compiled
 def _far(s, elapsed):
     """The heading disagrees with an undisturbed field: count the time; at its start,
     keep the bias estimate (what follows may be learned from a wrong heading)."""
@@ -403,13 +403,13 @@ def _far(s, elapsed):
     s[S.far_time] += elapsed
 
 
-@njit(cache=True)
+@compiled
 def _is_far(p, innov):
     """The field's heading is farther from the estimate than ``mag_lost_angle``."""
     return p[PRM.mag_lost_angle] > 0.0 and abs(innov) > p[PRM.mag_lost_angle]
 
 
-@njit(cache=True)
+@compiled
 def _not_used(s, p, f, nis, ok, innov, elapsed):
     """A field the checks passed that the heading update does not use (its innovation
     failed a test): flag NIS with its value; a field judged undisturbed (``ok``) that is
@@ -422,7 +422,7 @@ def _not_used(s, p, f, nis, ok, innov, elapsed):
         _far(s, elapsed)
 
 
-@njit(cache=True)
+@compiled
 def mag_update(s, P, p, t, mag, rate, has_rate, f):
     """A magnetometer sample: the turn test and the field check; a field judged usable is
     averaged in the world frame and corrects the heading at most at ``update_rate_hz``

@@ -30,7 +30,6 @@ sensor: the bias is reset (flag BIAS_RESET).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app import quaternion as qm
 from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, F_ACC, F_GYR, F_MAG, F_REST, F_TIME,
@@ -42,9 +41,10 @@ from app.estimators.robust.heading import mag_update
 from app.estimators.robust.params import GRAVITY, PRM
 from app.estimators.robust.state import DT_MAX, S, lp_coef
 from app.estimators.robust.tilt import acc_update
+from app.jitcache import compiled
 
 
-@njit(cache=True)
+@compiled
 def _align(s, P, p, t, acc, mag, use_mag):
     s[S.q:S.q + 4] = qm.q_from_acc_mag(acc, mag, use_mag)
     for i in range(3):
@@ -86,7 +86,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.dr_ok] = 0.0
 
 
-@njit(cache=True)
+@compiled
 def _integrate(s, vx, vy, vz):
     """q <- q ⊗ exp(v) for the body-frame rotation vector v (exact, formula 2j), w >= 0."""
     a = np.sqrt(vx * vx + vy * vy + vz * vz)
@@ -104,7 +104,7 @@ def _integrate(s, vx, vy, vz):
     s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z] = r0 / n, r1 / n, r2 / n, r3 / n
 
 
-@njit(cache=True)
+@compiled
 def _predict(s, P, p, w, dt):
     """Time update over dt with the rate w (NaN: random walk without gyroscope)."""
     if np.isnan(w[0]):
@@ -188,7 +188,7 @@ def _predict(s, P, p, w, dt):
         P[1, 0] = P[0, 1]
 
 
-@njit(cache=True)
+@compiled
 def robust_step(s, P, p, t, gyr, acc, mag, f):
     """Process one row: time update, rest detection, tilt update, heading update."""
     dt, issue, seen, gs, as_, ms = row_prologue(s[S.t], t, p[PRM.max_gap], int(s[S.seen]), gyr, acc,
@@ -247,7 +247,7 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
             f[F_GYR] = R_BIAS_RESET
 
 
-@njit(cache=True)
+@compiled
 def _try_align(s, P, p, t, acc, mag, gs, as_, ms, f):
     """The initial alignment when :func:`~.base.align_step` says so."""
     act = align_step(s, S.wait_t, S.wait_acc, t, gs, as_, ms, acc, p[PRM.use_acc] > 0.5,
@@ -262,7 +262,7 @@ def _try_align(s, P, p, t, acc, mag, gs, as_, ms, f):
         P[1, 1] = P[0, 0]
 
 
-@njit(cache=True)
+@compiled
 def robust_run(s, P, p, T, G, A, M, Qout, Fout):
     """Batch: ``robust_step`` for every row; the estimate and flags after each."""
     for k in range(T.shape[0]):

@@ -11,10 +11,10 @@ beside ``s``: :func:`inject` applies a correction of it to the nominal state.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app.estimators.kalman import work_size
 from app.estimators.robust.params import PRM, layout
+from app.jitcache import compiled
 
 # the scratch of a measurement update of the 6 error states by at most 3 measurements (the
 # plain Python function: nothing is compiled at import; with NUMBA_DISABLE_JIT=1 it is the
@@ -152,7 +152,7 @@ INITIAL = new_state()
 DT_MAX = 0.1
 
 
-@njit(cache=True)
+@compiled
 def rotate3(s, v):
     """Q(q) v for the state's attitude, as three floats (no array made per sample)."""
     w, x, y, z = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
@@ -163,7 +163,7 @@ def rotate3(s, v):
             v[2] + w * tz + (x * ty - y * tx))
 
 
-@njit(cache=True)
+@compiled
 def turned_forward(s, v, d):
     """A sensor-frame sample ``v`` that lags the attitude by ``d`` seconds, turned forward to
     now, as three floats (no array per sample): it was measured at t - d, when the sensor
@@ -178,7 +178,7 @@ def turned_forward(s, v, d):
             v[2] - d * (wx * v[1] - wy * v[0]))
 
 
-@njit(cache=True)
+@compiled
 def lp_coef(dt, tau):
     """First-order low-pass coefficient (the DNRF form 1 - τ/(τ+Δt))."""
     if tau <= 0.0:
@@ -186,7 +186,7 @@ def lp_coef(dt, tau):
     return dt / (tau + dt)
 
 
-@njit(cache=True)
+@compiled
 def update_is_due(s, idx, dt, p):
     """Add the sample interval dt of a used sample to the accumulator ``s[idx]``;
     when it reaches 1/update_rate_hz, reset it and return (True, accumulated s).
@@ -202,7 +202,7 @@ def update_is_due(s, idx, dt, p):
     return False, s[idx]
 
 
-@njit(cache=True)
+@compiled
 def _exp3(vx, vy, vz):
     """exp of the rotation vector (vx, vy, vz) as four scalars (qm.quat_from_rotvec)."""
     a = np.sqrt(vx * vx + vy * vy + vz * vz)
@@ -210,7 +210,7 @@ def _exp3(vx, vy, vz):
     return np.cos(0.5 * a), vx * k, vy * k, vz * k
 
 
-@njit(cache=True)
+@compiled
 def _rotate_slot(s, j, d0, d1, d2, d3):
     """The 3-vector slot ``s[j:j+3]`` rotated by the unit quaternion (d0, d1, d2, d3) in
     place (qm.rotate)."""
@@ -223,7 +223,7 @@ def _rotate_slot(s, j, d0, d1, d2, d3):
     s[j + 2] = az + d0 * tz + (d1 * ty - d2 * tx)
 
 
-@njit(cache=True)
+@compiled
 def inject(s, P, dx, lp_frac=1.0):
     """Apply an error-state correction: q <- exp(δθ) ⊗ q, b <- b + δb, and rotate
     the world-frame low-pass with the attitude so it stays in the estimate's frame

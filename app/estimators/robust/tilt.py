@@ -34,7 +34,6 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from app import quaternion as qm
 from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_NORM, R_USED
@@ -43,6 +42,7 @@ from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
 from app.estimators.robust.params import GRAVITY, PRM
 from app.estimators.robust.state import (KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
                                          update_is_due)
+from app.jitcache import compiled
 
 # The tilt update corrects the tilt only, never the heading, as the heading update never tilts:
 # through the cross-covariances a dipping field's heading updates leave between tilt and heading,
@@ -57,7 +57,7 @@ _MASK_TILT = np.array([1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
 # differences).
 
 
-@njit(cache=True)
+@compiled
 def tilt_innovation(a_world):
     """Horizontal components of the (low-passed) specific-force direction in the
     estimate's world frame: zero when the estimate's 'up' is right."""
@@ -68,7 +68,7 @@ def tilt_innovation(a_world):
     return out
 
 
-@njit(cache=True)
+@compiled
 def tilt_jacobian(a_world):
     """d tilt_innovation / dx (2x6): (I - â âᵀ)/|a| [a]× restricted to x, y; for
     a along +z it is [[0, -1, 0], [1, 0, 0]] (the tilt error, rotated)."""
@@ -88,7 +88,7 @@ def tilt_jacobian(a_world):
     return H
 
 
-@njit(cache=True)
+@compiled
 def acc_update(s, P, p, t, acc, f):
     """An accelerometer sample: into the inertial low-pass (flagged when it is far from
     gravity), then, at most at ``update_rate_hz``, the tilt correction from the low-pass."""
@@ -170,7 +170,7 @@ def acc_update(s, P, p, t, acc, f):
         f[F_ACC_VAL] = nis
 
 
-@njit(cache=True)
+@compiled
 def _tilt_lp_share(P, r, dt, p):
     """The share ρ of a tilt correction the low-pass turns with, for a tilt loop of damping
     ζ = ``tilt_damping``: ρ = 2ζ√x - x with x = τc/τ (module doc). τc is the correction's
