@@ -46,7 +46,8 @@ fit's residual exceeds twice ``hard_iron_tol`` (two fields mixed in the window):
 starts over. An applied offset is dropped at once when the raw field fits the learned
 strength better than the corrected one (the magnet was taken off: the fit restarts), and
 goes back to ``tracking`` when the fit fails the tests above by more than a factor of two
-(hysteresis). At most ``HI_FEED_HZ`` samples a second enter the fit.
+(hysteresis). At most ``HI_FEED_HZ`` samples a second enter the fit, the strength
+deviations and the change detection; the others only add their turning time.
 """
 
 from __future__ import annotations
@@ -153,46 +154,57 @@ def strength_deviations(s, p, mag, dt):
     """How far the raw field's strength and the offset-corrected one are from the learned
     reference: their squared deviations low-passed over ``mag_cand_tau`` (``hi_dev_raw``,
     ``hi_dev_cor``). The fit applies an offset when it explains the strength
-    (``hard_iron_ratio``, :func:`hard_iron`), and the reference learns only while the field
-    as used stays within ``hard_iron_tol`` of it (``heading._field_check``). Every
-    magnetometer sample, before :func:`hard_iron`, with the tracking off too. Returns the
-    corrected strength |m - o|, which :func:`hard_iron`'s change detection reads too."""
+    (``hard_iron_ratio``, :func:`_judge`), and the reference learns only while the field as
+    used stays within ``hard_iron_tol`` of it (``heading._field_check``). Every sample
+    :func:`hard_iron` feeds (``dt``: the time since the last one), with the tracking off
+    too. Returns the corrected strength |m - o|, which the change detection reads too."""
     n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
     if s[S.ref_ok] == 0.0:
         return n_cor
     ref = s[S.ref_norm]
     n_raw = norm3s(mag[0], mag[1], mag[2])
-    k = lp_coef(min(max(dt, 0.0), DT_MAX), p[PRM.mag_cand_tau])
+    k = lp_coef(dt, p[PRM.mag_cand_tau])
     s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
     s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
     return n_cor
 
 
 @compiled
-def hard_iron(s, p, mag, dt, rate, n_cor, out):
-    """Feed one magnetometer sample (sensor frame, µT) to the fit, judge the offset, and
-    write the field to use into ``out`` (the sample, minus the offset when applied).
-    ``rate`` is the bias-corrected turn rate (rad/s), ``dt`` the time since the last
-    magnetometer sample, ``n_cor`` the sample's strength less the offset found
-    (:func:`strength_deviations`). Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
-    win = p[PRM.hard_iron_window]
-    if win <= 0.0:
-        for i in range(3):
-            out[i] = mag[i]
-        return HI_NONE
+def hard_iron(s, p, mag, dt, rate, out):
+    """Take one magnetometer sample (sensor frame, µT) and write the field to use into
+    ``out`` (the sample, minus the offset when applied). ``rate`` is the bias-corrected
+    turn rate (rad/s), ``dt`` the time since the last magnetometer sample. At most
+    ``HI_FEED_HZ`` samples a second are fed (:func:`_feed`): the strength deviations, the
+    fit and its judgement; the others only count their turning time (a 285 Hz
+    magnetometer adds no geometry over 100 Hz, and the deviations are low-passed over
+    seconds). Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
     dt = min(max(dt, 0.0), DT_MAX)
-    ref = s[S.ref_norm]
     # turning time: a still phone neither teaches nor makes the fit forget
     mr = p[PRM.mag_new_min_rate]
     s[S.hi_w_acc] += dt * (min(1.0, rate / mr) if mr > 0.0 else 1.0)
-    # at most HI_FEED_HZ samples enter the fit, each weighted by the turning time since the
-    # last (a 285 Hz magnetometer adds no geometry over 100 Hz, only cost)
     s[S.hi_feed_t] += dt
-    w = 0.0
     if s[S.hi_feed_t] >= 1.0 / HI_FEED_HZ - 0.5 * dt:
-        w = s[S.hi_w_acc]
+        _feed(s, p, mag, s[S.hi_feed_t], s[S.hi_w_acc])
         s[S.hi_w_acc] = 0.0
         s[S.hi_feed_t] = 0.0
+    for i in range(3):
+        out[i] = mag[i] - s[S.hi_applied + i]
+    return s[S.hi_status]
+
+
+@compiled
+def _feed(s, p, mag, elapsed, w):
+    """A sample fed to the fit, ``elapsed`` after the last one fed, with ``w`` the turning
+    time since (the sample's weight): the strength deviations (:func:`strength_deviations`),
+    the normal equations, the change detection and, every ``HI_SOLVE_S``, the solution and
+    its judgement; the status and the offset applied into the state."""
+    n_cor = strength_deviations(s, p, mag, elapsed)
+    win = p[PRM.hard_iron_window]
+    if win <= 0.0:
+        s[S.hi_status] = HI_NONE
+        s[S.hi_applied:S.hi_applied + 3] = 0.0
+        return
+    ref = s[S.ref_norm]
     if w > 0.0:
         lam = 1.0 - w / win if w < 0.1 * win else np.exp(-w / win)   # exp(-w/win), w << win
         u0, u1, u2 = mag[0] / HI_SCALE, mag[1] / HI_SCALE, mag[2] / HI_SCALE
@@ -211,7 +223,7 @@ def hard_iron(s, p, mag, dt, rate, n_cor, out):
     # moved): the window's old samples describe another field, start the fit over
     changed = False
     if np.isfinite(s[S.hi_std]) and s[S.hi_r] > 0.0:
-        k = lp_coef(dt, p[PRM.mag_min_undisturbed])
+        k = lp_coef(elapsed, p[PRM.mag_min_undisturbed])
         s[S.hi_dev_fit] += k * ((n_cor - s[S.hi_r]) ** 2 - s[S.hi_dev_fit])
         lim = 3.0 * max(s[S.hi_rms], p[PRM.hard_iron_max_std])
         changed = s[S.hi_dev_fit] > lim * lim
@@ -227,44 +239,47 @@ def hard_iron(s, p, mag, dt, rate, n_cor, out):
         s[S.hi_dev_cor] = s[S.hi_dev_raw]
         status = HI_NONE
     else:
-        s[S.hi_solve_t] += dt
+        s[S.hi_solve_t] += elapsed
         if s[S.hi_solve_t] >= HI_SOLVE_S:
             s[S.hi_solve_t] = 0.0
             if s[S.hi_W] >= 0.5 * win and _solve(s, p) and s[S.ref_ok] != 0.0:
-                on = norm3s(s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2])
-                sd, tol = s[S.hi_std], p[PRM.hard_iron_tol]
-                # hysteresis: an applied offset stays while within twice the bounds
-                f = 2.0 if status == HI_APPLIED else 1.0
-                fits = (sd <= f * p[PRM.hard_iron_max_std]
-                        and abs(s[S.hi_r] - ref) <= f * tol * ref
-                        and s[S.hi_rms] <= f * tol * ref)
-                if s[S.hi_rms] > 2.0 * tol * ref:
-                    # no sphere: the window mixes two fields (a magnet put on while the
-                    # phone turned) or the field is not homogeneous; start over
-                    _reset_fit(s)
-                    s[S.hi_o:S.hi_o + 3] = 0.0
-                    s[S.hi_std] = np.inf
-                    s[S.hi_r] = 0.0
-                    status = HI_NONE
-                elif on < 3.0 * sd:
-                    status = HI_NONE
-                elif fits and (status == HI_APPLIED
-                               or s[S.hi_dev_raw] > p[PRM.hard_iron_ratio] ** 2 * s[S.hi_dev_cor]):
-                    status = HI_APPLIED
-                else:
-                    status = HI_TRACKING
+                status = _judge(s, p, status, ref)
             elif s[S.hi_W] < 0.5 * win and status != HI_APPLIED:
                 status = HI_NONE
     s[S.hi_status] = status
     if status == HI_APPLIED:
         for i in range(3):
             s[S.hi_applied + i] = s[S.hi_o + i]
-            out[i] = mag[i] - s[S.hi_o + i]
     else:
         s[S.hi_applied:S.hi_applied + 3] = 0.0
-        for i in range(3):
-            out[i] = mag[i]
-    return status
+
+
+@compiled
+def _judge(s, p, status, ref):
+    """The status of a fit just solved (see the module's doc): start over when no sphere
+    fits, none when the offset is within 3σ of zero, applied when it fits the earth's
+    field and explains the strength (``hard_iron_ratio``), else tracking."""
+    on = norm3s(s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2])
+    sd, tol = s[S.hi_std], p[PRM.hard_iron_tol]
+    # hysteresis: an applied offset stays while within twice the bounds
+    f = 2.0 if status == HI_APPLIED else 1.0
+    fits = (sd <= f * p[PRM.hard_iron_max_std]
+            and abs(s[S.hi_r] - ref) <= f * tol * ref
+            and s[S.hi_rms] <= f * tol * ref)
+    if s[S.hi_rms] > 2.0 * tol * ref:
+        # no sphere: the window mixes two fields (a magnet put on while the
+        # phone turned) or the field is not homogeneous; start over
+        _reset_fit(s)
+        s[S.hi_o:S.hi_o + 3] = 0.0
+        s[S.hi_std] = np.inf
+        s[S.hi_r] = 0.0
+        return HI_NONE
+    if on < 3.0 * sd:
+        return HI_NONE
+    if fits and (status == HI_APPLIED
+                 or s[S.hi_dev_raw] > p[PRM.hard_iron_ratio] ** 2 * s[S.hi_dev_cor]):
+        return HI_APPLIED
+    return HI_TRACKING
 
 
 @compiled

@@ -46,7 +46,7 @@ from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD
                                 R_OFFSET, R_RECOVER, R_TURN, R_USED)
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_drift_update
-from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, hard_iron, strength_deviations
+from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import (DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
                                          update_is_due)
@@ -432,8 +432,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     s[S.mag_t] = t
     # a sensor-fixed offset (a magnet on the phone), when one is applied, is removed first
     mc = s[S.mag_c:S.mag_c + 3]
-    n_cor = strength_deviations(s, p, mag, dt)
-    hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, n_cor, mc)
+    hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, mc)
     # the turn test judges the field as measured: its allowance for what a turn does to a
     # real field (mag_turn_rel) includes the field's lag, and a delay that is not the
     # sensor's own would turn the turn's angular accelerations into field turns
