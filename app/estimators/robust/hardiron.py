@@ -170,14 +170,15 @@ def strength_deviations(s, p, mag, dt):
 
 
 @compiled
-def hard_iron(s, p, mag, dt, rate, out):
-    """Take one magnetometer sample (sensor frame, µT) and write the field to use into
-    ``out`` (the sample, minus the offset when applied). ``rate`` is the bias-corrected
+def hard_iron(s, p, mag, dt, rate):
+    """Take one magnetometer sample (sensor frame, µT); return the status (HI_NONE,
+    HI_TRACKING, HI_APPLIED) and the field to use as three floats (the sample, minus the
+    offset when applied: no array per sample). ``rate`` is the bias-corrected
     turn rate (rad/s), ``dt`` the time since the last magnetometer sample. At most
     ``HI_FEED_HZ`` samples a second are fed (:func:`_feed`): the strength deviations, the
     fit and its judgement; the others only count their turning time (a 285 Hz
     magnetometer adds no geometry over 100 Hz, and the deviations are low-passed over
-    seconds). Returns the status (HI_NONE, HI_TRACKING, HI_APPLIED)."""
+    seconds)."""
     dt = min(max(dt, 0.0), DT_MAX)
     # turning time: a still phone neither teaches nor makes the fit forget
     mr = p[PRM.mag_new_min_rate]
@@ -187,9 +188,8 @@ def hard_iron(s, p, mag, dt, rate, out):
         _feed(s, p, mag, s[S.hi_feed_t], s[S.hi_w_acc])
         s[S.hi_w_acc] = 0.0
         s[S.hi_feed_t] = 0.0
-    for i in range(3):
-        out[i] = mag[i] - s[S.hi_applied + i]
-    return s[S.hi_status]
+    return (s[S.hi_status], mag[0] - s[S.hi_applied_x], mag[1] - s[S.hi_applied_y],
+            mag[2] - s[S.hi_applied_z])
 
 
 @compiled

@@ -431,8 +431,8 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     dt = min(max(dt, 0.0), DT_MAX)
     s[S.mag_t] = t
     # a sensor-fixed offset (a magnet on the phone), when one is applied, is removed first
-    mc = s[S.mag_c:S.mag_c + 3]
-    hi = hard_iron(s, p, mag, dt, rate if has_rate else 0.0, mc)
+    hi, m0, m1, m2 = hard_iron(s, p, mag, dt, rate if has_rate else 0.0)
+    mc = (m0, m1, m2)
     # the turn test judges the field as measured: its allowance for what a turn does to a
     # real field (mag_turn_rel) includes the field's lag, and a delay that is not the
     # sensor's own would turn the turn's angular accelerations into field turns

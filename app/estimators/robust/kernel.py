@@ -132,27 +132,28 @@ def _predict(s, P, p, w, dt):
     _integrate(s, wx * dt, wy * dt, wz * dt)
     # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
     # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]
-    # (T lives in a scratch slot of the state: no array is made per sample)
-    T = s[S.pred_T:S.pred_T + 18]
+    # (T lives in a scratch slot of the state, s[T + 6 i + j], indexed there: neither an
+    # array nor a view of one is made per sample; a view costs its reference counting)
+    T = S.pred_T
     for i in range(3):
         ri0, ri1, ri2 = (r00, r01, r02) if i == 0 else ((r10, r11, r12) if i == 1 else (r20, r21, r22))
         for j in range(3):
-            T[6 * i + j] = ri0 * P[3, 3 + j] + ri1 * P[4, 3 + j] + ri2 * P[5, 3 + j]      # R Pbb
-            T[6 * i + 3 + j] = ri0 * P[3, j] + ri1 * P[4, j] + ri2 * P[5, j]              # R Pbt
+            s[T + 6 * i + j] = ri0 * P[3, 3 + j] + ri1 * P[4, 3 + j] + ri2 * P[5, 3 + j]      # R Pbb
+            s[T + 6 * i + 3 + j] = ri0 * P[3, j] + ri1 * P[4, j] + ri2 * P[5, j]              # R Pbt
     dt2 = dt * dt
     for i in range(3):
         for j in range(i, 3):
             rj0, rj1, rj2 = (r00, r01, r02) if j == 0 else ((r10, r11, r12) if j == 1 else (r20, r21, r22))
-            v = -dt * (T[6 * i + 3 + j] + T[6 * j + 3 + i])
-            v += dt2 * T[6 * i] * rj0
-            v += dt2 * T[6 * i + 1] * rj1
-            v += dt2 * T[6 * i + 2] * rj2
+            v = -dt * (s[T + 6 * i + 3 + j] + s[T + 6 * j + 3 + i])
+            v += dt2 * s[T + 6 * i] * rj0
+            v += dt2 * s[T + 6 * i + 1] * rj1
+            v += dt2 * s[T + 6 * i + 2] * rj2
             P[i, j] += v
             if j != i:
                 P[j, i] = P[i, j]
     for i in range(3):
         for j in range(3):
-            P[i, 3 + j] -= dt * T[6 * i + j]
+            P[i, 3 + j] -= dt * s[T + 6 * i + j]
             P[3 + j, i] = P[i, 3 + j]
     # gyroscope noise, plus what grows with the turn rate (scale factor, misalignment, timing)
     gv = p[PRM.gyr_noise] ** 2 * dt
@@ -205,19 +206,21 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
     f[F_ACC] = as_
     f[F_MAG] = ms
     s[S.t] = t
-    w = s[S.w_cur:S.w_cur + 3]  # the rate integrated over this row (a slot of the state)
-    w[:] = np.nan
+    w0, w1, w2 = np.nan, np.nan, np.nan
     if p[PRM.use_gyr] > 0.5:
         if gs == R_USED:
-            w[:] = gyr
-            s[S.gyr_held:S.gyr_held + 3] = gyr
+            w0, w1, w2 = gyr[0], gyr[1], gyr[2]
+            s[S.gyr_held], s[S.gyr_held + 1], s[S.gyr_held + 2] = w0, w1, w2
             s[S.gyr_held_t] = t
         elif np.isfinite(s[S.gyr_held_t]) and t - s[S.gyr_held_t] <= p[PRM.gyr_hold]:
-            w[:] = s[S.gyr_held:S.gyr_held + 3]
+            w0, w1, w2 = s[S.gyr_held], s[S.gyr_held + 1], s[S.gyr_held + 2]
     if issue == T_GAP:
         if gs == R_USED:
             f[F_GYR] = R_GAP
-        w[:] = np.nan
+        w0, w1, w2 = np.nan, np.nan, np.nan
+    # the rate integrated over this row, in the state too (turned_forward reads it there)
+    s[S.w_cur_x], s[S.w_cur_y], s[S.w_cur_z] = w0, w1, w2
+    w = (w0, w1, w2)
 
     if s[S.aligned] == 0.0:
         _try_align(s, P, p, t, acc, mag, gs, as_, ms, f)
@@ -274,4 +277,5 @@ def robust_run(s, P, p, T, G, A, M, Qout, Fout):
         f[F_REST] = 0.0
         f[F_TIME] = T_OK
         robust_step(s, P, p, T[k], G[k], A[k], M[k], f)
-        Qout[k, :] = s[S.q:S.q + 4]
+        for i in range(4):
+            Qout[k, i] = s[S.q + i]

@@ -112,7 +112,6 @@ STATE = (
     ("dr_y", 1, "heading drift: slopes (as bias, rad/s) summed since the last bias update"),
     ("dr_var", 1, "heading drift: their variances summed likewise ((rad/s)²)"),
     ("dr_n", 1, "heading drift: how many"),
-    ("mag_c", 3, "scratch: the field sample with the offset removed"),
     ("hv_corr", 1, "heading evidence: the heading corrections applied so far (rad)"),
     ("hv", ("fast", "mean", "var"), "the field's heading less the gyroscope's, low-passed over "
                                     "HV_SMOOTH (rad: the heading evidence and the return's "
