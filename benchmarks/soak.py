@@ -118,7 +118,7 @@ def main() -> int:
           f"lost {lost} (target 0)")
     print(f"  health           {sum(r[2] for r in rows)}/{len(rows)} checks ok, at the end: {health}; "
           f"slowest check {max(r[3] for r in rows) * 1e3:.0f} ms")
-    print(f"  each viewer got  " + ", ".join(f"{x:.0f}" for x in recv) + " kB/s")
+    print("  each viewer got  " + ", ".join(f"{x:.0f}" for x in recv) + " kB/s")
     return 0
 
 

@@ -20,7 +20,6 @@ from collections import Counter
 
 import httpx
 import msgspec
-import pytest
 import viser
 import websockets
 import zstandard
