@@ -27,7 +27,7 @@ import numpy as np
 from app.estimators.base import F_GYR, F_REST, R_REST
 from app.estimators.kalman import correct
 from app.estimators.robust.params import PRM
-from app.estimators.robust.state import DT_MAX, KF_WORK, S, inject, lp_coef
+from app.estimators.robust.state import DT_MAX, KF_WORK, S, attitude_matrix, inject, lp_coef
 from app.jitcache import compiled
 
 # The bias learned in motion follows the correction rates over a minute: it is updated
@@ -111,11 +111,8 @@ def motion_bias_update(s, P, p, dx0, dx1, dt):
     corrections over minutes, not seconds; a rate off the model by more than
     ``bias_motion_clip`` counts as that much (a first correction, a shake is no bias).
     Only x and y: the vertical is the heading's (the magnetometer's) to learn."""
-    q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
     R = s[S.mb_R:S.mb_R + 9]
-    r = (2.0 * (q0 * q0 + q1 * q1) - 1.0, 2.0 * (q1 * q2 - q0 * q3), 2.0 * (q1 * q3 + q0 * q2),
-         2.0 * (q1 * q2 + q0 * q3), 2.0 * (q0 * q0 + q2 * q2) - 1.0, 2.0 * (q2 * q3 - q0 * q1),
-         2.0 * (q1 * q3 - q0 * q2), 2.0 * (q2 * q3 + q0 * q1), 2.0 * (q0 * q0 + q3 * q3) - 1.0)
+    r = attitude_matrix(s)
     b0, b1, b2 = s[S.bias_x], s[S.bias_y], s[S.bias_z]
     rb0 = r[0] * b0 + r[1] * b1 + r[2] * b2
     rb1 = r[3] * b0 + r[4] * b1 + r[5] * b2

@@ -48,8 +48,8 @@ from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_drift_update
 from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, hard_iron
 from app.estimators.robust.params import PRM
-from app.estimators.robust.state import (DT_MAX, KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
-                                         update_is_due)
+from app.estimators.robust.state import (DT_MAX, KF_WORK, S, attitude_matrix, inject, lp_coef, rotate3,
+                                         turned_forward, update_is_due)
 from app.jitcache import compiled
 from app.quaternion import wrap_angle
 
@@ -340,10 +340,7 @@ def _drift_fit(s, p, t, z_field, elapsed):
     up to twice the window) are summed for the next bias update: a short span's slope is
     uncertain by its own arithmetic. Samples the heading update does not use never reach it."""
     T = p[PRM.heading_drift_window]
-    q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
-    h0 = 2.0 * (q1 * q3 - q0 * q2)             # the world's vertical in the sensor frame
-    h1 = 2.0 * (q2 * q3 + q0 * q1)
-    h2 = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    h0, h1, h2 = attitude_matrix(s)[6:]        # the world's vertical in the sensor frame
     z = z_field - s[S.dr_bint]
     if s[S.dr_ok] == 0.0:
         s[S.dr_z] = z

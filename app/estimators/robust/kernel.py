@@ -39,7 +39,7 @@ from app.estimators.robust.bias import rest_update
 from app.estimators.robust.hardiron import hard_iron_reset
 from app.estimators.robust.heading import mag_update
 from app.estimators.robust.params import GRAVITY, PRM
-from app.estimators.robust.state import DT_MAX, S, lp_coef
+from app.estimators.robust.state import DT_MAX, S, attitude_matrix, lp_coef
 from app.estimators.robust.tilt import acc_update
 from app.jitcache import compiled
 
@@ -115,17 +115,8 @@ def _predict(s, P, p, w, dt):
         for i in range(3, 6):
             P[i, i] += bv
         return
-    # R = Q(q) (formula 2a) of the attitude before this step, as nine scalars
-    q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
-    r00 = 2.0 * (q0 * q0 + q1 * q1) - 1.0
-    r01 = 2.0 * (q1 * q2 - q0 * q3)
-    r02 = 2.0 * (q1 * q3 + q0 * q2)
-    r10 = 2.0 * (q1 * q2 + q0 * q3)
-    r11 = 2.0 * (q0 * q0 + q2 * q2) - 1.0
-    r12 = 2.0 * (q2 * q3 - q0 * q1)
-    r20 = 2.0 * (q1 * q3 - q0 * q2)
-    r21 = 2.0 * (q2 * q3 + q0 * q1)
-    r22 = 2.0 * (q0 * q0 + q3 * q3) - 1.0
+    # R = Q(q) of the attitude before this step, as nine scalars
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = attitude_matrix(s)
     wx, wy, wz = w[0] - s[S.bias_x], w[1] - s[S.bias_y], w[2] - s[S.bias_z]
     # the bias removed about the vertical, integrated: the heading drift fit adds it back
     s[S.dr_bint] += (r20 * s[S.bias_x] + r21 * s[S.bias_y] + r22 * s[S.bias_z]) * dt

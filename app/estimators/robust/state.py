@@ -152,6 +152,16 @@ DT_MAX = 0.1
 
 
 @compiled
+def attitude_matrix(s):
+    """R = Q(q) (formula 2a) of the state's attitude as nine floats, row by row (no array
+    made per sample). Its last row is the world's vertical in the sensor frame."""
+    q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
+    return (2.0 * (q0 * q0 + q1 * q1) - 1.0, 2.0 * (q1 * q2 - q0 * q3), 2.0 * (q1 * q3 + q0 * q2),
+            2.0 * (q1 * q2 + q0 * q3), 2.0 * (q0 * q0 + q2 * q2) - 1.0, 2.0 * (q2 * q3 - q0 * q1),
+            2.0 * (q1 * q3 - q0 * q2), 2.0 * (q2 * q3 + q0 * q1), 2.0 * (q0 * q0 + q3 * q3) - 1.0)
+
+
+@compiled
 def rotate3(s, v):
     """Q(q) v for the state's attitude, as three floats (no array made per sample)."""
     w, x, y, z = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
