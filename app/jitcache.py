@@ -1,6 +1,6 @@
 """How the kernels are compiled: one decorator, and numba's on-disk cache kept true to the sources.
 
-:data:`compiled` is the one decorator of every numba kernel (``app.quaternion`` and the
+:func:`compiled` is the one decorator of every numba kernel (``app.quaternion`` and the
 estimators): cached on disk, and with numpy's error model. Under numba's default (Python's)
 error model every float division checks its divisor and may raise ZeroDivisionError; that
 check keeps the compiler from moving work out of the per-sample path, and cost the robust
@@ -37,13 +37,16 @@ from functools import cache
 from hashlib import sha1, sha256
 from pathlib import Path
 
-from numba import njit
-
 ROOT = Path(__file__).resolve().parent
-
-# the decorator of every compiled kernel (see above)
-compiled = njit(cache=True, error_model="numpy")
 STAMP = "numba-sources.sha256"
+
+
+def compiled(fn):
+    """The decorator of every compiled kernel (see above): ``fn`` compiled by numba, cached on
+    disk, with numpy's error model. numba is imported here, not with this module, which the
+    server reads before it loads any filter."""
+    from numba import njit
+    return njit(cache=True, error_model="numpy")(fn)
 
 
 def compiled_sources(root: Path = ROOT) -> list[Path]:
