@@ -119,7 +119,7 @@ def acc_update(s, P, p, t, acc, f):
     # (norm): the phone accelerates. It still enters the low-pass (the accelerations
     # average out there) but is flagged, so a shake shows, with the angle as its value.
     if p[PRM.acc_flag_angle] > 0.0 or p[PRM.acc_flag_rel] > 0.0:
-        ln = np.sqrt(s[S.acc_lp_x] * s[S.acc_lp_x] + s[S.acc_lp_y] * s[S.acc_lp_y] + s[S.acc_lp_z] * s[S.acc_lp_z])
+        ln = qm.norm3((s[S.acc_lp_x], s[S.acc_lp_y], s[S.acc_lp_z]))   # a tuple: no view per sample
         c = (aw[0] * s[S.acc_lp_x] + aw[1] * s[S.acc_lp_y] + aw[2] * s[S.acc_lp_z]) / max(n * ln, 1e-12)
         c = min(1.0, max(-1.0, c))
         # angle > acc_flag_angle  <=>  cos(angle) < cos(acc_flag_angle): the arccos only for a flag
