@@ -57,6 +57,7 @@ import numpy as np
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import DT_MAX, INITIAL, S, lp_coef
 from app.jitcache import compiled
+from app.quaternion import norm3
 
 # How often the fit is solved (s): the offset changes over seconds
 HI_SOLVE_S = 0.1
@@ -158,11 +159,11 @@ def strength_deviations(s, p, mag, dt):
     used stays within ``hard_iron_tol`` of it (``heading._field_check``). Every sample
     :func:`hard_iron` feeds (``dt``: the time since the last one), with the tracking off
     too. Returns the corrected strength |m - o|, which the change detection reads too."""
-    n_cor = norm3s(mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2])
+    n_cor = norm3((mag[0] - s[S.hi_o], mag[1] - s[S.hi_o + 1], mag[2] - s[S.hi_o + 2]))
     if s[S.ref_ok] == 0.0:
         return n_cor
     ref = s[S.ref_norm]
-    n_raw = norm3s(mag[0], mag[1], mag[2])
+    n_raw = norm3(mag)
     k = lp_coef(dt, p[PRM.mag_cand_tau])
     s[S.hi_dev_raw] += k * ((n_raw - ref) ** 2 - s[S.hi_dev_raw])
     s[S.hi_dev_cor] += k * ((n_cor - ref) ** 2 - s[S.hi_dev_cor])
@@ -259,7 +260,7 @@ def _judge(s, p, status, ref):
     """The status of a fit just solved (see the module's doc): start over when no sphere
     fits, none when the offset is within 3σ of zero, applied when it fits the earth's
     field and explains the strength (``hard_iron_ratio``), else tracking."""
-    on = norm3s(s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2])
+    on = norm3((s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2]))
     sd, tol = s[S.hi_std], p[PRM.hard_iron_tol]
     # hysteresis: an applied offset stays while within twice the bounds
     f = 2.0 if status == HI_APPLIED else 1.0
@@ -280,8 +281,3 @@ def _judge(s, p, status, ref):
                  or s[S.hi_dev_raw] > p[PRM.hard_iron_ratio] ** 2 * s[S.hi_dev_cor]):
         return HI_APPLIED
     return HI_TRACKING
-
-
-@compiled
-def norm3s(x, y, z):
-    return np.sqrt(x * x + y * y + z * z)

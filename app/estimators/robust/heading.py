@@ -51,7 +51,7 @@ from app.estimators.robust.params import PRM
 from app.estimators.robust.state import (DT_MAX, KF_WORK, S, attitude_matrix, inject, lp_coef, rotate3,
                                          turned_forward, update_is_due)
 from app.jitcache import compiled
-from app.quaternion import wrap_angle
+from app.quaternion import norm3, wrap_angle
 
 _MASK_HEADING = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 
@@ -439,7 +439,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         mw = rotate3(s, turned_forward(s, mc, p[PRM.mag_delay]))
     else:
         mw = mw_turn
-    n = np.sqrt(mw[0] * mw[0] + mw[1] * mw[1] + mw[2] * mw[2])
+    n = norm3(mw)
     dip = np.arcsin(min(1.0, max(-1.0, mw[2] / n)))
     f[F_MAG_VAL] = n
     f[F_MAG] = R_USED
@@ -458,7 +458,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
         s[S.hv_ok] = 0.0        # the gyroscope drifted meanwhile: the evidence starts afresh
     if ok and hi == HI_APPLIED and f[F_MAG] == R_USED:
         f[F_MAG] = R_OFFSET
-        f[F_MAG_VAL] = np.sqrt(s[S.hi_applied_x] ** 2 + s[S.hi_applied_y] ** 2 + s[S.hi_applied_z] ** 2)
+        f[F_MAG_VAL] = norm3((s[S.hi_applied_x], s[S.hi_applied_y], s[S.hi_applied_z]))
     if not ok:
         # the samples averaged so far are dropped with the refused one: a disturbance starts
         # before the gates see it (they judge a low-passed field), and a world-frame average

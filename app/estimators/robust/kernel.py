@@ -39,7 +39,7 @@ from app.estimators.robust.bias import rest_update
 from app.estimators.robust.hardiron import hard_iron_reset
 from app.estimators.robust.heading import mag_update
 from app.estimators.robust.params import GRAVITY, PRM
-from app.estimators.robust.state import DT_MAX, S, attitude_matrix, lp_coef
+from app.estimators.robust.state import DT_MAX, S, attitude_matrix, exp3, lp_coef
 from app.estimators.robust.tilt import acc_update
 from app.jitcache import compiled
 
@@ -89,10 +89,7 @@ def _align(s, P, p, t, acc, mag, use_mag):
 @compiled
 def _integrate(s, vx, vy, vz):
     """q <- q ⊗ exp(v) for the body-frame rotation vector v (exact, formula 2j), w >= 0."""
-    a = np.sqrt(vx * vx + vy * vy + vz * vz)
-    c = np.cos(0.5 * a)
-    k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
-    x, y, z = vx * k, vy * k, vz * k
+    c, x, y, z = exp3(vx, vy, vz)
     q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
     r0 = q0 * c - q1 * x - q2 * y - q3 * z
     r1 = q0 * x + q1 * c + q2 * z - q3 * y

@@ -212,7 +212,7 @@ def update_is_due(s, idx, dt, p):
 
 
 @compiled
-def _exp3(vx, vy, vz):
+def exp3(vx, vy, vz):
     """exp of the rotation vector (vx, vy, vz) as four scalars (qm.quat_from_rotvec)."""
     a = np.sqrt(vx * vx + vy * vy + vz * vz)
     k = 0.5 if a < 1e-12 else np.sin(0.5 * a) / a
@@ -241,7 +241,7 @@ def inject(s, P, dx, lp_frac=1.0):
     # qm.normalize) and the low-passes rotated by dq (qm.rotate), written out in scalars
     # with the same arithmetic: an update makes no array here
     vx, vy, vz = dx[0], dx[1], dx[2]
-    d0, d1, d2, d3 = _exp3(vx, vy, vz)
+    d0, d1, d2, d3 = exp3(vx, vy, vz)
     q0, q1, q2, q3 = s[S.q_w], s[S.q_x], s[S.q_y], s[S.q_z]
     r0 = d0 * q0 - d1 * q1 - d2 * q2 - d3 * q3
     r1 = d0 * q1 + d1 * q0 + d2 * q3 - d3 * q2
@@ -260,7 +260,7 @@ def inject(s, P, dx, lp_frac=1.0):
     if lp_frac != 1.0:
         # the tilt's low-pass turns with the heading part and lp_frac of the tilt part
         # (the tilt loop's damping); everything else turns with the whole correction
-        e0, e1, e2, e3 = _exp3(vx * lp_frac, vy * lp_frac, vz)
+        e0, e1, e2, e3 = exp3(vx * lp_frac, vy * lp_frac, vz)
         _rotate_slot(s, S.acc_lp, e0, e1, e2, e3)
     else:
         _rotate_slot(s, S.acc_lp, d0, d1, d2, d3)
