@@ -21,10 +21,11 @@ white noise, MAG µT (Earth field 50 µT with a dip of 65°, plus noise), ORI th
 phone's own estimate (the truth turned by a slowly wandering error of about 1°).
 ACC, GYR and ORI run at 100 Hz, MAG at 50 Hz; timestamps are integer milliseconds of
 a phone's boot clock, and each sensor samples at its own offset within the period.
-Each sample is the value at its stamp: a real sensor's stands for its period and is stamped
-at its end, which the filter's lag terms (``mag_delay``, ``acc_delay_periods``) turn forward.
-Here they turn a lag that is not there: in a 1 rad/s turn about a horizontal axis, half a
-10 ms period is 0.3° of tilt (tests that measure a single effect set them to 0).
+As a real sensor's, each GYR, ACC and MAG sample stands for its period and is stamped at its
+end: it is the mean of the sensor's value over the period before its stamp (``SUBSAMPLES``
+points), so it lags the truth at its stamp by half a period, the lag the filter's terms
+``mag_delay`` and ``acc_delay_periods`` turn forward. ORI, the phone's own estimate, is the
+value at its stamp.
 
 Use :func:`simulate` for a finite run with its truth (tests, benchmarks) and
 :func:`stream` for the dashboard's endless demo.
@@ -46,6 +47,10 @@ SCENES = ("still", "turn_x", "turn_y", "turn_z", "shake", "magnet", "gyro_dropou
 SCENE_DURATION_S = {"still": 4.0, "turn_x": 6.0, "turn_y": 6.0, "turn_z": 6.0, "shake": 4.0,
                     "magnet": 6.0, "gyro_dropout": 6.0}
 G = 9.81
+
+# A GYR, ACC or MAG sample is the mean over its period of this many evenly spaced values (the
+# midpoint rule): the error of the mean is below 0.1 % of the signal's change over a period
+SUBSAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -163,6 +168,20 @@ class Simulation:
         """True orientation (N,4) [w,x,y,z], sensor to world, at times ``t`` (s)."""
         return self.motion(t)[0]
 
+    def sensed(self, t, period: float):
+        """What the sensors read at stamps ``t`` (s), each the mean over the ``period`` (s)
+        before its stamp, noise-free: (rate (N,3) rad/s, specific force (N,3) m/s², field
+        (N,3) µT), all in the sensor frame."""
+        t = np.atleast_1d(np.asarray(t, float))
+        n = t.shape[0]
+        offsets = period * (np.arange(SUBSAMPLES) + 0.5) / SUBSAMPLES
+        tt = (t[:, None] - offsets[None, :]).reshape(-1)
+        q, w, a_lin, b = self.motion(tt)
+        f = rotate_inv_many(q, a_lin + np.array([0.0, 0.0, G]))
+        m = rotate_inv_many(q, self._m_world + b)
+        mean = lambda x: x.reshape(n, SUBSAMPLES, 3).mean(axis=1)  # noqa: E731
+        return mean(w), mean(f), mean(m)
+
     def gyro_absent(self, t) -> np.ndarray:
         idx = self.scene_at(t)
         names = np.array(self.scenes, dtype=object)
@@ -182,17 +201,19 @@ class Simulation:
             if ms.size == 0:
                 continue
             t = ms / 1000.0
-            q, w, a_lin, b = self.motion(t)
             if tag == "GYR":
                 keep = ~self.gyro_absent(t)
-                ms, q, w = ms[keep], q[keep], w[keep]
+                ms, t = ms[keep], t[keep]
+                w = self.sensed(t, period / 1000.0)[0]
                 vals = w + np.asarray(c.gyr_bias) + rng.normal(0.0, c.gyr_noise, w.shape)
             elif tag == "ACC":
-                f_world = a_lin + np.array([0.0, 0.0, G])
-                vals = rotate_inv_many(q, f_world) + rng.normal(0.0, c.acc_noise, a_lin.shape)
+                f = self.sensed(t, period / 1000.0)[1]
+                vals = f + rng.normal(0.0, c.acc_noise, f.shape)
             elif tag == "MAG":
-                vals = rotate_inv_many(q, self._m_world + b) + rng.normal(0.0, c.mag_noise, b.shape)
+                m = self.sensed(t, period / 1000.0)[2]
+                vals = m + rng.normal(0.0, c.mag_noise, m.shape)
             else:  # ORI: truth with a slowly wandering error, as a phone's own filter
+                q = self.truth(t)
                 amp = math.radians(c.ori_error_deg)
                 err = amp * np.stack([np.sin(0.31 * t), np.cos(0.23 * t), np.sin(0.17 * t + 1.0)], -1)
                 vals = quat_mul_many(quat_from_rotvec_many(err), q)

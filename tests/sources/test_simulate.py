@@ -74,6 +74,30 @@ def test_gyroscope_is_the_truths_rate_plus_bias():
     assert np.allclose(gyr.mean(axis=0), SimConfig().gyr_bias, atol=0.002)
 
 
+def test_a_sample_stands_for_its_period_and_lags_its_stamp_by_half_of_it():
+    """As a real sensor's: the mean over the period before the stamp, so half a period
+    behind the truth at the stamp (what mag_delay and acc_delay_periods turn forward)."""
+    sim = Simulation()
+    turn = sim.starts[sim.scenes.index("turn_x")]
+    t = turn + np.linspace(0.5, 5.5, 200)
+    for period in (0.01, 0.02):
+        w, f, m = sim.sensed(t, period)
+        for got, at in ((w, lambda tt: sim.motion(tt)[1]),
+                        (f, lambda tt: sim.sensed(tt, 1e-9)[1]),
+                        (m, lambda tt: sim.sensed(tt, 1e-9)[2])):
+            at_stamp = np.max(np.abs(got - at(t)))
+            half_back = np.max(np.abs(got - at(t - period / 2)))
+            assert at_stamp > 2e-3 * period / 0.01           # a real lag: slope × half a period
+            assert half_back < 0.02 * at_stamp               # half a period: second order only
+    # and the stream's samples are those means (noise aside)
+    r = simulate(("turn_x",), seed=3, config=SimConfig(gyr_noise=0.0, acc_noise=0.0, mag_noise=0.0,
+                                                      gyr_bias=(0.0, 0.0, 0.0)))
+    for tag, col, period in (("GYR", 0, 0.01), ("ACC", 1, 0.01), ("MAG", 2, 0.02)):
+        ms, v = by_tag(r, tag)
+        tt = (ms - r.boot_ms) / 1000.0
+        assert np.allclose(v, r.sim.sensed(tt, period)[col], atol=1e-9), tag
+
+
 def test_phone_estimate_is_near_the_truth(run):
     ms, ori = by_tag(run, "ORI")
     q = run.truth_at_ms(ms)
