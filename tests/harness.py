@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import random
 import shutil
 import socket
 import threading
@@ -60,13 +61,38 @@ def free_port() -> int:
     return free_ports(1)[0]
 
 
-def free_ports(n: int) -> list[int]:
-    """``n`` distinct free loopback ports: every socket is held until all are chosen (one
-    at a time, the system may hand out a port just closed again)."""
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_STREAM) for _ in range(n)]
+def _ephemeral_low() -> int:
+    """The lowest port the system hands out to a socket bound to port 0 or a client's
+    connection (Linux's ``ip_local_port_range``; 32768 where it cannot be read)."""
     try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def free_ports(n: int) -> list[int]:
+    """``n`` distinct free loopback ports, chosen at random BELOW the system's ephemeral
+    range: a port is chosen here and bound by the server a moment later, and in between
+    nothing else of the run can be handed it (a client's connection, a socket bound to
+    port 0, another test's fake phone all take ephemeral ports). Every socket is held until
+    all are chosen."""
+    hi = _ephemeral_low()
+    lo = max(1024, hi - 12000)
+    rng = random.SystemRandom()
+    socks: list[socket.socket] = []
+    try:
+        for _ in range(50 * n):
+            if len(socks) == n:
+                break
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            try:
+                s.bind(("127.0.0.1", rng.randrange(lo, hi)))
+            except OSError:
+                s.close()
+                continue
+            socks.append(s)
+        if len(socks) < n:
+            raise RuntimeError(f"no {n} free loopback ports between {lo} and {hi}")
         return [s.getsockname()[1] for s in socks]
     finally:
         for s in socks:
@@ -124,9 +150,10 @@ def running_server(**overrides) -> Iterator[RunningServer]:
     ``open_access=True`` unless told (tests of other concerns need no token); tests of
     the access rules pass ``open_access=False`` (and ``token=...``).
 
-    A free port can be taken between choosing it and binding it (another test's client, a
-    socket of the run before): when the ports were chosen here and the server did not
-    start, it is started again on fresh ports, at most START_TRIES times in all."""
+    The ports come from :func:`free_ports`, below the ephemeral range, where nothing of the
+    run is handed them between choosing and binding; should something outside the run take
+    one (a service started on it meanwhile) and the server not start, it is started again
+    on fresh ports, at most START_TRIES times in all (only when the ports were chosen here)."""
     chosen_here = not any(k in overrides for k in ("port", "viewer_port", "phone_port"))
     for _ in range(START_TRIES if chosen_here else 1):
         port, viewer_port, phone_port = free_ports(3)

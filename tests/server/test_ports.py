@@ -68,3 +68,22 @@ def test_check_ports_passes_free_ports_and_any_port():
     from app.server.settings import Settings
     check_ports(Settings(host="127.0.0.1", port=free_port(), viewer_port=0, phone_port=free_port(),
                          phone_host="127.0.0.1"))
+
+
+def test_the_tests_ports_are_free_distinct_and_below_the_ephemeral_range():
+    """The harness chooses a server's ports below the range the system hands out to
+    clients and to sockets bound to port 0, so none of the run's own sockets can take one
+    between its choice and the server's bind; a chosen port binds and listens."""
+    from harness import _ephemeral_low, free_ports
+
+    lo = _ephemeral_low()
+    for _ in range(20):
+        ports = free_ports(3)
+        assert len(set(ports)) == 3
+        assert all(1024 <= p < lo for p in ports), (ports, lo)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", ports[0]))
+        s.listen()
+        client = socket.create_connection(("127.0.0.1", ports[0]), timeout=5)
+        assert client.getsockname()[1] >= lo      # what the run's clients are handed
+        client.close()

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import ast
 import asyncio
-import socket
 import threading
 import time
 from pathlib import Path
@@ -21,15 +20,10 @@ import websockets.sync.client
 import zstandard
 
 from app.server import viser_adapter as va
+from harness import free_port
 
 APP = Path(__file__).resolve().parents[2] / "app"
 ADAPTER = APP / "server" / "viser_adapter.py"
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _wait_for(cond, timeout: float = 10.0, what: str = "condition"):
@@ -64,7 +58,7 @@ class Recorder:
 def server():
     """A real viser server on a free loopback port (stopped at the end), with the
     adapter's connect and disconnect hooks in place."""
-    viewer = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    viewer = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
         yield viewer, Recorder(viewer)
     finally:
