@@ -314,6 +314,9 @@ def test_demo_source_and_phone_takeover(tmp_path):
             api.get("/api/state").json()), what="demo samples")
         assert st["source"] == "demo" and st["truth_q"] is not None and st["phone_q"] is not None
         assert st["error_to_truth_deg"] is not None
+        gui = s.app.state.gui
+        gui.refresh_text()
+        assert gui.resume.visible is False        # the demo runs: nothing to resume
         lines = simulate(("still",), seed=2).lines()
         st = play(s, api, lines)
         assert st["source"] == "phone-disconnected" and "disconnected" in st["status"]
@@ -322,8 +325,10 @@ def test_demo_source_and_phone_takeover(tmp_path):
         t_last = st["t"]
         assert api.get("/api/state").json()["t"] == t_last
         assert srv_gui_text(s).find("disconnected") >= 0
+        assert gui.resume.visible is True         # paused by the phone: the button offers it
         api.post("/api/source/resume")
         wait_for(lambda: api.get("/api/state").json()["source"] == "demo", what="demo resumed")
+        wait_for(lambda: (gui.refresh_text(), not gui.resume.visible)[1], what="the button hidden again")
 
 
 def srv_gui_text(s) -> str:

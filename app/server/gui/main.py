@@ -98,7 +98,8 @@ class Gui:
             reset = gui.add_button("Reset filters", hint="Forget the orientation and align again "
                                                          "from the next samples.")
             reset.on_click(lambda ev: self._submit({"reset": True}, ev))
-            self.resume = gui.add_button("Resume demo", visible=settings.source != "none",
+            # shown only while the demo (or log replay) is paused: a phone took over
+            self.resume = gui.add_button("Resume demo", visible=False,
                                          hint="Restart the demo / log replay after a phone has left.")
             self.resume.on_click(lambda ev: engine.resume_background())
         # The plots are drawn by the landing page (static/plots.js, fed by WS /ws/plots:
@@ -407,6 +408,10 @@ class Gui:
         line and the read-outs (from the API's state: the costlier part)."""
         ind = self.indications()
         self.indicators_now = ind
+        paused = self.engine.background_allowed is not None and not self.engine.background_allowed.is_set()
+        background = self.settings.source != "none" and self.settings.phyphox_url is None   # demo, replay
+        if self.resume.visible != (background and paused):
+            self.resume.visible = not self.resume.visible
         self.indicators.content = _indicators_html(ind)
         self.scene.set_indicators(ind)
         if not readouts:
