@@ -318,7 +318,15 @@ def test_demo_source_and_phone_takeover(tmp_path):
         gui.refresh_text()
         assert gui.resume.visible is False        # the demo runs: nothing to resume
         lines = simulate(("still",), seed=2).lines()
-        st = play(s, api, lines)
+        with Phone(s.phone_port) as ph:
+            ph.send_lines(lines[:200])
+            wait_for(lambda: api.get("/api/state").json()["source"] == "phone", what="the phone")
+            gui.refresh_text()
+            assert gui.resume.visible is False    # a phone streams: the demo is not to be resumed
+            ph.send_lines(lines[200:])
+        st = wait_for(lambda: (lambda x: x if x["source"] == "phone-disconnected"
+                               and x["counts"]["buffered"] == 0 and x["counts"]["queued"] == 0
+                               else None)(api.get("/api/state").json()), what="the end of the stream")
         assert st["source"] == "phone-disconnected" and "disconnected" in st["status"]
         assert st["counts"]["samples"] == len(lines)
         # the demo does not resume by itself: the last state stays

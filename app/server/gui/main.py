@@ -98,7 +98,7 @@ class Gui:
             reset = gui.add_button("Reset filters", hint="Forget the orientation and align again "
                                                          "from the next samples.")
             reset.on_click(lambda ev: self._submit({"reset": True}, ev))
-            # shown only while the demo (or log replay) is paused: a phone took over
+            # shown only after a phone has left and the demo (or log replay) stays paused
             self.resume = gui.add_button("Resume demo", visible=False,
                                          hint="Restart the demo / log replay after a phone has left.")
             self.resume.on_click(lambda ev: engine.resume_background())
@@ -408,9 +408,11 @@ class Gui:
         line and the read-outs (from the API's state: the costlier part)."""
         ind = self.indications()
         self.indicators_now = ind
-        paused = self.engine.background_allowed is not None and not self.engine.background_allowed.is_set()
-        background = self.settings.source != "none" and self.settings.phyphox_url is None   # demo, replay
-        if self.resume.visible != (background and paused):
+        # "Resume demo": only while a demo or replay is paused and no phone streams now
+        eng = self.engine
+        paused = eng.background_allowed is not None and not eng.background_allowed.is_set()
+        background = self.settings.source != "none" and self.settings.phyphox_url is None
+        if self.resume.visible != (background and paused and eng.core.source_kind() != "phone"):
             self.resume.visible = not self.resume.visible
         self.indicators.content = _indicators_html(ind)
         self.scene.set_indicators(ind)
