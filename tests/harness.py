@@ -57,6 +57,30 @@ def hide_notices(frame) -> None:
         " b.appendChild(s); }")
 
 
+@contextlib.contextmanager
+def chromium_page(url: str, profile: str | Path, size: tuple[int, int] = (1600, 900),
+                  viewer: bool = True, timeout_ms: int = 60_000):
+    """A page of Debian's headless Chromium (Playwright, no browser download; its profile in
+    the folder ``profile``) opened on ``url``, at ``size``; with ``viewer``, once the
+    embedded 3D view (``iframe#viewer``) draws. Yields ``(page, frame)``: the page and the
+    viewer's frame locator. The browser is closed on leaving, whatever happened.
+    (The caller has checked ``CHROMIUM`` and imported Playwright with ``importorskip``.)"""
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(
+            str(profile), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
+            viewport={"width": size[0], "height": size[1]})
+        try:
+            page = ctx.new_page()
+            page.goto(url)
+            frame = page.frame_locator("iframe#viewer")
+            if viewer:
+                frame.locator("canvas").first.wait_for(state="visible", timeout=timeout_ms)
+            yield page, frame
+        finally:
+            ctx.close()
+
+
 def free_port() -> int:
     return free_ports(1)[0]
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import pytest
 
 from app.estimators import NAMES
-from harness import CHROMIUM, CHROMIUM_ARGS, free_ports
+from harness import CHROMIUM, chromium_page, free_ports
 from venvs import cache_root, http_get, stop_with_sigint
 
 REPO = Path(__file__).resolve().parents[1]
@@ -181,21 +181,13 @@ def _page_says_filters(url: str, tmp_path: Path) -> str | None:
     """The landing page's filters line in a real Chromium (None without one)."""
     if CHROMIUM is None:
         return None
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True,
-            args=CHROMIUM_ARGS, viewport={"width": 1280, "height": 720})
-        try:
-            page = ctx.new_page()
-            page.goto(url)
-            badge = page.locator("#filters")
-            badge.wait_for(state="visible", timeout=30_000)
-            page.wait_for_function("document.getElementById('filters').textContent.length > 0",
-                                   timeout=30_000)
-            return badge.text_content()
-        finally:
-            ctx.close()
+    pytest.importorskip("playwright.sync_api")
+    with chromium_page(url, tmp_path / "profile", (1280, 720), viewer=False) as (page, _):
+        badge = page.locator("#filters")
+        badge.wait_for(state="visible", timeout=30_000)
+        page.wait_for_function("document.getElementById('filters').textContent.length > 0",
+                               timeout=30_000)
+        return badge.text_content()
 
 
 def test_serve_answers_while_the_filters_compile(tmp_path):

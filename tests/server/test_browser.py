@@ -7,7 +7,7 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, running_server, wait_for
+from harness import ARTIFACTS, CHROMIUM, chromium_page, running_server, wait_for
 
 
 pytestmark = [
@@ -19,29 +19,19 @@ pytestmark = [
 
 
 def test_page_shows_viewer_and_magnetometer_switch_works(tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     ARTIFACTS.mkdir(exist_ok=True)
     with running_server(source="demo", preset_dir=tmp_path) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
-            sync_api.sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 900})
-        try:
-            page = ctx.new_page()
-            page.goto(srv.url + "/")
-            frame = page.frame_locator("iframe#viewer")
-            frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
-            mag = frame.get_by_label("Magnetometer", exact=True)
-            mag.wait_for(state="visible", timeout=60_000)
-            assert frame.get_by_label("Gyroscope", exact=True).is_visible()
-            assert frame.get_by_label("Accelerometer", exact=True).is_visible()
-            assert page.locator("#sf-port").text_content() == str(srv.phone_port)
-            assert api.get("/api/params").json()["use_mag"] is True
-            mag.click()
-            wait_for(lambda: api.get("/api/params").json()["use_mag"] is False, 30.0,
-                     what="use_mag false after the click")
-            page.wait_for_timeout(2500)    # let the plots fill for the screenshot
-            page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
-        finally:
-            ctx.close()
+            chromium_page(srv.url + "/", tmp_path / "profile") as (page, frame):
+        mag = frame.get_by_label("Magnetometer", exact=True)
+        mag.wait_for(state="visible", timeout=60_000)
+        assert frame.get_by_label("Gyroscope", exact=True).is_visible()
+        assert frame.get_by_label("Accelerometer", exact=True).is_visible()
+        assert page.locator("#sf-port").text_content() == str(srv.phone_port)
+        assert api.get("/api/params").json()["use_mag"] is True
+        mag.click()
+        wait_for(lambda: api.get("/api/params").json()["use_mag"] is False, 30.0,
+                 what="use_mag false after the click")
+        page.wait_for_timeout(2500)    # let the plots fill for the screenshot
+        page.screenshot(path=str(ARTIFACTS / "dashboard.png"))

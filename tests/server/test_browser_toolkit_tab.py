@@ -8,7 +8,7 @@ import httpx
 import numpy as np
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, click, running_server, wait_for
+from harness import ARTIFACTS, CHROMIUM, chromium_page, click, running_server, wait_for
 
 pytestmark = [
     pytest.mark.browser,
@@ -17,52 +17,34 @@ pytestmark = [
 
 
 def test_toolkit_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     ARTIFACTS.mkdir(exist_ok=True)
     with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
-            sync_api.sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 1000})
-        try:
-            page = ctx.new_page()
-            page.goto(srv.url + "/")
-            frame = page.frame_locator("iframe#viewer")
-            frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
-            click(page, frame.get_by_role("tab", name="Lab"))
-            click(page, frame.get_by_role("button", name="Add the primary without rejection"))
-            wait_for(lambda: "robust-no-rejection" in [e["name"] for e in
-                                                       api.get("/api/estimators").json()["estimators"]],
-                     30.0, what="the variant added by the click")
-            click(page, frame.get_by_role("button", name="Bring a magnet"))
-            wait_for(lambda: api.get("/api/inject").json()["marks"], 30.0, what="the magnet's start mark")
-            page.wait_for_timeout(4000)     # the heading plot shows both estimators
-            page.screenshot(path=str(ARTIFACTS / "lab_magnet.png"))
-            st = api.get("/api/state").json()
-            assert "robust-no-rejection" in st["estimators"]
-        finally:
-            ctx.close()
+            chromium_page(srv.url + "/", tmp_path / "profile", (1600, 1000)) as (page, frame):
+        click(page, frame.get_by_role("tab", name="Lab"))
+        click(page, frame.get_by_role("button", name="Add the primary without rejection"))
+        wait_for(lambda: "robust-no-rejection" in [e["name"] for e in
+                                                   api.get("/api/estimators").json()["estimators"]],
+                 30.0, what="the variant added by the click")
+        click(page, frame.get_by_role("button", name="Bring a magnet"))
+        wait_for(lambda: api.get("/api/inject").json()["marks"], 30.0, what="the magnet's start mark")
+        page.wait_for_timeout(4000)     # the heading plot shows both estimators
+        page.screenshot(path=str(ARTIFACTS / "lab_magnet.png"))
+        st = api.get("/api/state").json()
+        assert "robust-no-rejection" in st["estimators"]
 
 
 def test_loading_a_preset_from_the_page_applies_its_magnetometer_calibration(tmp_path):
     """The Presets tab: type a preset's name, click Load: its [magcal] (hard and soft
     iron) corrects the magnetometer again, as the API's load does."""
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     (tmp_path / "withmag.toml").write_text(
         "[magcal]\noffset_uT = [15.0, -8.0, 25.0]\nmatrix = [1.1, 0, 0, 0, 0.9, 0, 0, 0, 1.0]\n")
     with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as srv, \
-            httpx.Client(base_url=srv.url, timeout=30.0) as api, \
-            sync_api.sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 1000})
-        try:
-            assert api.get("/api/magcal").json()["applied"] is None
-            page = ctx.new_page()
-            page.goto(srv.url + "/")
-            frame = page.frame_locator("iframe#viewer")
-            frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        assert api.get("/api/magcal").json()["applied"] is None
+        with chromium_page(srv.url + "/", tmp_path / "profile", (1600, 1000)) as (page, frame):
             click(page, frame.get_by_role("tab", name="Presets"))
             # the text field after its label (the Lab tab's calibration has a "Preset
             # name" too, hidden here)
@@ -77,33 +59,27 @@ def test_loading_a_preset_from_the_page_applies_its_magnetometer_calibration(tmp
                                what="the preset's magnetometer calibration")
             assert applied["offset_uT"] == [15.0, -8.0, 25.0]
             assert np.diag(applied["matrix"]) == pytest.approx([1.1, 0.9, 1.0])
-        finally:
-            ctx.close()
 
 
 def test_an_injected_magnet_and_shake_are_marked_in_the_plots_panel(tmp_path):
     """While a virtual magnet (shake) is on, the page's Plots tab's |mag| (|acc|) chart draws
     its samples over again in red: the disturbance is marked where it shows, not only in
     the Lab tab and the recording."""
-    sync_api = pytest.importorskip("playwright.sync_api")
-    from test_plots_browser import COUNT_JS, MIN_PIXELS, open_page, wait_drawn
+    pytest.importorskip("playwright.sync_api")
+    from test_plots_browser import COUNT_JS, MIN_PIXELS, open_plots, wait_drawn
     with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api, \
-            sync_api.sync_playwright() as pw:
-        ctx, page = open_page(pw, srv, tmp_path)     # the page's Plots tab
-        try:
-            before = wait_drawn(page, {"mag": ["|mag|"], "acc": ["|acc|"]}, timeout=60.0)
-            assert before["mag"]["counts"]["magnet injected"] < MIN_PIXELS
-            assert before["acc"]["counts"]["shake injected"] < MIN_PIXELS
-            r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 50, "seconds": 8})
-            assert r.status_code == 200, r.text
-            r = api.post("/api/inject", json={"kind": "shake", "amplitude_ms2": 8, "seconds": 8})
-            assert r.status_code == 200, r.text
-            wait_drawn(page, {"mag": ["|mag|", "magnet injected"],
-                              "acc": ["|acc|", "shake injected"]}, timeout=30.0)
-            page.screenshot(path=str(ARTIFACTS / "plots_injected.png"))
-            # the mark covers the injection only: the chart's own line still draws the rest
-            d = page.evaluate(COUNT_JS)
-            assert d["mag"]["counts"]["|mag|"] >= MIN_PIXELS
-        finally:
-            ctx.close()
+            open_plots(srv, tmp_path) as page:     # the page's Plots tab
+        before = wait_drawn(page, {"mag": ["|mag|"], "acc": ["|acc|"]}, timeout=60.0)
+        assert before["mag"]["counts"]["magnet injected"] < MIN_PIXELS
+        assert before["acc"]["counts"]["shake injected"] < MIN_PIXELS
+        r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 50, "seconds": 8})
+        assert r.status_code == 200, r.text
+        r = api.post("/api/inject", json={"kind": "shake", "amplitude_ms2": 8, "seconds": 8})
+        assert r.status_code == 200, r.text
+        wait_drawn(page, {"mag": ["|mag|", "magnet injected"],
+                          "acc": ["|acc|", "shake injected"]}, timeout=30.0)
+        page.screenshot(path=str(ARTIFACTS / "plots_injected.png"))
+        # the mark covers the injection only: the chart's own line still draws the rest
+        d = page.evaluate(COUNT_JS)
+        assert d["mag"]["counts"]["|mag|"] >= MIN_PIXELS

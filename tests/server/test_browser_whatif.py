@@ -9,7 +9,7 @@ import math
 import httpx
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, click, running_server, wait_for
+from harness import ARTIFACTS, CHROMIUM, chromium_page, click, running_server, wait_for
 from toolkit.test_whatif_first_try import demo_recording
 
 pytestmark = [
@@ -43,42 +43,33 @@ def _pick(page, frame, label, option):
 
 
 def test_whatif_from_lists_and_its_table_fits_at_1600x900(tmp_path):
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     ARTIFACTS.mkdir(exist_ok=True)
     rec = tmp_path / "rec"
     rec.mkdir()
     demo_recording(rec, "lesson", warm_s=38.0, seconds=20.0)
     with running_server(source="demo", preset_dir=tmp_path, recordings=rec) as srv, \
-            httpx.Client(base_url=srv.url, timeout=30.0), sync_api.sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 900})
-        try:
-            page = ctx.new_page()
-            page.goto(srv.url + "/")
-            frame = page.frame_locator("iframe#viewer")
-            frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
-            click(page, frame.get_by_role("tab", name="Lab"))
-            click(page, frame.get_by_text("What-if (re-run a recording)", exact=True))
-            _pick(page, frame, "Recording", "lesson")
-            _pick(page, frame, "Estimator", "robust")
-            _pick(page, frame, "Parameter", "gyr_noise [deg/√s]")
-            value = _field(frame, "Value")
-            value.fill("2.9")              # deg/√s: ten times the default 0.286
-            value.press("Tab")
-            page.wait_for_timeout(500)
-            click(page, frame.get_by_role("button", name="Re-run before/after"))
-            tab = srv.app.state.toolkit_tab
-            out = wait_for(lambda: tab._rerun_result, 120.0, what="the re-run's result")
-            got = out["estimators"]["robust"]["patch"]
-            assert set(got) == {"gyr_noise"} and got["gyr_noise"] == pytest.approx(
-                2.9 / (180 / math.pi), rel=1e-3)
-            t = wait_for(lambda: frame.locator("body").evaluate(TABLE_JS), 60.0, what="the table")
-            page.screenshot(path=str(ARTIFACTS / "lab_whatif_1600x900.png"))
-            print(t)
-            assert "robust" in t["cells"]
-            # no cell wraps: every row one line high (the header's height), no overflow
-            assert max(t["rows"]) <= 1.3 * min(t["rows"]), t
-            assert t["width"] <= t["room"] + 1, t
-        finally:
-            ctx.close()
+            httpx.Client(base_url=srv.url, timeout=30.0), \
+            chromium_page(srv.url + "/", tmp_path / "profile") as (page, frame):
+        click(page, frame.get_by_role("tab", name="Lab"))
+        click(page, frame.get_by_text("What-if (re-run a recording)", exact=True))
+        _pick(page, frame, "Recording", "lesson")
+        _pick(page, frame, "Estimator", "robust")
+        _pick(page, frame, "Parameter", "gyr_noise [deg/√s]")
+        value = _field(frame, "Value")
+        value.fill("2.9")              # deg/√s: ten times the default 0.286
+        value.press("Tab")
+        page.wait_for_timeout(500)
+        click(page, frame.get_by_role("button", name="Re-run before/after"))
+        tab = srv.app.state.toolkit_tab
+        out = wait_for(lambda: tab._rerun_result, 120.0, what="the re-run's result")
+        got = out["estimators"]["robust"]["patch"]
+        assert set(got) == {"gyr_noise"} and got["gyr_noise"] == pytest.approx(
+            2.9 / (180 / math.pi), rel=1e-3)
+        t = wait_for(lambda: frame.locator("body").evaluate(TABLE_JS), 60.0, what="the table")
+        page.screenshot(path=str(ARTIFACTS / "lab_whatif_1600x900.png"))
+        print(t)
+        assert "robust" in t["cells"]
+        # no cell wraps: every row one line high (the header's height), no overflow
+        assert max(t["rows"]) <= 1.3 * min(t["rows"]), t
+        assert t["width"] <= t["room"] + 1, t

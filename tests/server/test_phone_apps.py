@@ -192,21 +192,16 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
     shows no address, port or code."""
     import shutil
     import subprocess
-    from harness import CHROMIUM, CHROMIUM_ARGS
+    from harness import CHROMIUM, chromium_page
     if CHROMIUM is None or shutil.which("zbarimg") is None:
         pytest.skip("needs Debian's chromium and zbar-tools (zbarimg)")
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with running_server(open_access=False, token=TOKEN) as srv, sync_api.sync_playwright() as pw:
+    pytest.importorskip("playwright.sync_api")
+    with running_server(open_access=False, token=TOKEN) as srv:
         want = httpx.get(srv.url + "/api/connect", headers={"X-Orientlab-Token": TOKEN}).json()
         expect = {"sensorlogger": want["sensor_logger"]["url"],
                   "phyphox": want["phyphox"]["experiment_url"],
                   "sensorfusion": f'{want["sensorfusion"]["host"]}:{want["sensorfusion"]["port"]}'}
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True,
-            args=CHROMIUM_ARGS, viewport={"width": 1600, "height": 900})
-        try:
-            page = ctx.new_page()
-            page.goto(f"{srv.url}/?token={TOKEN}")
+        with chromium_page(f"{srv.url}/?token={TOKEN}", tmp_path / "profile", viewer=False) as (page, _):
             page.locator("#sl-url").filter(has_text="http").wait_for(timeout=30_000)
             for app, text in expect.items():
                 page.locator(f'.apps [data-app="{app}"]').click()
@@ -221,6 +216,7 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
             page.locator('.apps [data-app="sensorlogger"]').click()
             assert want["sensor_logger"]["url"] in page.locator("#app-sensorlogger").inner_text()
             # a student's page (no token): no addresses, no codes
+            ctx = page.context
             student = ctx.browser.new_context() if ctx.browser else None
             page2 = (student or ctx).new_page()
             ctx.clear_cookies()
@@ -229,8 +225,6 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
             assert page2.locator("#presenter-connect").is_hidden()
             assert want["sensorfusion"]["host"] not in page2.locator("aside").inner_text()
             assert page2.locator("img.qr[src]").count() == 0
-        finally:
-            ctx.close()
 
 
 @pytest.mark.shared

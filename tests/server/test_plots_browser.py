@@ -10,12 +10,13 @@ chart says why beside it; every chart shows the same time window.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import httpx
 import pytest
 
-from harness import (ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, Phone, log_lines, running_server,
+from harness import (ARTIFACTS, CHROMIUM, Phone, chromium_page, log_lines, running_server,
                      wait_for)
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
@@ -86,93 +87,76 @@ def play(srv, api, lines):
              what="the end of the stream")
 
 
-@pytest.fixture(scope="module")
-def browser():
-    sync_api = pytest.importorskip("playwright.sync_api")
-    with sync_api.sync_playwright() as pw:
-        yield pw
-
-
-def open_page(pw, srv, tmp_path):
-    ctx = pw.chromium.launch_persistent_context(
-        str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-        viewport={"width": 1600, "height": 900})
-    page = ctx.new_page()
-    page.goto(srv.url + "/")
-    frame = page.frame_locator("iframe#viewer")
-    frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
-    page.locator("#tab-plots").click()
-    return ctx, page
+@contextlib.contextmanager
+def open_plots(srv, tmp_path):
+    """The page in Chromium, its Plots tab shown (the caller has imported Playwright)."""
+    with chromium_page(srv.url + "/", tmp_path / "profile") as (page, _):
+        page.locator("#tab-plots").click()
+        yield page
 
 
 def viewer_frame(page):
     return next(f for f in page.frames if f != page.main_frame)
 
 
-def test_real_log_plots_draw_for_every_primary(tmp_path, browser):
+def test_real_log_plots_draw_for_every_primary(tmp_path):
+    pytest.importorskip("playwright.sync_api")
     if not FULL_LOG.is_file():
         pytest.skip(f"{FULL_LOG} not present")
     lines = log_lines(FULL_LOG)[:6000]          # ~17 s of a walk, no ORI, no truth
     with running_server(source="none", preset_dir=tmp_path) as srv, \
-            httpx.Client(base_url=srv.url, timeout=30.0) as api:
-        ctx, page = open_page(browser, srv, tmp_path)
-        try:
-            for primary in srv.engine.core.ensemble.names:
-                assert api.patch("/api/params", json={"primary": primary}).status_code == 200
-                play(srv, api, lines)
-                expect = {"acc": ["|acc|"], "mag": ["|mag|"]}
-                if primary != "phone":                   # phone: no ORI, no estimate
-                    expect["euler"] = ["yaw", "pitch", "roll"]
-                if primary == "lab":
-                    expect["mag"].append("L_k")
-                if primary in ("lab", "robust"):
-                    expect["nis"] = ["acc NIS", "mag NIS"]
-                # no reference in this log: the error plot is empty and says why
-                got = wait_drawn(page, expect,
-                                 absent=("error",) + (("euler",) if primary == "phone" else ()))
-                assert "no reference" in got["error"]["why"]
-                if primary == "phone":
-                    assert "ORI" in got["euler"]["why"]
-            page.screenshot(path=str(ARTIFACTS / "plots_real_log.png")) if ARTIFACTS.is_dir() else None
-        finally:
-            ctx.close()
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, open_plots(srv, tmp_path) as page:
+        for primary in srv.engine.core.ensemble.names:
+            assert api.patch("/api/params", json={"primary": primary}).status_code == 200
+            play(srv, api, lines)
+            expect = {"acc": ["|acc|"], "mag": ["|mag|"]}
+            if primary != "phone":                   # phone: no ORI, no estimate
+                expect["euler"] = ["yaw", "pitch", "roll"]
+            if primary == "lab":
+                expect["mag"].append("L_k")
+            if primary in ("lab", "robust"):
+                expect["nis"] = ["acc NIS", "mag NIS"]
+            # no reference in this log: the error plot is empty and says why
+            got = wait_drawn(page, expect,
+                             absent=("error",) + (("euler",) if primary == "phone" else ()))
+            assert "no reference" in got["error"]["why"]
+            if primary == "phone":
+                assert "ORI" in got["euler"]["why"]
+        page.screenshot(path=str(ARTIFACTS / "plots_real_log.png")) if ARTIFACTS.is_dir() else None
 
 
-def test_acc_only_log_and_demo_plots_draw(tmp_path, browser):
+def test_acc_only_log_and_demo_plots_draw(tmp_path):
+    pytest.importorskip("playwright.sync_api")
     if not ACC_ONLY_LOG.is_file():
         pytest.skip(f"{ACC_ONLY_LOG} not present")
     with running_server(source="demo", preset_dir=tmp_path) as srv, \
-            httpx.Client(base_url=srv.url, timeout=30.0) as api:
-        ctx, page = open_page(browser, srv, tmp_path)
-        try:
-            frame = viewer_frame(page)
-            # the demo: the phone's own estimate (ORI) and the truth: both error series;
-            # robust's |mag| band (grey) goes out as its two ends and spans the gaps
-            wait_drawn(page, {"euler": ["yaw", "pitch", "roll"],
-                                    "error": ["to phone's own", "to truth"],
-                                    "acc": ["|acc|"], "mag": ["|mag|", "band lo"],
-                                    "nis": ["acc NIS", "mag NIS"]}, timeout=60.0)
-            # the Tuning tab: values in the user's unit with three significant digits,
-            # a hover text with meaning, unit and effect; the bias button answers
-            # (Tuning is the first tab of the control panel: the plots are the page's)
-            field = frame.get_by_label("gyr_noise [deg/√s]", exact=True).first
-            field.wait_for(state="visible", timeout=30_000)
-            assert field.input_value() == "0.286"      # 0.005 rad/√s, not a log10
-            field.hover()                                # viser's tooltip wraps the input
-            tip = frame.get_by_text("Unit: deg/√s", exact=False).first
-            tip.wait_for(state="visible", timeout=10_000)
-            text = tip.inner_text()
-            assert text.startswith("Gyroscope noise density") and "Raising it trusts the gyroscope less" in text
-            assert "Default from physics: the gyroscope's attitude random walk" in text  # its source
-            frame.get_by_role("button", name="Calibrate gyro bias (last N s at rest)").click()
-            note = frame.get_by_text("Gyroscope bias set").or_(frame.get_by_text("Bias not set"))
-            note.first.wait_for(state="visible", timeout=10_000)
-            # a log with the accelerometer only: no magnetometer plot, the rest draws
-            # (complementary: lab and robust wait for a magnetometer to align)
-            api.patch("/api/params", json={"primary": "complementary"})
-            play(srv, api, log_lines(ACC_ONLY_LOG))
-            got = wait_drawn(page, {"euler": ["pitch", "roll"], "acc": ["|acc|"]},
-                             absent=("mag", "error"))
-            assert "no magnetometer" in got["mag"]["why"]
-        finally:
-            ctx.close()
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, open_plots(srv, tmp_path) as page:
+        frame = viewer_frame(page)
+        # the demo: the phone's own estimate (ORI) and the truth: both error series;
+        # robust's |mag| band (grey) goes out as its two ends and spans the gaps
+        wait_drawn(page, {"euler": ["yaw", "pitch", "roll"],
+                                "error": ["to phone's own", "to truth"],
+                                "acc": ["|acc|"], "mag": ["|mag|", "band lo"],
+                                "nis": ["acc NIS", "mag NIS"]}, timeout=60.0)
+        # the Tuning tab: values in the user's unit with three significant digits,
+        # a hover text with meaning, unit and effect; the bias button answers
+        # (Tuning is the first tab of the control panel: the plots are the page's)
+        field = frame.get_by_label("gyr_noise [deg/√s]", exact=True).first
+        field.wait_for(state="visible", timeout=30_000)
+        assert field.input_value() == "0.286"      # 0.005 rad/√s, not a log10
+        field.hover()                                # viser's tooltip wraps the input
+        tip = frame.get_by_text("Unit: deg/√s", exact=False).first
+        tip.wait_for(state="visible", timeout=10_000)
+        text = tip.inner_text()
+        assert text.startswith("Gyroscope noise density") and "Raising it trusts the gyroscope less" in text
+        assert "Default from physics: the gyroscope's attitude random walk" in text  # its source
+        frame.get_by_role("button", name="Calibrate gyro bias (last N s at rest)").click()
+        note = frame.get_by_text("Gyroscope bias set").or_(frame.get_by_text("Bias not set"))
+        note.first.wait_for(state="visible", timeout=10_000)
+        # a log with the accelerometer only: no magnetometer plot, the rest draws
+        # (complementary: lab and robust wait for a magnetometer to align)
+        api.patch("/api/params", json={"primary": "complementary"})
+        play(srv, api, log_lines(ACC_ONLY_LOG))
+        got = wait_drawn(page, {"euler": ["pitch", "roll"], "acc": ["|acc|"]},
+                         absent=("mag", "error"))
+        assert "no magnetometer" in got["mag"]["why"]

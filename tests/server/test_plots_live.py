@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, log_lines, play_paced, running_server
+from harness import ARTIFACTS, CHROMIUM, chromium_page, log_lines, play_paced, running_server
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 FULL_LOG = (SHARED / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
@@ -64,37 +64,30 @@ STATE_JS = """() => Object.fromEntries(Object.entries(window.orientlabPlots.char
 def test_live_plots_redraw_10_times_a_second_in_the_same_canvas(tmp_path):
     if not FULL_LOG.is_file():
         pytest.skip(f"{FULL_LOG} not present")
-    sync_api = pytest.importorskip("playwright.sync_api")
+    pytest.importorskip("playwright.sync_api")
     lines = log_lines(FULL_LOG)          # 16.7 s of a walk: acc, gyr, mag; no ORI, no truth
-    with running_server(source="none", preset_dir=tmp_path) as srv, sync_api.sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"), executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 900})
-        stop = threading.Event()
+    stop = threading.Event()
+    with running_server(source="none", preset_dir=tmp_path) as srv:
         phone = threading.Thread(target=play_paced, args=(srv.phone_port, lines, stop), daemon=True)
         try:
-            page = ctx.new_page()
-            page.goto(srv.url + "/")
-            page.frame_locator("iframe#viewer").locator("canvas").first.wait_for(
-                state="visible", timeout=60_000)
-            phone.start()
-            # the Plots tab comes up by itself once a stream is on
-            page.locator("#panel-plots").wait_for(state="visible", timeout=30_000)
-            page.wait_for_function("window.orientlabPlots.charts.acc.u.data[0].length > 40",
-                                   timeout=30_000)
-            page.mouse.move(5, 895)                     # not over a chart: no hover
-            got = page.evaluate(MEASURE_JS, 3000)
-            seconds = got["ms"] / 1000.0
-            rates = {k: got["changes"][k] / seconds for k in KEYS}
-            print(f"redraws per second: {rates}")
-            assert all(got["same"][k] for k in KEYS), got["same"]          # canvas kept
-            assert min(rates.values()) >= MIN_REDRAWS_PER_S, rates
-            st = page.evaluate(STATE_JS)
-            if ARTIFACTS.is_dir():
-                page.screenshot(path=str(ARTIFACTS / "plots_live.png"))
+            with chromium_page(srv.url + "/", tmp_path / "profile") as (page, _):
+                phone.start()
+                # the Plots tab comes up by itself once a stream is on
+                page.locator("#panel-plots").wait_for(state="visible", timeout=30_000)
+                page.wait_for_function("window.orientlabPlots.charts.acc.u.data[0].length > 40",
+                                       timeout=30_000)
+                page.mouse.move(5, 895)                     # not over a chart: no hover
+                got = page.evaluate(MEASURE_JS, 3000)
+                seconds = got["ms"] / 1000.0
+                rates = {k: got["changes"][k] / seconds for k in KEYS}
+                print(f"redraws per second: {rates}")
+                assert all(got["same"][k] for k in KEYS), got["same"]          # canvas kept
+                assert min(rates.values()) >= MIN_REDRAWS_PER_S, rates
+                st = page.evaluate(STATE_JS)
+                if ARTIFACTS.is_dir():
+                    page.screenshot(path=str(ARTIFACTS / "plots_live.png"))
         finally:
             stop.set()
-            ctx.close()
     # one clock, one window: every chart shows the same x range, which holds its newest x
     ranges = {k: tuple(st[k]["x"]) for k in KEYS}
     assert len({(round(a, 6), round(b, 6)) for a, b in ranges.values()}) == 1, ranges
