@@ -216,23 +216,16 @@ REDRAWS_JS = """(ms) => new Promise((done) => {
 def browser_redraws(seconds: float = 5.0) -> None:
     """The page in headless Chromium (the demo streaming): how often each chart of the
     Plots tab gets new data and is redrawn, and whether its canvas stays the same one."""
-    from harness import CHROMIUM, CHROMIUM_ARGS, running_server
+    from harness import CHROMIUM, chromium_page, running_server
     if CHROMIUM is None:
         print("  redraws          no Chromium: not measured")
         return
     import tempfile
-    from playwright.sync_api import sync_playwright
-    with running_server(source="demo") as srv, sync_playwright() as pw, \
-            tempfile.TemporaryDirectory() as profile:
-        ctx = pw.chromium.launch_persistent_context(
-            profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 900})
-        page = ctx.new_page()
-        page.goto(srv.url + "/")
+    with running_server(source="demo") as srv, tempfile.TemporaryDirectory() as profile, \
+            chromium_page(srv.url + "/", profile, viewer=False) as (page, _):
         page.locator("#panel-plots").wait_for(state="visible", timeout=60_000)
         page.wait_for_timeout(3000)
         got = page.evaluate(REDRAWS_JS, seconds * 1000)
-        ctx.close()
     rates = {k: v / got["s"] for k, v in got["changes"].items()}
     print("  redraws (Chromium, 1600x900, the demo) per chart per second: "
           + ", ".join(f"{k} {v:.1f}" for k, v in rates.items())

@@ -22,7 +22,7 @@ import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "tests" / "sources")]
-from harness import CHROMIUM, CHROMIUM_ARGS, running_server, wait_for  # noqa: E402
+from harness import chromium_page, running_server, wait_for  # noqa: E402
 from tyrex_sensorlogger import messages_ios  # noqa: E402
 
 TRIAL = ROOT.parent / "shared" / "data" / "phones-tyrex" / "iPhone5_Guillaume_NoDist_texting.npz"
@@ -30,11 +30,9 @@ TOKEN = "screenshot-token"
 
 
 def main() -> int:
-    from playwright.sync_api import sync_playwright
     bodies = messages_ios(TRIAL, 1.0, standardise=False, seconds=40)
     stop = threading.Event()
-    with running_server(open_access=False, token=TOKEN) as srv, sync_playwright() as pw, \
-            tempfile.TemporaryDirectory() as tmp:
+    with running_server(open_access=False, token=TOKEN) as srv, tempfile.TemporaryDirectory() as tmp:
         def phone():
             with httpx.Client(base_url=srv.url, timeout=10.0) as c:
                 for b in bodies:
@@ -44,20 +42,15 @@ def main() -> int:
                     time.sleep(1.0)
         th = threading.Thread(target=phone, daemon=True)
         th.start()
-        ctx = pw.chromium.launch_persistent_context(
-            tmp, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 900})
         try:
-            page = ctx.new_page()
-            page.goto(f"{srv.url}/?token={TOKEN}")
-            wait_for(lambda: "orientation" in page.locator("#phone-status").inner_text(), 60,
-                     what="the phone's status")
-            time.sleep(6.0)
-            page.locator("aside").screenshot(path=str(ROOT / "docs" / "connect.png"))
-            print("wrote docs/connect.png")
+            with chromium_page(f"{srv.url}/?token={TOKEN}", tmp, viewer=False) as (page, _):
+                wait_for(lambda: "orientation" in page.locator("#phone-status").inner_text(), 60,
+                         what="the phone's status")
+                time.sleep(6.0)
+                page.locator("aside").screenshot(path=str(ROOT / "docs" / "connect.png"))
+                print("wrote docs/connect.png")
         finally:
             stop.set()
-            ctx.close()
     return 0
 
 

@@ -30,7 +30,7 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
-from harness import (CHROMIUM, CHROMIUM_ARGS, click, hide_notices, running_server,  # noqa: E402
+from harness import (chromium_page, click, hide_notices, running_server,  # noqa: E402
                      wait_for)
 
 STILL = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
@@ -49,7 +49,6 @@ def demo_log(path: Path, seconds: float) -> None:
 
 
 def main() -> int:
-    from playwright.sync_api import sync_playwright
     out = ROOT / "docs"
     with tempfile.TemporaryDirectory() as d:
         rec = Path(d) / "recordings"
@@ -57,14 +56,9 @@ def main() -> int:
         shutil.copy(STILL, rec / "still_phone.txt")
         demo_log(rec / "demo_minute.txt", 60.0)
         with running_server(source="demo", recordings=rec, preset_dir=Path(d)) as srv, \
-                httpx.Client(base_url=srv.url, timeout=120.0) as api, sync_playwright() as pw:
-            ctx = pw.chromium.launch_persistent_context(
-                str(Path(d) / "profile"), executable_path=CHROMIUM, headless=True,
-                args=CHROMIUM_ARGS, viewport={"width": 1600, "height": 1000})
-            page = ctx.new_page()
-            page.goto(srv.url + "/")
-            frame = page.frame_locator("iframe#viewer")
-            frame.locator("canvas").first.wait_for(state="visible", timeout=120_000)
+                httpx.Client(base_url=srv.url, timeout=120.0) as api, \
+                chromium_page(srv.url + "/", Path(d) / "profile", (1600, 1000),
+                              timeout_ms=120_000) as (page, frame):
             hide_notices(page.frames[1] if len(page.frames) > 1 else page.main_frame)
             click(page, frame.get_by_role("tab", name="Lab"))
             # 1. calibration of the real still phone, replayed
@@ -85,7 +79,7 @@ def main() -> int:
             click(page, frame.get_by_role("button", name="Bring a magnet"))
             # the page says the magnet is on (it lags the server on a busy machine): 4 of
             # its 5 s in the heading plot
-            frame.get_by_text("active: magnet").first.wait_for(state="visible", timeout=120_000)
+            frame.get_by_text("of at most").first.wait_for(state="visible", timeout=120_000)
             page.wait_for_timeout(4000)
             frame.get_by_text("Record", exact=True).first.scroll_into_view_if_needed(timeout=20_000)
             page.screenshot(path=str(out / "lab_magnet.png"))
@@ -111,7 +105,6 @@ def main() -> int:
             frame.get_by_text("Variants", exact=True).first.scroll_into_view_if_needed(timeout=20_000)
             page.screenshot(path=str(out / "lab_whatif.png"))
             click(page, frame.get_by_text("What-if (re-run a recording)"))
-            ctx.close()
     print("wrote docs/lab_magnet.png, docs/lab_whatif.png, docs/lab_calibration.png")
     return 0
 

@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "docs"))
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
-from harness import CHROMIUM, CHROMIUM_ARGS, hide_notices, log_lines, play_paced, running_server  # noqa: E402
+from harness import (CHROMIUM, chromium_page, hide_notices, log_lines, play_paced,  # noqa: E402
+                     running_server)
 from make_screenshot import DEFAULT_LOG  # noqa: E402
 
 SIZES = ((1600, 900), (1280, 720))
@@ -36,15 +37,7 @@ SIZES = ((1600, 900), (1280, 720))
 def shoot(url: str, out: Path, size: tuple[int, int], seconds: float, start=None) -> None:
     """Open the page at ``size``, call ``start()`` (if given) once it shows, wait
     ``seconds`` of streaming, take the picture."""
-    from playwright.sync_api import sync_playwright
-    with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
-        ctx = pw.chromium.launch_persistent_context(
-            profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": size[0], "height": size[1]})
-        page = ctx.new_page()
-        page.goto(url)
-        page.frame_locator("iframe#viewer").locator("canvas").first.wait_for(
-            state="visible", timeout=60_000)
+    with tempfile.TemporaryDirectory() as profile, chromium_page(url, profile, size) as (page, _):
         if start is not None:
             start()
         page.wait_for_timeout(seconds * 1000)
@@ -53,7 +46,6 @@ def shoot(url: str, out: Path, size: tuple[int, int], seconds: float, start=None
         page.wait_for_timeout(1000)
         page.screenshot(path=str(out))
         print(f"saved {out}")
-        ctx.close()
 
 
 def main(argv=None) -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))  # the test harness (tests/harness.py)
-from harness import (CHROMIUM, CHROMIUM_ARGS, hide_notices, log_lines, play_paced,  # noqa: E402
+from harness import (chromium_page, hide_notices, log_lines, play_paced,  # noqa: E402
                      running_server)
 
 DEFAULT_LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
@@ -33,15 +33,7 @@ DEFAULT_LOG = (ROOT.parent / "shared" / "data" / "sensorfusion-app" / "alekodu_a
 
 def shoot(url: str, out_main: Path, seconds: float, start=None) -> None:
     """Open the page, call ``start()`` (if given) once it shows, wait ``seconds``, shoot."""
-    from playwright.sync_api import sync_playwright
-    with sync_playwright() as pw, tempfile.TemporaryDirectory() as profile:
-        ctx = pw.chromium.launch_persistent_context(
-            profile, executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS,
-            viewport={"width": 1600, "height": 900})
-        page = ctx.new_page()
-        page.goto(url)
-        frame = page.frame_locator("iframe#viewer")
-        frame.locator("canvas").first.wait_for(state="visible", timeout=60_000)
+    with tempfile.TemporaryDirectory() as profile, chromium_page(url, profile) as (page, _):
         if start is not None:
             start()
         page.wait_for_timeout(seconds * 1000)
@@ -50,7 +42,6 @@ def shoot(url: str, out_main: Path, seconds: float, start=None) -> None:
         page.wait_for_timeout(1500)
         page.screenshot(path=str(out_main))
         print(f"saved {out_main}")
-        ctx.close()
 
 
 def main(argv=None) -> int:
