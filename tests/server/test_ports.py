@@ -77,6 +77,8 @@ def test_the_tests_ports_are_free_distinct_and_below_the_ephemeral_range():
     from harness import _ephemeral_low, free_ports
 
     lo = _ephemeral_low()
+    if lo - 1024 < 1000:
+        pytest.skip(f"the ephemeral range starts at {lo}: no room below it, the system chooses")
     for _ in range(20):
         ports = free_ports(3)
         assert len(set(ports)) == 3
