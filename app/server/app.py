@@ -129,6 +129,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
             st.toolkit = Toolkit.build(engine, settings, config, st.tasks)   # the lab's tools
             st.gui.injections = st.toolkit.injection.injected_spans   # marked in the Plots panel
+            st.gui.background = lambda: (t := st.tasks.get("source")) is not None and not t.done()
             # the Lab tab; the variants' ghosts join the 3D scene
             st.toolkit_tab = ToolkitTab(st.viewer.gui, st.gui.tabs, st.toolkit, loop, server=st.viewer)
             st.tasks["toolkit_tab"] = asyncio.create_task(run_toolkit_tab(st.toolkit_tab), name="toolkit_tab")

@@ -355,6 +355,29 @@ def test_replay_source(tmp_path):
         assert st["source"] == "replay" and "sensorLog_test.txt" in st["status"]
 
 
+def test_resume_offers_a_replay_started_from_the_page_and_nothing_without_one(tmp_path):
+    """With ``--source none`` there is nothing to resume after a phone; a log replayed from
+    the page (POST /api/replay) is a background source like the demo: once a phone has
+    taken over and left, "Resume demo" offers it again."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "lesson.txt").write_text("\n".join(simulate(("still",), seed=4).lines()) + "\n")
+    lines = simulate(("still",), seed=5).lines()
+    with running_server(source="none", preset_dir=tmp_path, recordings=rec) as s, \
+            httpx.Client(base_url=s.url, timeout=30.0) as api:
+        gui = s.app.state.gui
+        play(s, api, lines)
+        gui.refresh_text()
+        assert gui.resume.visible is False        # no demo, no replay: nothing to resume
+        api.post("/api/replay", json={"name": "lesson"}).raise_for_status()
+        wait_for(lambda: api.get("/api/state").json()["source"] == "replay", what="the replay")
+        play(s, api, lines)
+        gui.refresh_text()
+        assert gui.resume.visible is True         # the replay waits behind the phone that left
+        api.post("/api/source/resume")
+        wait_for(lambda: api.get("/api/state").json()["source"] == "replay", what="the replay again")
+
+
 def test_busy_port_is_reported():
     from app.server.run import serve
     import socket

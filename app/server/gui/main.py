@@ -108,6 +108,9 @@ class Gui:
         # (kind, start_s, end_s) of the disturbances injected into a stream (the lab's
         # InjectionService.injected_spans, set in the lifespan): drawn over |acc| and |mag|
         self.injections: Callable[[Any], list[tuple[str, float, float]]] | None = None
+        # whether a background source (the demo, a log replay) runs as a task now (set in the
+        # lifespan, which owns the tasks): "Resume demo" resumes that task, and nothing else
+        self.background: Callable[[], bool] = lambda: False
         self.feed = PlotFeed(engine.core, settings.history_s,
                              injections=lambda s: self.injections(s) if self.injections else [])
         engine.plot_feed = self.feed
@@ -408,12 +411,13 @@ class Gui:
         line and the read-outs (from the API's state: the costlier part)."""
         ind = self.indications()
         self.indicators_now = ind
-        # "Resume demo": only while a demo or replay is paused and no phone streams now
+        # "Resume demo": only while a background source (demo, replay) waits, paused, and no
+        # phone streams now
         eng = self.engine
         paused = eng.background_allowed is not None and not eng.background_allowed.is_set()
-        background = self.settings.source != "none" and self.settings.phyphox_url is None
-        if self.resume.visible != (background and paused and eng.core.source_kind() != "phone"):
-            self.resume.visible = not self.resume.visible
+        waiting = self.background() and paused and eng.core.source_kind() != "phone"
+        if self.resume.visible != waiting:
+            self.resume.visible = waiting
         self.indicators.content = _indicators_html(ind)
         self.scene.set_indicators(ind)
         if not readouts:
