@@ -1,17 +1,18 @@
-"""The program on Python 3.10, the oldest interpreter ``pyproject.toml`` admits
-(``requires-python = ">=3.10"``; Ubuntu 22.04's python3, common on lab PCs).
+"""The program on each Python the README names (3.10–3.13) besides the one the suite runs on:
+3.10 is the oldest ``pyproject.toml`` admits (``requires-python = ">=3.10"``; Ubuntu 22.04's
+python3, common on lab PCs), 3.12 is Ubuntu 24.04's, 3.13 the newest numba supports.
 
-A bare ``pip install -e .`` (no test extras) into a 3.10 venv, then (a) every module of
-``app`` imports there and (b) ``orientlab serve --source none`` starts, answers
-``GET /api/health`` and stops on SIGINT with exit 0 and no traceback. The first version
-imported ``tomllib`` (3.11+) unguarded in ``app/server/presets.py``: serve died at
-start-up with ``ModuleNotFoundError: No module named 'tomllib'``.
+For each, a bare ``pip install -e .`` (no test extras) into a venv of that interpreter, then
+(a) every module of ``app`` imports there and (b) ``orientlab serve --source none`` starts,
+answers ``GET /api/health`` and stops on SIGINT with exit 0 and no traceback. The first
+version imported ``tomllib`` (3.11+) unguarded in ``app/server/presets.py``: serve died at
+start-up on 3.10 with ``ModuleNotFoundError: No module named 'tomllib'``.
 
-Skipped when no ``/root/.pyenv/versions/3.10.*/bin/python`` exists or when
-``ORIENTLAB_SKIP_PY310=1``. The venv is the cached bare one of ``tests/venvs.py`` (``pip
-install -e .`` only) made from that interpreter. ``NUMBA_DISABLE_JIT=1``: nothing is compiled
-(import and start-up are what is checked here; the filters' compilation is
-tests/test_install.py's business).
+Each version is skipped when no ``/root/.pyenv/versions/<version>.*/bin/python`` exists; all
+are skipped with ``ORIENTLAB_SKIP_PYTHONS=1``. The venv is the cached bare one of
+``tests/venvs.py`` (``pip install -e .`` only) made from that interpreter.
+``NUMBA_DISABLE_JIT=1``: nothing is compiled (import and start-up are what is checked here;
+the filters' compilation is tests/test_install.py's business, on the suite's own Python).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import glob
 import json
 import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -32,32 +34,37 @@ from venvs import REPO, bare_venv, clean_env, http_get, python_version, run, sto
 START_S = 120.0       # serve without JIT starts in a few seconds
 
 
-def _py310() -> str | None:
-    found = sorted(glob.glob("/root/.pyenv/versions/3.10.*/bin/python"))
+CLAIMED = ("3.10", "3.11", "3.12", "3.13")            # the README's "Python 3.10–3.13"
+OWN = "%d.%d" % sys.version_info[:2]                   # the suite itself runs on this one
+VERSIONS = tuple(v for v in CLAIMED if v != OWN)
+
+
+def _python(version: str) -> str | None:
+    found = sorted(glob.glob(f"/root/.pyenv/versions/{version}.*/bin/python"),
+                   key=lambda p: [int(x) for x in p.split("/")[-3].split(".")])
     return found[-1] if found else None
 
 
-PY310 = _py310()
-
-pytestmark = [
-    pytest.mark.skipif(os.environ.get("ORIENTLAB_SKIP_PY310") == "1",
-                       reason="ORIENTLAB_SKIP_PY310=1"),
-    pytest.mark.skipif(PY310 is None, reason="no /root/.pyenv/versions/3.10.*/bin/python"),
-]
+pytestmark = pytest.mark.skipif(os.environ.get("ORIENTLAB_SKIP_PYTHONS") == "1",
+                                reason="ORIENTLAB_SKIP_PYTHONS=1")
 
 
-@pytest.fixture(scope="module")
-def venv310(tmp_path_factory):
-    assert python_version(PY310).startswith("3.10."), PY310
-    work = tmp_path_factory.mktemp("py310")
-    with bare_venv(PY310, "py310", work) as venv:
-        yield venv, clean_env(venv, jit=False), work
+@pytest.fixture(scope="module", params=VERSIONS)
+def venv_of(request, tmp_path_factory):
+    version = request.param
+    python = _python(version)
+    if python is None:
+        pytest.skip(f"no /root/.pyenv/versions/{version}.*/bin/python")
+    assert python_version(python).startswith(version + "."), python
+    work = tmp_path_factory.mktemp("py" + version.replace(".", ""))
+    with bare_venv(python, "py" + version.replace(".", ""), work) as venv:
+        yield version, venv, clean_env(venv, jit=False), work
 
 
 IMPORT_ALL = r"""
 import importlib, json, pathlib, sys, traceback
 import app
-assert sys.version_info[:2] == (3, 10), sys.version
+assert "%d.%d" % sys.version_info[:2] == sys.argv[1], sys.version
 roots = [pathlib.Path(p) for p in app.__path__ if pathlib.Path(p).is_dir()]   # a namespace package
 names = sorted({".".join(("app",) + f.relative_to(r).with_suffix("").parts).removesuffix(".__init__")
                 for r in roots for f in r.rglob("*.py") if "__pycache__" not in f.parts})
@@ -71,9 +78,9 @@ print(json.dumps({"roots": [str(r) for r in roots], "seen": names, "bad": bad}))
 """
 
 
-def test_every_module_of_app_imports_on_310(venv310):
-    venv, env, work = venv310
-    r = run([venv / "bin" / "python", "-c", IMPORT_ALL], env, work, 300)
+def test_every_module_of_app_imports(venv_of):
+    version, venv, env, work = venv_of
+    r = run([venv / "bin" / "python", "-c", IMPORT_ALL, version], env, work, 300)
     out = json.loads(r.stdout.strip().splitlines()[-1])
     # the checkout under test, not some other install
     assert [Path(r).resolve() for r in out["roots"]] == [(REPO / "app").resolve()], out["roots"]
@@ -82,8 +89,8 @@ def test_every_module_of_app_imports_on_310(venv310):
     assert not out["bad"], "\n".join(f"{k}:\n{v}" for k, v in out["bad"].items())
 
 
-def test_serve_starts_answers_health_and_stops_on_sigint_on_310(venv310, tmp_path):
-    venv, env, _ = venv310
+def test_serve_starts_answers_health_and_stops_on_sigint(venv_of, tmp_path):
+    version, venv, env, _ = venv_of
     port, viewer, phone = free_ports(3)
     out, err = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
     with open(out, "w") as fo, open(err, "w") as fe:
@@ -98,7 +105,7 @@ def test_serve_starts_answers_health_and_stops_on_sigint_on_310(venv310, tmp_pat
         health = None
         while health is None:
             if proc.poll() is not None:
-                raise AssertionError(f"serve exited {proc.returncode} on 3.10:\n"
+                raise AssertionError(f"serve exited {proc.returncode} on {version}:\n"
                                      f"{err.read_text()[-5000:]}")
             if time.monotonic() > deadline:
                 raise AssertionError(f"/api/health never answered:\n{err.read_text()[-5000:]}")
