@@ -1,7 +1,8 @@
 """Clean environments for the tests that run the program as a user installs it: a venv that
 only ever receives ``pip install -e .`` (no extras), on this interpreter
-(``tests/test_install.py``) or on each other Python the README names (``tests/server/test_pythons.py``); and what those
-tests share: running a child, reading a URL, stopping a server with SIGINT.
+(``tests/test_install.py``) or on each other Python the README names
+(``tests/server/test_pythons.py``); and what those tests share: running a child, reading a
+URL, stopping a server with SIGINT.
 
 A venv is reused between runs only under a key made of the interpreter's version and
 pyproject's dependency and build tables, so a reused venv holds exactly what a fresh one would
