@@ -29,6 +29,11 @@ class ParamError(ValueError):
         self.field = field_name
         self.reason = reason
 
+    def __reduce__(self):
+        # rebuilt from its two arguments, not from the message: it crosses a process pool
+        # (the benchmarks run trials in worker processes) with its text intact
+        return type(self), (self.field, self.reason)
+
 
 def param(default, *, unit: str = "", lo: float | None = None, hi: float | None = None,
       doc: str = "", user_unit: str | None = None, user_scale: float = 1.0,

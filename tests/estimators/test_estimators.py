@@ -596,6 +596,21 @@ def test_invalid_parameters_are_refused_naming_the_field(name):
     assert est.params_dict() == before
 
 
+def _robust_with(params):
+    return make_estimator("robust", params).params_dict()
+
+
+def test_a_refusal_in_a_worker_process_reaches_the_caller_whole():
+    """The benchmarks run trials in worker processes: a refused ``--set`` must come back
+    as the same ParamError (field and reason), not as a broken pool."""
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(1) as pool:
+        with pytest.raises(ParamError) as e:
+            pool.submit(_robust_with, {"max_gap": -1.0}).result(timeout=120)
+    assert e.value.field == "max_gap" and "minimum" in e.value.reason
+    assert str(e.value).startswith("max_gap: ")
+
+
 # ------------------------------------------------------------------ compiled vs reference
 
 _REFERENCE_SCRIPT = r"""
