@@ -8,9 +8,10 @@ answers ``GET /api/health`` and stops on SIGINT with exit 0 and no traceback. Th
 version imported ``tomllib`` (3.11+) unguarded in ``app/server/presets.py``: serve died at
 start-up on 3.10 with ``ModuleNotFoundError: No module named 'tomllib'``.
 
-Each version is skipped when no ``/root/.pyenv/versions/<version>.*/bin/python`` exists; all
-are skipped with ``ORIENTLAB_SKIP_PYTHONS=1``. The venv is the cached bare one of
-``tests/venvs.py`` (``pip install -e .`` only) made from that interpreter.
+Each version is skipped when no ``$PYENV_ROOT/versions/<version>.*/bin/python`` exists
+(pyenv's root, ``~/.pyenv`` by default); all are skipped with ``ORIENTLAB_SKIP_PYTHONS=1``.
+The venv is the cached bare one of ``tests/venvs.py`` (``pip install -e .`` only) made from
+that interpreter.
 ``NUMBA_DISABLE_JIT=1``: nothing is compiled (import and start-up are what is checked here;
 the filters' compilation is tests/test_install.py's business, on the suite's own Python).
 """
@@ -39,8 +40,11 @@ OWN = "%d.%d" % sys.version_info[:2]                   # the suite itself runs o
 VERSIONS = tuple(v for v in CLAIMED if v != OWN)
 
 
+PYENV = os.environ.get("PYENV_ROOT") or os.path.expanduser("~/.pyenv")
+
+
 def _python(version: str) -> str | None:
-    found = sorted(glob.glob(f"/root/.pyenv/versions/{version}.*/bin/python"),
+    found = sorted(glob.glob(f"{PYENV}/versions/{version}.*/bin/python"),
                    key=lambda p: [int(x) for x in p.split("/")[-3].split(".")])
     return found[-1] if found else None
 
@@ -54,7 +58,7 @@ def venv_of(request, tmp_path_factory):
     version = request.param
     python = _python(version)
     if python is None:
-        pytest.skip(f"no /root/.pyenv/versions/{version}.*/bin/python")
+        pytest.skip(f"no {PYENV}/versions/{version}.*/bin/python")
     assert python_version(python).startswith(version + "."), python
     work = tmp_path_factory.mktemp("py" + version.replace(".", ""))
     with bare_venv(python, "py" + version.replace(".", ""), work) as venv:
