@@ -14,7 +14,6 @@ itself, never loaded from a cache that a fuller environment wrote.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import math
@@ -28,7 +27,7 @@ import pytest
 
 from app.estimators import NAMES
 from harness import free_ports
-from venvs import REPO, bare_venv, clean_env, http_get, run, stop_with_sigint
+from venvs import REPO, bare_venv, clean_env, http_get, run, stop_with_sigint, wait_until_answers
 
 SLOW_S = 900.0      # a safety net for a cold compile on a loaded machine, not a timing claim
 
@@ -135,16 +134,7 @@ def test_bare_serve_demo_answers_and_stops_on_sigint(bare, tmp_path):
         stdout=open(tmp_path / "stdout.txt", "w"), stderr=open(tmp_path / "stderr.txt", "w"))
     try:
         deadline = time.monotonic() + SLOW_S
-        page = None
-        while page is None:
-            if proc.poll() is not None:
-                raise AssertionError(f"serve exited {proc.returncode}:\n"
-                                     f"{(tmp_path / 'stderr.txt').read_text()[-5000:]}")
-            if time.monotonic() > deadline:
-                raise AssertionError("the page never answered")
-            with contextlib.suppress(OSError):
-                page = http_get(f"http://127.0.0.1:{port}/")
-            time.sleep(0.2)
+        page = wait_until_answers(proc, f"http://127.0.0.1:{port}/", SLOW_S, tmp_path / "stderr.txt")
         status, body = page
         assert status == 200 and b"<title>orientlab" in body
         # the demo phone streams into the filters: samples are counted

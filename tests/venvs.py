@@ -24,6 +24,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import urllib.request
 from pathlib import Path
 from typing import Iterator
@@ -117,6 +118,21 @@ def bare_venv(python: str, name: str, work: Path) -> Iterator[Path]:
 def http_get(url: str, timeout: float = 5.0) -> tuple[int, bytes]:
     with urllib.request.urlopen(url, timeout=timeout) as resp:
         return resp.status, resp.read()
+
+
+def wait_until_answers(proc: subprocess.Popen, url: str, seconds: float, stderr: Path,
+                       what: str = "serve") -> tuple[int, bytes]:
+    """GET ``url`` until the server child answers it: (status, body). Fails, quoting the end
+    of the child's ``stderr`` file, when the child exits first or ``seconds`` pass."""
+    deadline = time.monotonic() + seconds
+    while True:
+        if proc.poll() is not None:
+            raise AssertionError(f"{what} exited {proc.returncode}:\n{stderr.read_text()[-5000:]}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{url} never answered:\n{stderr.read_text()[-5000:]}")
+        with contextlib.suppress(OSError):
+            return http_get(url)
+        time.sleep(0.2)
 
 
 def stop_with_sigint(proc: subprocess.Popen, timeout: float = 60.0) -> int:

@@ -18,19 +18,18 @@ the filters' compilation is tests/test_install.py's business, on the suite's own
 
 from __future__ import annotations
 
-import contextlib
 import glob
 import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from harness import free_ports
-from venvs import REPO, bare_venv, clean_env, http_get, python_version, run, stop_with_sigint
+from venvs import (REPO, bare_venv, clean_env, python_version, run, stop_with_sigint,
+                   wait_until_answers)
 
 START_S = 120.0       # serve without JIT starts in a few seconds
 
@@ -105,17 +104,8 @@ def test_serve_starts_answers_health_and_stops_on_sigint(venv_of, tmp_path):
              "--recordings", str(tmp_path / "recordings")],
             env=env, cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=fo, stderr=fe)
     try:
-        deadline = time.monotonic() + START_S
-        health = None
-        while health is None:
-            if proc.poll() is not None:
-                raise AssertionError(f"serve exited {proc.returncode} on {version}:\n"
-                                     f"{err.read_text()[-5000:]}")
-            if time.monotonic() > deadline:
-                raise AssertionError(f"/api/health never answered:\n{err.read_text()[-5000:]}")
-            with contextlib.suppress(OSError):
-                health = http_get(f"http://127.0.0.1:{port}/api/health")
-            time.sleep(0.2)
+        health = wait_until_answers(proc, f"http://127.0.0.1:{port}/api/health", START_S, err,
+                                    what=f"serve on {version}")
         status, body = health
         assert status == 200, body
         assert json.loads(body)["status"] == "ok", body
