@@ -246,6 +246,11 @@ class Engine:
     def pause_background(self) -> None:
         self.background_allowed.clear()
 
+    @property
+    def background_paused(self) -> bool:
+        """A phone has paused the demo (or log replay), and no one has resumed it yet."""
+        return self.background_allowed is not None and not self.background_allowed.is_set()
+
     def resume_background(self) -> None:
         """Let the demo (or log replay) run again after a phone has left."""
         if self.loop is not None:

@@ -413,9 +413,8 @@ class Gui:
         self.indicators_now = ind
         # "Resume demo": only while a background source (demo, replay) waits, paused, and no
         # phone streams now
-        eng = self.engine
-        paused = eng.background_allowed is not None and not eng.background_allowed.is_set()
-        waiting = self.background() and paused and eng.core.source_kind() != "phone"
+        waiting = (self.background() and self.engine.background_paused
+                   and self.engine.core.source_kind() != "phone")
         if self.resume.visible != waiting:
             self.resume.visible = waiting
         self.indicators.content = _indicators_html(ind)
