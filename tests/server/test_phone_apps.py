@@ -215,11 +215,9 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
                 assert out.stdout.strip() == text, (app, out.stdout, out.stderr)
             page.locator('.apps [data-app="sensorlogger"]').click()
             assert want["sensor_logger"]["url"] in page.locator("#app-sensorlogger").inner_text()
-            # a student's page (no token): no addresses, no codes
-            ctx = page.context
-            student = ctx.browser.new_context() if ctx.browser else None
-            page2 = (student or ctx).new_page()
-            ctx.clear_cookies()
+            # a student's page (no token, no cookie): no addresses, no codes
+            page.context.clear_cookies()
+            page2 = page.context.new_page()
             page2.goto(srv.url + "/")
             page2.locator("#watch-note").wait_for(state="visible", timeout=30_000)
             assert page2.locator("#presenter-connect").is_hidden()
