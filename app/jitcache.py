@@ -4,11 +4,11 @@
 estimators): cached on disk, and with numpy's error model. Under numba's default (Python's)
 error model every float division checks its divisor and may raise ZeroDivisionError; that
 check keeps the compiler from moving work out of the per-sample path: the robust filter's
-batch speed went from 0.97-0.98 M to 0.99-1.02 M samples/s with numpy's (``benchmarks/throughput.py``,
-``docs/performance.md``). The kernels guard their
-divisions themselves (a strength, a time step, a variance is bounded away from zero before
-it divides), so the estimates are the same to the bit; a division the guards miss gives
-inf or NaN, as numpy does, instead of an exception.
+batch speed went from 0.97-0.98 M to 0.99-1.02 M samples/s with numpy's
+(``benchmarks/throughput.py``, ``docs/performance.md``). The kernels guard their divisions
+themselves (a strength, a time step, a variance is bounded away from zero before it
+divides), so the estimates are the same to the bit; a division the guards miss gives inf or
+NaN, as numpy does, instead of an exception.
 
 numba checks a cached function against its *own* file only. A compiled function that
 calls one from another file (``robust_run`` calls ``base.align_step``,
