@@ -1,0 +1,139 @@
+"""Which north BROAD's truth points at, and how much of the sensitivity of the heading's
+parameters on BROAD is that north.
+
+BROAD's ground truth "already points at magnetic north" (its README): its heading was aligned
+with the magnetometer. This script shows where that north is, trial by trial, and what it does
+to the sensitivity table of ``ablation.py``:
+
+1. **The field's azimuth in the truth's frame** (the field turned into the world by the truth,
+   ``atan2(east, north)``, median), at the rest before the movement and during the movement that
+   is scored, with the field's strength in both. A field that is the same in both places has the
+   same azimuth; where the IMU is carried from its rest into another field, the two differ.
+2. **robust's and VQF's total RMSE** with BROAD's metric, and with each trial's constant heading
+   offset removed (the truth turned about the vertical by the mean signed heading error of that
+   estimate on that trial: the error of the heading's changes, not of its north).
+3. **The ×0.5 / ×2 sensitivity** of the defaults ``ablation.py`` names on BROAD (and of
+   ``heading_noise``, the other side of the heading's time constant) under both metrics, with
+   ablation.py's rule (both sides cost more than ``SHARP`` of the defaults' mean).
+
+Data: BROAD (Laidig, Caruso, Cereatti, Seel, Data 6(7):72, 2021, CC-BY-4.0), read from
+``../shared/data/broad`` (skipped when absent).
+
+Usage: ``python benchmarks/truth_north.py`` (about a minute on 2 cores).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from ablation import SHARP  # noqa: E402
+from accuracy_phones import BROAD  # noqa: E402
+from app.estimators import make_estimator  # noqa: E402
+from app.quaternion import error_angles, quat_conj_many, quat_mul_many  # noqa: E402
+from evalkit import pool, trials  # noqa: E402
+
+DEG = 180.0 / np.pi
+REST_S = 10.0       # s of the rest before the movement whose field is "the rest's"
+PARAMS = ("gyr_noise", "mag_dev_weight", "heading_noise")
+
+
+def _world_field(q: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``Q(q) m`` row by row (sensor to world)."""
+    w, x, y, z = q.T
+    r = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+    return np.einsum("nij,nj->ni", r, m)
+
+
+def field_north(trial: dict) -> tuple[float, float, float, float]:
+    """(azimuth at rest, azimuth in motion, strength at rest, strength in motion): degrees
+    east of the truth's north, µT; medians."""
+    q, mag, moving = trial["ref"], trial["mag"], trial["mask"]
+    known = np.all(np.isfinite(q), 1) & np.all(np.isfinite(mag), 1)
+    first_move = int(np.argmax(moving)) if moving.any() else len(q)
+    rest = known & (np.arange(len(q)) < first_move) & \
+        (np.arange(len(q)) >= first_move - int(REST_S * trial["fs"]))
+    move = known & moving
+    mw = _world_field(np.where(known[:, None], q, [1.0, 0.0, 0.0, 0.0]), mag)
+    az = np.arctan2(mw[:, 0], mw[:, 1]) * DEG
+    n = np.linalg.norm(mag, axis=1)
+    return (float(np.median(az[rest])), float(np.median(az[move])),
+            float(np.median(n[rest])), float(np.median(n[move])))
+
+
+def both_errors(q: np.ndarray, trial: dict) -> tuple[float, float]:
+    """Total RMSE (degrees) with BROAD's metric, and with the trial's constant heading
+    offset removed."""
+    ref = trial["ref"]
+    m = trial["mask"] & np.all(np.isfinite(ref), 1) & np.all(np.isfinite(q), 1)
+    q, ref = q[m], ref[m]
+    e = quat_mul_many(q, quat_conj_many(ref))
+    s = np.where(e[:, 0] < 0, -1.0, 1.0)
+    h = 2.0 * np.arctan2(e[:, 3] * s, e[:, 0] * s)           # signed heading error
+    d = float(np.angle(np.mean(np.exp(1j * h))))
+    rz = np.tile([np.cos(d / 2), 0.0, 0.0, np.sin(d / 2)], (len(ref), 1))
+    rmse = lambda x: float(np.sqrt(np.mean(x ** 2)) * DEG)  # noqa: E731
+    return rmse(error_angles(q, ref)[0]), rmse(error_angles(q, quat_mul_many(rz, ref))[0])
+
+
+def _run(args) -> tuple[float, float]:
+    i, method, params = args
+    tr = trials("broad")[i]
+    if method == "VQF":
+        from vqf import VQF
+        v = VQF(1.0 / tr["fs"])
+        q = v.updateBatch(*(np.ascontiguousarray(tr[k]) for k in ("gyr", "acc", "mag")))["quat9D"]
+    else:
+        q = make_estimator(method, params).run(tr["t"], tr["gyr"], tr["acc"], tr["mag"]).q
+    return both_errors(q, tr)
+
+
+def run(method: str, params: dict | None = None) -> np.ndarray:
+    """(n, 2): per trial, BROAD's total RMSE and the offset-free one."""
+    tasks = [(i, method, params) for i in range(len(trials("broad")))]
+    return np.array(list(pool().map(_run, tasks, chunksize=1)))
+
+
+def main() -> int:
+    if not BROAD.is_dir():
+        print(f"skipped: {BROAD} is absent")
+        return 0
+    from app.estimators.robust import RobustParams
+    defaults = RobustParams()
+    rob, vqf = run("robust"), run("VQF")
+    print("1. The field's azimuth in the truth's frame (° east of its north) and strength (µT),")
+    print(f"   the last {REST_S:.0f} s of the rest before the movement, and during the movement\n")
+    print(f"{'trial':<46}{'rest':>7}{'moving':>8}{'Δ':>7}{'|m| rest':>10}{'moving':>8}"
+          f"   robust: BROAD / offset-free")
+    for tr, (a, b) in zip(trials("broad"), rob):
+        ar, am, nr, nm = field_north(tr)
+        print(f"{tr['name']:<46}{ar:+7.1f}{am:+8.1f}{am - ar:+7.1f}{nr:10.1f}{nm:8.1f}   {a:6.2f} / {b:.2f}")
+    print("\n2. Total RMSE, mean of the 17 trials: BROAD's metric / each trial's constant heading "
+          "offset removed")
+    print(f"   robust {rob[:, 0].mean():.3f} / {rob[:, 1].mean():.3f}   "
+          f"VQF {vqf[:, 0].mean():.3f} / {vqf[:, 1].mean():.3f}")
+    print(f"\n3. ×0.5 / ×2, change of the mean; at a sharp optimum when both sides cost more than "
+          f"{SHARP:.0%} of the defaults' mean (BROAD's metric: {SHARP * rob[:, 0].mean():.3f}, "
+          f"offset-free: {SHARP * rob[:, 1].mean():.3f})")
+    for name in PARAMS:
+        v = getattr(defaults, name)
+        lo, hi = run("robust", {name: v * 0.5}), run("robust", {name: v * 2.0})
+        cells = []
+        for col, label in ((0, "BROAD"), (1, "offset-free")):
+            a, b = lo[:, col].mean() - rob[:, col].mean(), hi[:, col].mean() - rob[:, col].mean()
+            sharp = min(a, b) > SHARP * rob[:, col].mean()
+            cells.append(f"{label} {a:+.3f} / {b:+.3f}{' (sharp)' if sharp else ''}")
+        print(f"   {name:<16} {v:<9g} " + "   ".join(cells))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
