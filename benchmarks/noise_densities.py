@@ -16,6 +16,10 @@ truth, without the filter and without its error metric:
 - **magnetometer** (``heading_noise``, rad·√s): the field turned into the world by the truth
   (``mag_delay`` removed as the filter does), its heading less the trial's mean heading,
   averaged over T; RMS × √T.
+- **the field's strength** (``mag_norm_gate_rel``): the strength low-passed as the strength gate
+  sees it (``mag_norm_dip_tau``), its relative deviation from the trial's median over the
+  moving part; the 95th and 99th percentiles per trial (median over the group's trials, and the
+  largest): how far an undisturbed field swings, which a strength gate must let through.
 
 For a white noise the figures are the same at every T. Below the truth's own noise (a short T)
 they are too high; a bias (the gyroscope's left over, a field bent in one place) makes them grow
@@ -112,6 +116,22 @@ def tilt_and_heading(tr: dict, T: float, mag_delay: float) -> tuple[np.ndarray, 
     return _window_means(tilt, ok, n), _window_means(dh, ok, n)
 
 
+def strength_swing(tr: dict, tau: float) -> tuple[float, float]:
+    """95th and 99th percentiles of |strength / median - 1| over the trial's moving part, the
+    strength low-passed over ``tau`` (the gate's ``mag_norm_dip_tau``)."""
+    ok = tr["mask"] & np.all(np.isfinite(tr["mag"]), axis=1)
+    n = np.linalg.norm(tr["mag"][ok], axis=1)
+    t = tr["t"][ok]
+    lp = np.empty_like(n)
+    acc = n[0]
+    for k in range(len(n)):        # the first-order low-pass the gate applies
+        dt = t[k] - t[k - 1] if k else 0.0
+        acc += (1.0 - np.exp(-dt / tau)) * (n[k] - acc) if tau > 0 else n[k] - acc
+        lp[k] = acc
+    d = np.abs(lp / np.median(n) - 1.0)
+    return float(np.percentile(d, 95)), float(np.percentile(d, 99))
+
+
 def density(x: np.ndarray, T: float, scale_by_root: bool) -> tuple[float, float]:
     """(RMS-based, median-based) density of samples x at time scale T."""
     if x.size == 0:
@@ -126,7 +146,8 @@ def _cells(vals) -> str:
     return "  ".join(f"{a:.4f} ({b:.4f})" for a, b in vals)
 
 
-def report(label: str, trials: list[dict], groups: dict[str, list[int]], mag_delay: float) -> None:
+def report(label: str, trials: list[dict], groups: dict[str, list[int]], mag_delay: float,
+           tau: float) -> None:
     head = "  ".join(f"T={T:>4.0f} s        " for T in SCALES)
     print(f"{label}: RMS-based density (median-based)\n  {'':<34}{head}")
     for name, idx in groups.items():
@@ -146,14 +167,17 @@ def report(label: str, trials: list[dict], groups: dict[str, list[int]], mag_del
               + _cells(density(np.concatenate([a for a, _ in th[T]]).ravel(), T, False) for T in SCALES))
         print(f"    {'field, heading [rad·√s]':<32}"
               + _cells(density(np.concatenate([h for _, h in th[T]]).ravel(), T, False) for T in SCALES))
+        sw = np.array([strength_swing(tr, tau) for tr in sel])
+        print(f"    {'field, strength [rel.]':<32}95 %: {np.median(sw[:, 0]):.3f}  99 %: "
+              f"{np.median(sw[:, 1]):.3f} (median over trials; largest 99 %: {sw[:, 1].max():.3f})")
     print()
 
 
 def main() -> int:
     p = RobustParams()
     print("The filter's defaults: gyr_noise %.4f rad/√s, tilt_noise %.4f rad·√s, heading_noise %.4f rad·√s "
-          "(in a steady field; the field's measured wander and deviation add to it), mag_delay %.4f s\n"
-          % (p.gyr_noise, p.tilt_noise, p.heading_noise, p.mag_delay))
+          "(in a steady field; the field's measured wander and deviation add to it), mag_delay %.4f s, "
+          "mag_norm_gate_rel %.2f\n" % (p.gyr_noise, p.tilt_noise, p.heading_noise, p.mag_delay, p.mag_norm_gate_rel))
     found = False
     if (BROAD / "trials.json").is_file():
         found = True
@@ -162,13 +186,13 @@ def main() -> int:
         steady = [i for i, k in enumerate(kinds) if "magnet" not in k]
         groups = {"steady field (no magnet)": steady}
         groups.update({k: [i for i, kk in enumerate(kinds) if kk == k] for k in KINDS})
-        report("BROAD (research IMU, optical truth)", trials, groups, p.mag_delay)
+        report("BROAD (research IMU, optical truth)", trials, groups, p.mag_delay, p.mag_norm_dip_tau)
     if (PHONES / "trials.json").is_file():
         found = True
         trials = load_phones()
         groups = {d: [i for i, tr in enumerate(trials) if tr["dist"] == d] for d in ("NoDist", "Dist")}
         report("phones-tyrex (motion capture; its timing limits the gyroscope figures)", trials, groups,
-               p.mag_delay)
+               p.mag_delay, p.mag_norm_dip_tau)
     if not found:
         print("no data with optical truth found under ../shared/data: nothing to measure.")
     return 0
