@@ -273,7 +273,9 @@ RobustParams.default_from = {
     "heading_drift_corr": "physics: a few strides or turns of the arm (0.5-1 s each)",
     "gyr_bias": "design: none known",
     "tilt_noise": "shared trials: the accelerometer's direction against BROAD's optical truth is "
-                  "0.01 (median) to 0.05 (RMS) rad·√s (benchmarks/noise_densities.py), not one value",
+                  "0.01 (median) to 0.05 (RMS) rad·√s (benchmarks/noise_densities.py), not one value; "
+                  "0.015 makes the correction's time constant at rest (tilt_noise / gyr_noise) the "
+                  "low-pass's, acc_tau (VQF's tauAcc 3 s)",
     "acc_tau": "VQF: tauAcc 3 s, the time constant of its inertial low-pass of the accelerometer",
     "tilt_damping": "VQF: its second-order Butterworth low-pass, ζ = 1/√2",
     "acc_band_rel": "design: off (VQF has no band)",
