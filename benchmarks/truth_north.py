@@ -69,9 +69,10 @@ def field_north(trial: dict) -> tuple[float, float, float, float]:
             float(np.median(n[rest])), float(np.median(n[move])))
 
 
-def both_errors(q: np.ndarray, trial: dict) -> tuple[float, float]:
-    """Total RMSE (degrees) with BROAD's metric, and with the trial's constant heading
-    offset removed."""
+def both_errors(q: np.ndarray, trial: dict) -> tuple[float, float, float]:
+    """Total RMSE (degrees) with BROAD's metric, with the trial's constant heading offset
+    removed, and that offset (the mean signed heading error, degrees: positive when the
+    estimate's north is turned as a field of positive azimuth would turn it)."""
     ref = trial["ref"]
     m = trial["mask"] & np.all(np.isfinite(ref), 1) & np.all(np.isfinite(q), 1)
     q, ref = q[m], ref[m]
@@ -81,10 +82,11 @@ def both_errors(q: np.ndarray, trial: dict) -> tuple[float, float]:
     d = float(np.angle(np.mean(np.exp(1j * h))))
     rz = np.tile([np.cos(d / 2), 0.0, 0.0, np.sin(d / 2)], (len(ref), 1))
     rmse = lambda x: float(np.sqrt(np.mean(x ** 2)) * DEG)  # noqa: E731
-    return rmse(error_angles(q, ref)[0]), rmse(error_angles(q, quat_mul_many(rz, ref))[0])
+    return (rmse(error_angles(q, ref)[0]), rmse(error_angles(q, quat_mul_many(rz, ref))[0]),
+            d * DEG)
 
 
-def _run(args) -> tuple[float, float]:
+def _run(args) -> tuple[float, float, float]:
     i, method, params = args
     tr = trials("broad")[i]
     if method == "VQF":
@@ -97,7 +99,7 @@ def _run(args) -> tuple[float, float]:
 
 
 def run(method: str, params: dict | None = None) -> np.ndarray:
-    """(n, 2): per trial, BROAD's total RMSE and the offset-free one."""
+    """(n, 3): per trial, BROAD's total RMSE, the offset-free one, and the offset."""
     tasks = [(i, method, params) for i in range(len(trials("broad")))]
     return np.array(list(pool().map(_run, tasks, chunksize=1)))
 
@@ -113,7 +115,7 @@ def main() -> int:
     print(f"   the last {REST_S:.0f} s of the rest before the movement, and during the movement\n")
     print(f"{'trial':<46}{'rest':>7}{'moving':>8}{'Δ':>7}{'|m| rest':>10}{'moving':>8}"
           f"   robust: BROAD / offset-free")
-    for tr, (a, b) in zip(trials("broad"), rob):
+    for tr, (a, b, _) in zip(trials("broad"), rob):
         ar, am, nr, nm = field_north(tr)
         print(f"{tr['name']:<46}{ar:+7.1f}{am:+8.1f}{am - ar:+7.1f}{nr:10.1f}{nm:8.1f}   {a:6.2f} / {b:.2f}")
     print("\n2. Total RMSE, mean of the 17 trials: BROAD's metric / each trial's constant heading "
@@ -123,15 +125,30 @@ def main() -> int:
     print(f"\n3. ×0.5 / ×2, change of the mean; at a sharp optimum when both sides cost more than "
           f"{SHARP:.0%} of the defaults' mean (BROAD's metric: {SHARP * rob[:, 0].mean():.3f}, "
           f"offset-free: {SHARP * rob[:, 1].mean():.3f})")
+    per_trial = {}
     for name in PARAMS:
         v = getattr(defaults, name)
         lo, hi = run("robust", {name: v * 0.5}), run("robust", {name: v * 2.0})
+        per_trial[name] = lo, hi
         cells = []
         for col, label in ((0, "BROAD"), (1, "offset-free")):
             a, b = lo[:, col].mean() - rob[:, col].mean(), hi[:, col].mean() - rob[:, col].mean()
             sharp = min(a, b) > SHARP * rob[:, col].mean()
             cells.append(f"{label} {a:+.3f} / {b:+.3f}{' (sharp)' if sharp else ''}")
         print(f"   {name:<16} {v:<9g} " + "   ".join(cells))
+    print("\n4. Per trial: the change of BROAD's total RMSE at ×0.5 / ×2, and the constant heading offset "
+          "(° ,\n   the sign of a field's azimuth) with the defaults, ×0.5 and ×2. An offset that moves "
+          "towards the\n   moving field's azimuth follows that field; one that moves away from both "
+          "fields' azimuths is a lag\n   behind the gyroscope's drift (a steady drift d, corrected "
+          "with a time constant τ, leaves d·τ)")
+    for name in PARAMS[:2]:
+        lo, hi = per_trial[name]
+        print(f"\n   {name}{'':<33}{'rest':>6}{'moving':>7}   {'cost ×0.5':>9}{'×2':>7}   "
+              f"{'offset':>6}{'×0.5':>7}{'×2':>7}")
+        for i, tr in enumerate(trials("broad")):
+            ar, am, _, _ = field_north(tr)
+            print(f"   {tr['name']:<46}{ar:+6.1f}{am:+7.1f}   {lo[i, 0] - rob[i, 0]:+9.2f}"
+                  f"{hi[i, 0] - rob[i, 0]:+7.2f}   {rob[i, 2]:+6.2f}{lo[i, 2]:+7.2f}{hi[i, 2]:+7.2f}")
     return 0
 
 
