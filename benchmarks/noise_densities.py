@@ -1,5 +1,5 @@
 """What the sensors' noise measures against the optical truth: the physics behind ``gyr_noise``,
-``tilt_noise`` and ``heading_noise``.
+``tilt_noise``, ``heading_noise`` and ``mag_norm_gate_rel``.
 
 The filter models each sensor's error at the time scale of its correction (seconds to tens of
 seconds) as a white noise density. This measures those densities on the trials with optical
