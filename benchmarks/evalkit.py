@@ -26,6 +26,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from accuracy_phones import errors, load_broad, load_phones  # noqa: E402
 from app.estimators import make_estimator  # noqa: E402
+from app.quaternion import quat_conj_many, quat_mul_many  # noqa: E402
 
 # BROAD's kinds for leave-one-kind-out (from trials.json's groups; an attached magnet is its own)
 KINDS = ("undisturbed rotation", "translation", "with rests", "tapping and vibration",
@@ -57,16 +58,29 @@ def trials(which: str) -> list[dict]:
     return _TRIALS[which]
 
 
-def _run_one(args):
-    which, i, params, method = args
-    tr = trials(which)[i]
+def estimate(tr: dict, params: dict | None = None, method: str = "robust",
+             gyr: np.ndarray | None = None) -> np.ndarray:
+    """The (N, 4) estimate of ``method`` (robust, another of orientlab's, or VQF) on trial ``tr``,
+    with ``params`` changed from its defaults and, when given, ``gyr`` in place of its gyroscope."""
+    gyr = tr["gyr"] if gyr is None else gyr
     if method == "VQF":
         from vqf import VQF
         v = VQF(1.0 / tr["fs"], **(params or {}))
-        q = v.updateBatch(*(np.ascontiguousarray(tr[k]) for k in ("gyr", "acc", "mag")))["quat9D"]
-    else:
-        q = make_estimator(method, params).run(tr["t"], tr["gyr"], tr["acc"], tr["mag"]).q
-    return errors(q, tr)
+        return v.updateBatch(*(np.ascontiguousarray(x) for x in (gyr, tr["acc"], tr["mag"])))["quat9D"]
+    return make_estimator(method, params).run(tr["t"], gyr, tr["acc"], tr["mag"]).q
+
+
+def heading_error(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Signed heading error (rad, modulo 2π): the turn about the vertical of ``q ⊗ ref⁻¹`` (its
+    twist about world z; no Euler angles, which fail for an upright phone)."""
+    e = quat_mul_many(q, quat_conj_many(ref))
+    return 2.0 * np.arctan2(e[:, 3], e[:, 0])
+
+
+def _run_one(args):
+    which, i, params, method = args
+    tr = trials(which)[i]
+    return errors(estimate(tr, params, method), tr)
 
 
 _POOL = None

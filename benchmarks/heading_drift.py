@@ -25,16 +25,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import evalkit  # noqa: E402
 from accuracy_phones import BROAD, PHONES  # noqa: E402
 from app.estimators import make_estimator  # noqa: E402
-from app.quaternion import quat_conj_many, quat_mul_many  # noqa: E402
 
 DEG = 180.0 / np.pi
-
-
-def _heading_error(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Signed heading error (rad): the turn about the vertical of ``q ⊗ ref⁻¹`` (its twist
-    about world z; no Euler angles, which fail for an upright phone)."""
-    e = quat_mul_many(q, quat_conj_many(ref))
-    return 2.0 * np.arctan2(e[:, 3], e[:, 0])
 
 
 def drift(trial: dict) -> tuple[float, float]:
@@ -43,7 +35,7 @@ def drift(trial: dict) -> tuple[float, float]:
                                                          trial["mag"]).q
     ref = trial["ref"]
     m = trial["mask"] & np.all(np.isfinite(ref), axis=1) & np.all(np.isfinite(q), axis=1)
-    e = np.unwrap(_heading_error(q[m], ref[m]))
+    e = np.unwrap(evalkit.heading_error(q[m], ref[m]))
     t = trial["t"][m] - trial["t"][m][0]
     a = np.stack([np.ones_like(t), t], axis=1)
     c, *_ = np.linalg.lstsq(a, e, rcond=None)

@@ -70,27 +70,41 @@ def _bias(tr: dict) -> np.ndarray:
     return np.mean(w_gyr - w_true, axis=0)
 
 
-def gyro_walk(tr: dict, T: float) -> np.ndarray:
-    """World-frame rotation vectors (rad) from the gyroscope's attitude to the truth's after T s."""
-    t, ref = tr["t"], tr["ref"]
+def gyro_alone(tr: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The gyroscope, its bias (``_bias``) removed and NaN as 0 (rad/s), and the attitude it
+    alone integrates from the identity, sample by sample (``q_k = q_k-1 ⊗ exp(ω dt)``)."""
+    t = tr["t"]
     g = np.nan_to_num(tr["gyr"] - _bias(tr))
     dt = np.diff(t, prepend=t[0])
     step = quat_from_rotvec_many(g * dt[:, None])
     qg = np.empty((len(t), 4))
     q = np.array([1.0, 0.0, 0.0, 0.0])
-    for k in range(len(t)):         # q_k = q_k-1 ⊗ exp(ω dt): the gyroscope alone
+    for k in range(len(t)):
         q = quat_mul(q, step[k])
         q /= np.linalg.norm(q)
         qg[k] = q
-    n = int(round(T * tr["fs"]))
-    i0 = np.arange(0, len(t) - n, max(1, int(round(STEP_S * tr["fs"]))))
-    i1 = i0 + n
-    ok = _valid(tr)
-    i0, i1 = i0[ok[i0] & ok[i1]], i1[ok[i0] & ok[i1]]
-    turn = quat_mul_many(quat_conj_many(qg[i0]), qg[i1])                  # body frame, over T
+    return g, qg
+
+
+def window_walk(ref: np.ndarray, qg: np.ndarray, i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
+    """World-frame rotation vectors (rad) from the gyroscope's attitude to the truth's at the end
+    of each window ``i0 → i1``, the gyroscope started from the truth's attitude at ``i0``: a
+    gyroscope that over-turns by δ gives +δ."""
+    turn = quat_mul_many(quat_conj_many(qg[i0]), qg[i1])                  # body frame, over the window
     err = quat_mul_many(quat_mul_many(quat_conj_many(ref[i1]), ref[i0]), turn)
     err_w = quat_mul_many(quat_mul_many(ref[i1], err), quat_conj_many(ref[i1]))
     return rotvec_from_quat_many(err_w)
+
+
+def gyro_walk(tr: dict, T: float) -> np.ndarray:
+    """World-frame rotation vectors (rad) from the gyroscope's attitude to the truth's after T s."""
+    _, qg = gyro_alone(tr)
+    n = int(round(T * tr["fs"]))
+    i0 = np.arange(0, len(tr["t"]) - n, max(1, int(round(STEP_S * tr["fs"]))))
+    i1 = i0 + n
+    ok = _valid(tr)
+    i0, i1 = i0[ok[i0] & ok[i1]], i1[ok[i0] & ok[i1]]
+    return window_walk(tr["ref"], qg, i0, i1)
 
 
 def _window_means(x: np.ndarray, ok: np.ndarray, n: int) -> np.ndarray:

@@ -17,7 +17,7 @@ A diagnosis on the shared trials, not a default: the scale is fitted against the
 Data: BROAD (Laidig, Caruso, Cereatti, Seel, Data 6(7):72, 2021, CC-BY-4.0), read from
 ``../shared/data/broad`` (skipped when absent).
 
-Usage: ``python benchmarks/scale_lag.py`` (about a minute on 2 cores).
+Usage: ``python benchmarks/scale_lag.py`` (seconds on 2 cores once the filters are compiled).
 """
 
 from __future__ import annotations
@@ -33,11 +33,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from ablation import SHARP  # noqa: E402
 from accuracy_phones import BROAD, errors  # noqa: E402
-from app.estimators import make_estimator  # noqa: E402
-from app.quaternion import (Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul,  # noqa: E402
-                            quat_mul_many, rotvec_from_quat_many)
-from evalkit import pool, trials  # noqa: E402
-from noise_densities import _bias  # noqa: E402
+from app.quaternion import Q_many  # noqa: E402
+from evalkit import estimate, pool, trials  # noqa: E402
+from noise_densities import gyro_alone, window_walk  # noqa: E402
 
 WINDOW_S = 10.0     # s: long against the truth's timing, short against a trial
 PARAMS = ("gyr_noise", "mag_dev_weight")
@@ -48,15 +46,8 @@ def windows(tr: dict) -> tuple[np.ndarray, np.ndarray]:
     """Per window: the world-frame error (3,) and its regressors (3, 6): the world-frame
     integrals of a unit bias error about each sensor axis, and of a unit scale error of each."""
     t, ref = tr["t"], tr["ref"]
-    g = np.nan_to_num(tr["gyr"] - _bias(tr))
+    g, qg = gyro_alone(tr)
     dt = np.diff(t, prepend=t[0])
-    step = quat_from_rotvec_many(g * dt[:, None])
-    qg = np.empty((len(t), 4))
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-    for k in range(len(t)):         # the gyroscope alone
-        q = quat_mul(q, step[k])
-        q /= np.linalg.norm(q)
-        qg[k] = q
     known = np.all(np.isfinite(ref), axis=1)
     R = Q_many(np.where(known[:, None], ref, [1.0, 0.0, 0.0, 0.0]))
     x = np.concatenate([R * dt[:, None, None], R * (g * dt[:, None])[:, None, :]], axis=2)
@@ -67,10 +58,7 @@ def windows(tr: dict) -> tuple[np.ndarray, np.ndarray]:
     bad = np.concatenate([[0], np.cumsum(~(known & tr["mask"]))])
     good = bad[i1 + 1] == bad[i0]
     i0, i1 = i0[good], i1[good]
-    turn = quat_mul_many(quat_conj_many(qg[i0]), qg[i1])
-    err = quat_mul_many(quat_mul_many(quat_conj_many(ref[i1]), ref[i0]), turn)
-    ew = rotvec_from_quat_many(quat_mul_many(quat_mul_many(ref[i1], err), quat_conj_many(ref[i1])))
-    return ew, csum[i1 + 1] - csum[i0 + 1]
+    return window_walk(ref, qg, i0, i1), csum[i1 + 1] - csum[i0 + 1]
 
 
 def fit_scale(all_windows) -> tuple[np.ndarray, list[tuple[float, float, float]]]:
@@ -94,17 +82,15 @@ def fit_scale(all_windows) -> tuple[np.ndarray, list[tuple[float, float, float]]
         off += ew.size
         rms = lambda r: float(np.sqrt(np.mean(r ** 2)) * DEG)  # noqa: E731
         out.append((rms(Y[m]), rms(Y[m] - A[m, :3 * nt] @ c_bias), rms(Y[m] - A[m] @ c_all)))
-    # the window's error turns the truth's attitude into the gyroscope's: a gyroscope reading
-    # (1 + s) × the turn over-turns by s × it, the scale regressor's coefficient
+    # a gyroscope reading (1 + s) × the turn over-turns by s × it (window_walk's sign): the
+    # scale regressor's coefficient
     return c_all[3 * nt:], out
 
 
 def _run(args) -> tuple[float, float, float]:
     i, params, scale = args
     tr = trials("broad")[i]
-    q = make_estimator("robust", params).run(tr["t"], tr["gyr"] / (1.0 + np.asarray(scale)),
-                                              tr["acc"], tr["mag"]).q
-    return errors(q, tr)
+    return errors(estimate(tr, params, gyr=tr["gyr"] / (1.0 + np.asarray(scale))), tr)
 
 
 def means(params: dict | None, scale) -> np.ndarray:

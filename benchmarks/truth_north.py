@@ -19,7 +19,7 @@ to the sensitivity table of ``ablation.py``:
 Data: BROAD (Laidig, Caruso, Cereatti, Seel, Data 6(7):72, 2021, CC-BY-4.0), read from
 ``../shared/data/broad`` (skipped when absent).
 
-Usage: ``python benchmarks/truth_north.py`` (about a minute on 2 cores).
+Usage: ``python benchmarks/truth_north.py`` (seconds on 2 cores once the filters are compiled).
 """
 
 from __future__ import annotations
@@ -35,22 +35,12 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from ablation import SHARP  # noqa: E402
 from accuracy_phones import BROAD  # noqa: E402
-from app.estimators import make_estimator  # noqa: E402
-from app.quaternion import error_angles, quat_conj_many, quat_mul_many  # noqa: E402
-from evalkit import pool, trials  # noqa: E402
+from app.quaternion import Q_many, error_angles, quat_mul_many  # noqa: E402
+from evalkit import estimate, heading_error, pool, trials  # noqa: E402
 
 DEG = 180.0 / np.pi
 REST_S = 10.0       # s of the rest before the movement whose field is "the rest's"
 PARAMS = ("gyr_noise", "mag_dev_weight", "heading_noise")
-
-
-def _world_field(q: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """``Q(q) m`` row by row (sensor to world)."""
-    w, x, y, z = q.T
-    r = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-    return np.einsum("nij,nj->ni", r, m)
 
 
 def field_north(trial: dict) -> tuple[float, float, float, float]:
@@ -62,7 +52,7 @@ def field_north(trial: dict) -> tuple[float, float, float, float]:
     rest = known & (np.arange(len(q)) < first_move) & \
         (np.arange(len(q)) >= first_move - int(REST_S * trial["fs"]))
     move = known & moving
-    mw = _world_field(np.where(known[:, None], q, [1.0, 0.0, 0.0, 0.0]), mag)
+    mw = np.einsum("nij,nj->ni", Q_many(np.where(known[:, None], q, [1.0, 0.0, 0.0, 0.0])), mag)
     az = np.arctan2(mw[:, 0], mw[:, 1]) * DEG
     n = np.linalg.norm(mag, axis=1)
     return (float(np.median(az[rest])), float(np.median(az[move])),
@@ -76,10 +66,7 @@ def both_errors(q: np.ndarray, trial: dict) -> tuple[float, float, float]:
     ref = trial["ref"]
     m = trial["mask"] & np.all(np.isfinite(ref), 1) & np.all(np.isfinite(q), 1)
     q, ref = q[m], ref[m]
-    e = quat_mul_many(q, quat_conj_many(ref))
-    s = np.where(e[:, 0] < 0, -1.0, 1.0)
-    h = 2.0 * np.arctan2(e[:, 3] * s, e[:, 0] * s)           # signed heading error
-    d = float(np.angle(np.mean(np.exp(1j * h))))
+    d = float(np.angle(np.mean(np.exp(1j * heading_error(q, ref)))))    # its circular mean
     rz = np.tile([np.cos(d / 2), 0.0, 0.0, np.sin(d / 2)], (len(ref), 1))
     rmse = lambda x: float(np.sqrt(np.mean(x ** 2)) * DEG)  # noqa: E731
     return (rmse(error_angles(q, ref)[0]), rmse(error_angles(q, quat_mul_many(rz, ref))[0]),
@@ -89,13 +76,7 @@ def both_errors(q: np.ndarray, trial: dict) -> tuple[float, float, float]:
 def _run(args) -> tuple[float, float, float]:
     i, method, params = args
     tr = trials("broad")[i]
-    if method == "VQF":
-        from vqf import VQF
-        v = VQF(1.0 / tr["fs"])
-        q = v.updateBatch(*(np.ascontiguousarray(tr[k]) for k in ("gyr", "acc", "mag")))["quat9D"]
-    else:
-        q = make_estimator(method, params).run(tr["t"], tr["gyr"], tr["acc"], tr["mag"]).q
-    return both_errors(q, tr)
+    return both_errors(estimate(tr, params, method), tr)
 
 
 def run(method: str, params: dict | None = None) -> np.ndarray:
