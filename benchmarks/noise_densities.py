@@ -46,6 +46,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from accuracy_phones import BROAD, PHONES, load_broad, load_phones  # noqa: E402
 from app.estimators.robust import RobustParams  # noqa: E402
+from app.estimators.robust.state import lp_coef  # noqa: E402
 from app.quaternion import (Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul,  # noqa: E402
                             quat_mul_many, rotvec_from_quat_many, wrap_angle)
 from evalkit import KINDS, broad_kind  # noqa: E402
@@ -138,9 +139,8 @@ def strength_swing(tr: dict, tau: float) -> tuple[float, float]:
     t = tr["t"][ok]
     lp = np.empty_like(n)
     acc = n[0]
-    for k in range(len(n)):        # the first-order low-pass the gate applies
-        dt = t[k] - t[k - 1] if k else 0.0
-        acc += (1.0 - np.exp(-dt / tau)) * (n[k] - acc) if tau > 0 else n[k] - acc
+    for k in range(len(n)):        # the gate's own low-pass
+        acc += lp_coef(t[k] - t[k - 1] if k else 0.0, tau) * (n[k] - acc)
         lp[k] = acc
     d = np.abs(lp / np.median(n) - 1.0)
     return float(np.percentile(d, 95)), float(np.percentile(d, 99))
