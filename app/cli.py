@@ -146,6 +146,21 @@ def build_parser() -> argparse.ArgumentParser:
                         "(its bias and noise would then mislead the filters)")
     c.set_defaults(func=cmd_calibrate)
 
+    g = sub.add_parser(
+        "gyro-scale", help="the gyroscope's scale factor from recordings with rests -> preset",
+        description="Measure the gyroscope's scale-factor error per axis from recordings in which "
+                    "the phone turns whole turns between rests, print the fit and write a preset "
+                    "(TOML, gyr_scale) for --config. Record: lay the phone still for 2 s, turn it "
+                    "whole turns in one direction about one of its axes while that axis is level "
+                    "(flip it end over end: x; roll it over its long edge: y; stand it on its long "
+                    "edge and turn it like a wheel: z), lay it still again; repeat for each axis, "
+                    "in both directions. Each recording needs three rests or more.")
+    g.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="recordings of one phone (log, CSV or npz)")
+    g.add_argument("--out", "-o", required=True, metavar="PRESET.toml",
+                   help="where to write the preset")
+    g.set_defaults(func=cmd_gyro_scale)
+
     s = sub.add_parser(
         "serve", help="run the live dashboard (phone receiver + browser view)",
         description="Serve the live dashboard: the phone connects over TCP, the browser "
@@ -343,16 +358,43 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             return 1
         print(f"{PROG}: writing {args.out} anyway (--force), though the recording does not "
               f"look stationary ({reasons})", file=sys.stderr)
-    text = to_preset(stats)
+    _write_preset(args.out, to_preset(stats))
+    return 0
+
+
+def _write_preset(path: str, text: str) -> None:
+    """Write a preset and check that --config accepts it."""
     try:
-        Path(args.out).write_text(text, encoding="utf-8")
+        Path(path).write_text(text, encoding="utf-8")
     except OSError as e:
-        raise CliError(f"{args.out}: cannot write ({e.strerror or e})") from None
+        raise CliError(f"{path}: cannot write ({e.strerror or e})") from None
     try:
-        load_config(args.out)  # what we write must be what --config accepts
+        load_config(path)  # what we write must be what --config accepts
     except ConfigError as e:
         raise CliError(f"the written preset is refused: {e}") from None
-    print(f"preset written to {args.out}")
+    print(f"preset written to {path}")
+
+
+def cmd_gyro_scale(args: argparse.Namespace) -> int:
+    from app.sources.readers import read_log_data
+    from app.toolkit.errors import ToolError
+    from app.toolkit.gyro_scale import Recording, fit, format_report, to_preset
+
+    recs = []
+    for path in args.inputs:
+        rec = read_log_data(path)
+        for line in input_summary(rec.counts):
+            print(f"{PROG}: {path}: {line}", file=sys.stderr)
+        recs.append(Recording(Path(path).name, rec.t, rec.gyr, rec.acc))
+    try:
+        result = fit(recs)
+    except ToolError as e:
+        raise CliError(e.reason) from None
+    sys.stdout.write(format_report(result))
+    if not result.measured.any():
+        print(f"{PROG}: not writing {args.out}: no axis is measured (see the warnings)", file=sys.stderr)
+        return 1
+    _write_preset(args.out, to_preset(result))
     return 0
 
 

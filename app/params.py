@@ -254,6 +254,7 @@ SHARED_MEANINGS: dict[str, str] = {
     "max_gap": "longest time step integrated (s); a longer one is a gap",
     "gyr_hold": "how long the last gyroscope sample stands in for rows without one (s)",
     "gyr_bias": "gyroscope bias from calibration, sensor frame (rad/s)",
+    "gyr_scale": "gyroscope scale-factor error from calibration, per sensor axis: it reads (1 + s) × the turn",
     "acc_band_rel": "half-width of the accepted |acc| band, relative to |g| (0: no band)",
 }
 

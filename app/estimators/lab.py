@@ -63,6 +63,10 @@ class LabParams(CommonParams):
                              "from the data at alignment, formula (7)")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="gyroscope bias subtracted from every sample (calibration)")
+    gyr_scale: tuple = param((0.0, 0.0, 0.0), lo=-0.1, hi=0.1, tunable=False,
+                             doc="gyroscope scale-factor error per sensor axis (calibration: orientlab "
+                                 "gyro-scale): the gyroscope reads (1 + s) × the turn, so each axis, its "
+                                 "bias removed, is divided by 1 + s")
     acc_band_rel: float = param(0.25, lo=0.0, hi=2.0,
                                 doc="accelerometer used only while | |a| - |g0| | <= this × |g0|; 0: off",
                                 rejects=True)
@@ -152,7 +156,7 @@ L_NSTATE = 22
 (LP_USE_GYR, LP_USE_ACC, LP_USE_MAG, LP_MAX_GAP, LP_GYR_HOLD, LP_EXACT, LP_RW, LP_ACC_BAND,
  LP_BAND_MODE, LP_BAND_LO, LP_BAND_HI, LP_MAG_BAND_REL, LP_ALPHA, LP_NIS, LP_P0, LP_LEARN_T,
  LP_G0N) = range(17)
-LP_G0, LP_BIAS, LP_N = 17, 20, 23      # g0 (3), gyr_bias (3)
+LP_G0, LP_BIAS, LP_SCALE, LP_N = 17, 20, 23, 26      # g0 (3), gyr_bias (3), 1 / (1 + gyr_scale) (3)
 
 
 @compiled
@@ -192,7 +196,7 @@ def _lab_row(s, x, P, p, Rw, Ra, Rm, t, gyr, acc, mag, f):
         if not has_w:
             P[:, :] = P + p[LP_RW] ** 2 * dt * np.eye(4)
         else:
-            xn, Pn = tu_qw(x, P, w - p[LP_BIAS:LP_BIAS + 3], dt, Rw, p[LP_EXACT] > 0.5)
+            xn, Pn = tu_qw(x, P, (w - p[LP_BIAS:LP_BIAS + 3]) * p[LP_SCALE:LP_SCALE + 3], dt, Rw, p[LP_EXACT] > 0.5)
             x[:] = xn
             P[:, :] = Pn
     if as_ == R_USED:
@@ -283,6 +287,7 @@ class LabEKF(Estimator):
         v[LP_MAG_BAND_REL], v[LP_ALPHA], v[LP_NIS] = p.mag_band_rel, p.mag_alpha, p.nis_gate
         v[LP_P0], v[LP_LEARN_T], v[LP_G0N] = p.p0, p.m0_learn_time, self._g0_norm
         v[LP_G0:LP_G0 + 3], v[LP_BIAS:LP_BIAS + 3] = self._g0, self._bias
+        v[LP_SCALE:LP_SCALE + 3] = 1.0 / (1.0 + np.asarray(p.gyr_scale, dtype=float))
         self._pv = v
 
     def _reset_state(self) -> None:

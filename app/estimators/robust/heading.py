@@ -436,7 +436,7 @@ def mag_update(s, P, p, t, mag, rate, has_rate, f):
     mw_turn = rotate3(s, mc)
     if has_rate and p[PRM.mag_delay] != 0.0:
         # the field lags the gyroscope by mag_delay
-        mw = rotate3(s, turned_forward(s, mc, p[PRM.mag_delay]))
+        mw = rotate3(s, turned_forward(s, p, mc, p[PRM.mag_delay]))
     else:
         mw = mw_turn
     n = norm3(mw)

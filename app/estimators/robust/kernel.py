@@ -114,9 +114,11 @@ def _predict(s, P, p, w, dt):
         return
     # R = Q(q) of the attitude before this step, as nine scalars
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = attitude_matrix(s)
-    wx, wy, wz = w[0] - s[S.bias_x], w[1] - s[S.bias_y], w[2] - s[S.bias_z]
+    # the rate: bias removed, scale-factor error divided out (gyr_gain = 1 / (1 + gyr_scale))
+    gx, gy, gz = p[PRM.gyr_gain_x], p[PRM.gyr_gain_y], p[PRM.gyr_gain_z]
+    wx, wy, wz = (w[0] - s[S.bias_x]) * gx, (w[1] - s[S.bias_y]) * gy, (w[2] - s[S.bias_z]) * gz
     # the bias removed about the vertical, integrated: the heading drift fit adds it back
-    s[S.dr_bint] += (r20 * s[S.bias_x] + r21 * s[S.bias_y] + r22 * s[S.bias_z]) * dt
+    s[S.dr_bint] += (r20 * s[S.bias_x] * gx + r21 * s[S.bias_y] * gy + r22 * s[S.bias_z] * gz) * dt
     _integrate(s, wx * dt, wy * dt, wz * dt)
     # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
     # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]

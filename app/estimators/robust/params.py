@@ -75,6 +75,10 @@ class RobustParams(CommonParams):
                                           "grows with it")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="initial gyroscope bias (calibration)")
+    gyr_scale: tuple = param((0.0, 0.0, 0.0), lo=-0.1, hi=0.1, tunable=False,
+                             doc="gyroscope scale-factor error per sensor axis (calibration: orientlab "
+                                 "gyro-scale): the gyroscope reads (1 + s) × the turn, so each axis, its "
+                                 "bias removed, is divided by 1 + s")
     tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                               user_scale=DEG, doc="noise density of the low-passed gravity direction")
     acc_tau: float = param(3.0, unit="s", lo=0.0, hi=60.0,
@@ -272,6 +276,8 @@ RobustParams.default_from = {
     "heading_drift_window": "physics: the heading's time constant, heading_noise / gyr_noise",
     "heading_drift_corr": "physics: a few strides or turns of the arm (0.5-1 s each)",
     "gyr_bias": "design: none known",
+    "gyr_scale": "design: none known (a phone's is off by 0.2-3 %, benchmarks/gyro_scale.py; orientlab "
+                 "gyro-scale measures it from a recording)",
     "tilt_noise": "shared trials: the accelerometer's direction against BROAD's optical truth is "
                   "0.01 (median) to 0.05 (RMS) rad·√s (benchmarks/noise_densities.py), not one value; "
                   "0.015 makes the correction's time constant at rest (tilt_noise / gyr_noise) the "
@@ -355,6 +361,7 @@ def layout(name: str, fields) -> tuple:
 
 # coefficients derived from the parameters (appended to the parameter vector)
 DERIVED = (
+    ("gyr_gain", "xyz", "1 / (1 + gyr_scale) per axis: the rate, its bias removed, is multiplied by it"),
     ("upd_dt", 1, "s between two measurement updates of a sensor (1/update_rate_hz; 0: every sample)"),
     ("acc_flag_cos", 1, "cos(acc_flag_angle): the flag test compares cosines"),
 )
@@ -374,7 +381,8 @@ PRM, NPARAM = layout("ParamLayout", _param_fields())
 
 def derived(p: RobustParams) -> dict[str, float]:
     """The coefficients derived from the parameters (see ``DERIVED``)."""
-    return {"upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0,
+    return {"gyr_gain": tuple(1.0 / (1.0 + s) for s in p.gyr_scale),
+            "upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0,
             "acc_flag_cos": math.cos(p.acc_flag_angle)}
 
 
@@ -390,5 +398,9 @@ def param_vector(p: RobustParams) -> np.ndarray:
         else:
             v[off] = float(val)
     for name, val in derived(p).items():
-        v[getattr(PRM, name)] = val
+        off = getattr(PRM, name)
+        if isinstance(val, tuple):
+            v[off:off + len(val)] = val
+        else:
+            v[off] = val
     return v

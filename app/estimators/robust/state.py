@@ -173,15 +173,15 @@ def rotate3(s, v):
 
 
 @compiled
-def turned_forward(s, v, d):
+def turned_forward(s, p, v, d):
     """A sensor-frame sample ``v`` that lags the attitude by ``d`` seconds, turned forward to
     now, as three floats (no array per sample): it was measured at t - d, when the sensor
     frame was turned by -ω d from now, so v(t) = v(t - d) - d ω × v(t - d), ω the rate this
-    row integrates less the bias (the field's ``mag_delay``, the accelerometer's
+    row integrates less the bias, its scale divided out (the field's ``mag_delay``, the accelerometer's
     ``acc_delay_periods``)."""
-    wx = s[S.w_cur_x] - s[S.bias_x]
-    wy = s[S.w_cur_y] - s[S.bias_y]
-    wz = s[S.w_cur_z] - s[S.bias_z]
+    wx = (s[S.w_cur_x] - s[S.bias_x]) * p[PRM.gyr_gain_x]
+    wy = (s[S.w_cur_y] - s[S.bias_y]) * p[PRM.gyr_gain_y]
+    wz = (s[S.w_cur_z] - s[S.bias_z]) * p[PRM.gyr_gain_z]
     return (v[0] - d * (wy * v[2] - wz * v[1]),
             v[1] - d * (wz * v[0] - wx * v[2]),
             v[2] - d * (wx * v[1] - wy * v[0]))

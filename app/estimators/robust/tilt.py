@@ -109,7 +109,7 @@ def acc_update(s, P, p, t, acc, f):
     # the sample's lag behind the attitude: acc_delay_periods of its own period (module doc)
     d = p[PRM.acc_delay_periods] * s[S.acc_period]
     if d != 0.0 and not np.isnan(d) and not np.isnan(s[S.w_cur_x]):
-        aw = rotate3(s, turned_forward(s, acc, d))
+        aw = rotate3(s, turned_forward(s, p, acc, d))
     else:
         aw = rotate3(s, acc)
     for i in range(3):

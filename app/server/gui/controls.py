@@ -9,7 +9,7 @@ Every field of every estimator's ``Params`` gets a control, shown in the user's 
 - a quantity with a short range: a slider whose ends are rounded numbers inside the
   valid range;
 - anything else: a number field;
-- a vector (``g0``, ``m0``, ``gyr_bias``): three number fields; an optional one (``m0``:
+- a vector (``g0``, ``m0``, ``gyr_bias``, ``gyr_scale``): three number fields; an optional one (``m0``:
   learned when not given) is "not given" when all three are 0;
 - a covariance (``gyr_cov``...: a 3x3 matrix from calibration) as σ per axis; all 0 means
   "none" (the scalar noise applies). A full matrix from a preset shows the σ of its
@@ -45,6 +45,8 @@ EFFECT = {
     "g0": "the gravity the accelerometer is compared with",
     "m0": "the field the magnetometer is compared with; 0 0 0: learned from the data",
     "gyr_bias": "subtracted from every gyroscope sample: set it to the gyroscope's reading at rest",
+    "gyr_scale": "each axis, its bias removed, is divided by 1 + s: set it from orientlab gyro-scale "
+                 "(a phone's gyroscope is off by 0.2-3 %)",
     "acc_band_rel": "raising it accepts accelerometer samples farther from |g| "
                     "(fewer rejections during shakes, more tilt error); 0 switches the gate off",
     "mag_band_rel": "raising it accepts field strengths farther from |m0| "
