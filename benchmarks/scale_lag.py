@@ -2,7 +2,8 @@
 defaults (``gyr_noise`` and ``mag_dev_weight`` in ``ablation.py``'s sharp-optimum list).
 
 A diagnosis on the shared trials, not a default: the scale is fitted against the optical truth
-(1, 2), and from the sensors alone at BROAD's rests (3), which the phones' trials do not have.
+(1, 2), and from the sensors alone at BROAD's rests (3, the product's calibration), which the
+phones' trials do not have.
 
 1. **The scale fit.** The gyroscope, its bias from the rest before the movement removed, is
    integrated from the truth's attitude over windows of ``WINDOW_S`` (a quarter window apart);
@@ -14,14 +15,11 @@ A diagnosis on the shared trials, not a default: the scale is fitted against the
 2. **robust with the gyroscope rescaled** by that fit (each axis divided by 1 + its scale
    error): BROAD's mean total RMSE, and the ×0.5 / ×2 sensitivity of the two named defaults,
    beside the same with the gyroscope as recorded.
-3. **The same scale from the sensors alone**, as a calibration of the IMU could find it: no
-   truth. Between two rests (BROAD marks its still seconds) the gyroscope is integrated from
-   the attitude the rest's mean specific force and field give (``q_from_acc_mag``) to the next
-   rest; the tilt left at the next rest (its specific force is gravity there) is the segment's
-   error, fitted as in 1 (a bias error per trial, a scale error per axis). The heading is left
-   out: the field's azimuth differs between places by degrees (``truth_north.py``). Each trial
-   is then run with the scale fitted on the *other* 16 (leave one out), and the sensitivity
-   of 2 is printed for it too.
+3. **The same scale from the sensors alone**, as ``orientlab gyro-scale`` measures it
+   (:mod:`app.toolkit.gyro_scale`: the tilt at each rest against the gyroscope integrated from
+   the rest before; a bias error per trial, a scale error per axis; no truth, no magnetometer).
+   Each trial is then run with robust's ``gyr_scale`` set to the scale fitted on the *other*
+   16 (leave one out), and the sensitivity of 2 is printed for it too.
 4. **The same, per trial, against robust's own estimate** (what a filter could fit online,
    without rests): one scale for all axes and a bias error, fitted over the trial's windows,
    then the trial run with it.
@@ -45,13 +43,12 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from ablation import SHARP  # noqa: E402
 from accuracy_phones import BROAD, errors  # noqa: E402
-from app.quaternion import (Q_many, q_from_acc_mag, quat_conj, quat_mul, quat_mul_many,  # noqa: E402
-                            rotvec_from_quat_many)
+from app.quaternion import Q_many  # noqa: E402
+from app.toolkit.gyro_scale import Recording, fit, format_report  # noqa: E402
 from evalkit import estimate, pool, trials  # noqa: E402
 from noise_densities import gyro_alone, window_walk  # noqa: E402
 
 WINDOW_S = 10.0     # s: long against the truth's timing, short against a trial
-REST_S = 1.0        # s: the shortest still span taken for a rest
 PARAMS = ("gyr_noise", "mag_dev_weight")
 DEG = 180.0 / np.pi
 
@@ -103,37 +100,10 @@ def fit_scale(all_windows) -> tuple[np.ndarray, list[tuple[float, float, float]]
     return c_all[3 * nt:], out
 
 
-def rests(tr: dict) -> list[tuple[int, int]]:
-    """The trial's still spans (BROAD marks them: ``mask`` is False) of at least ``REST_S``,
-    as (first, one past the last) sample indices."""
-    still = np.concatenate([[False], ~tr["mask"], [False]])
-    edges = np.flatnonzero(np.diff(still.astype(np.int8)))
-    spans = zip(edges[::2], edges[1::2])
-    return [(a, b) for a, b in spans if tr["t"][b - 1] - tr["t"][a] >= REST_S]
-
-
-def rest_segments(tr: dict) -> tuple[np.ndarray, np.ndarray]:
-    """From the sensors alone, per span between two rests: the world-frame tilt error (3,) (its
-    vertical part 0) and its regressors (3, 6), as :func:`windows`. The gyroscope is integrated
-    from the first rest's attitude (its mean specific force and field) to the second's."""
-    t = tr["t"]
-    g, qg = gyro_alone(tr)
-    dt = np.diff(t, prepend=t[0])
-    spans = rests(tr)
-    att = [np.asarray(q_from_acc_mag(np.nanmean(tr["acc"][a:b], axis=0), np.nanmean(tr["mag"][a:b], axis=0),
-                                     True)) for a, b in spans]
-    errs, regs = [np.zeros((0, 3))], [np.zeros((0, 3, 6))]
-    for k in range(len(spans) - 1):
-        i0, i1 = spans[k][1] - 1, spans[k + 1][0]
-        q = quat_mul_many(np.tile(quat_mul(att[k], quat_conj(qg[i0])), (i1 - i0, 1)), qg[i0 + 1:i1 + 1])
-        R = Q_many(q)
-        d = dt[i0 + 1:i1 + 1]
-        x = np.concatenate([R * d[:, None, None], R * (g[i0 + 1:i1 + 1] * d[:, None])[:, None, :]], axis=2).sum(0)
-        e = rotvec_from_quat_many(quat_mul(q[-1], quat_conj(att[k + 1]))[None])[0]  # over-turned by δ: +δ
-        e[2], x[2] = 0.0, 0.0
-        errs.append(e[None])
-        regs.append(x[None])
-    return np.concatenate(errs), np.concatenate(regs)
+def calibrations(leave_out: int | None) -> np.ndarray:
+    """``orientlab gyro-scale`` over BROAD's trials, but ``leave_out``: the scale errors (3,)."""
+    return fit([Recording(tr["name"], tr["t"], tr["gyr"], tr["acc"])
+                for i, tr in enumerate(trials("broad")) if i != leave_out]).scale
 
 
 def own_estimate_fit(i: int) -> tuple[float, float]:
@@ -151,28 +121,34 @@ def own_estimate_fit(i: int) -> tuple[float, float]:
 
 
 def _run(args) -> tuple[float, float, float]:
-    i, params, scale = args
+    i, params, scale, how = args
     tr = trials("broad")[i]
+    if how == "param":           # robust's gyr_scale, as a calibration sets it
+        return errors(estimate(tr, {**(params or {}), "gyr_scale": [float(v) for v in scale]}), tr)
+    if how == "vqf":             # VQF with the gyroscope rescaled alike
+        return errors(estimate(tr, None, "VQF", gyr=tr["gyr"] / (1.0 + np.asarray(scale))), tr)
     return errors(estimate(tr, params, gyr=tr["gyr"] / (1.0 + np.asarray(scale))), tr)
 
 
-def means(params: dict | None, scale) -> np.ndarray:
+def means(params: dict | None, scale, how: str = "rescale") -> np.ndarray:
     """Mean (total, heading, inclination) RMSE over BROAD's trials, degrees; ``scale`` one
-    (3,) for all trials or one per trial (n, 3)."""
+    (3,) for all trials or one per trial (n, 3); ``how``: the recorded gyroscope rescaled, or
+    robust's ``gyr_scale`` parameter ("param")."""
     n = len(trials("broad"))
     per = np.broadcast_to(np.asarray(scale, dtype=float), (n, 3))
-    tasks = [(i, params, per[i]) for i in range(n)]
+    tasks = [(i, params, per[i], how) for i in range(n)]
     return np.mean(np.array(list(pool().map(_run, tasks, chunksize=1))), axis=0)
 
 
-def sensitivity(label: str, scale, defaults) -> None:
+def sensitivity(label: str, scale, defaults, how: str = "rescale") -> None:
     """Print the mean with ``scale`` and the ×0.5 / ×2 change of each of ``PARAMS``."""
-    m = means(None, scale)
+    m = means(None, scale, how)
     base = m[0]
     cells = []
     for name in PARAMS:
         v = getattr(defaults, name)
-        lo, hi = means({name: v * 0.5}, scale)[0] - base, means({name: v * 2.0}, scale)[0] - base
+        lo = means({name: v * 0.5}, scale, how)[0] - base
+        hi = means({name: v * 2.0}, scale, how)[0] - base
         sharp = min(lo, hi) > SHARP * base
         cells.append(f"{name} {lo:+.3f} / {hi:+.3f}{' (sharp)' if sharp else ''}")
     print(f"   {label:<40} {base:.3f} ({m[1]:.2f} / {m[2]:.3f})   " + "   ".join(cells))
@@ -196,22 +172,23 @@ def main() -> int:
     sensitivity("gyroscope as recorded", np.zeros(3), defaults)
     sensitivity("gyroscope rescaled by the truth's fit", scale, defaults)
 
-    segs = [rest_segments(tr) for tr in tr_all]
-    own, _ = fit_scale(segs)
-    spans = sum(len(e) for e, _ in segs)
-    print(f"\n3. From the sensors alone (the tilt at each rest, {spans} spans between rests): "
-          + "  ".join(f"{ax} {s * 100:+.3f} %" for ax, s in zip("xyz", own)))
-    empty = (np.zeros((0, 3)), np.zeros((0, 3, 6)))
-    loo = np.array([fit_scale([empty if j == i else w for j, w in enumerate(segs)])[0] for i in range(len(segs))])
+    print("\n3. From the sensors alone (orientlab gyro-scale over the 17 trials):")
+    recs = [Recording(tr["name"], tr["t"], tr["gyr"], tr["acc"]) for tr in tr_all]
+    print("   " + format_report(fit(recs)).rstrip("\n").replace("\n", "\n   "))
+    loo = np.array(list(pool().map(calibrations, range(len(tr_all)), chunksize=1)))
     print("   fitted on the other 16 trials, per axis over the 17 held-out trials: "
           + "  ".join(f"{ax} {lo * 100:+.3f} to {hi * 100:+.3f} %"
                       for ax, lo, hi in zip("xyz", loo.min(0), loo.max(0))))
-    sensitivity("rescaled, sensors alone, leave one out", loo, defaults)
+    sensitivity("gyr_scale from the sensors, leave one out", loo, defaults, how="param")
+    v0, v1 = means(None, np.zeros(3), "vqf"), means(None, loo, "vqf")
+    print(f"   VQF, gyroscope as recorded {v0[0]:.3f} ({v0[1]:.2f} / {v0[2]:.3f}), rescaled alike "
+          f"{v1[0]:.3f} ({v1[1]:.2f} / {v1[2]:.3f})")
 
     fits = list(pool().map(own_estimate_fit, range(len(tr_all)), chunksize=1))
     per = np.array([[k, k, k] for k, _ in fits])
-    before = np.array(list(pool().map(_run, [(i, None, np.zeros(3)) for i in range(len(tr_all))], chunksize=1)))
-    after = np.array(list(pool().map(_run, [(i, None, per[i]) for i in range(len(tr_all))], chunksize=1)))
+    tasks = lambda sc: [(i, None, sc[i], "rescale") for i in range(len(tr_all))]  # noqa: E731
+    before = np.array(list(pool().map(_run, tasks(np.zeros((len(tr_all), 3))), chunksize=1)))
+    after = np.array(list(pool().map(_run, tasks(per), chunksize=1)))
     print(f"\n4. Per trial, against robust's own estimate ({WINDOW_S:.0f} s windows, a bias error and one scale "
           f"for all axes): the scale ± its σ from the residual, and the trial's total RMSE (°) as recorded / "
           f"rescaled by it")
