@@ -11,6 +11,7 @@ log's own pace. :func:`sim_rows` gives the simulator's samples as the rows a pho
 from __future__ import annotations
 
 import contextlib
+import math
 import dataclasses
 import random
 import shutil
@@ -317,3 +318,52 @@ def magnet_rows(size_ut=None, scenes=MAGNET_TURNS, seed=3):
     on = (rows.t >= MAGNET_ON_S) & (rows.t < MAGNET_OFF_S) & np.isfinite(rows.mag[:, 0])
     rows.mag[on] += offset
     return rows, truth
+
+
+# ---- a phone with a gyroscope scale error turned whole turns between rests (orientlab
+# gyro-scale: tests/toolkit/test_gyro_scale.py, tests/server/test_toolkit_server.py)
+FS = 100.0
+G_WORLD = (0.0, 0.0, 9.81)
+M_WORLD = (0.0, 20.0, -45.0)
+SCALE = (0.015, -0.010, 0.020)       # the simulated gyroscope reads (1 + s) × the turn
+BIAS = (0.03, -0.02, 0.04)
+TURN = 2.0 * math.pi
+# (body axis, angle, seconds): whole turns about x and y while the phone lies flat, a quarter
+# turn about x that stands it on its long edge, whole turns about z (now level), and back
+ALL_AXES = [(0, 2 * TURN, 4.0), (1, 2 * TURN, 4.0), (0, TURN / 4, 1.5), (2, 2 * TURN, 4.0),
+            (2, -2 * TURN, 4.0), (0, -TURN / 4, 1.5), (0, -2 * TURN, 4.0), (1, -2 * TURN, 4.0)]
+FLAT = [(0, 2 * TURN, 4.0), (2, 3 * TURN, 4.0), (1, 2 * TURN, 4.0), (2, -3 * TURN, 4.0),
+        (0, -2 * TURN, 4.0), (1, -2 * TURN, 4.0)]
+
+
+def turns_session(moves, scale=SCALE, rest_s=2.5, seed=1):
+    """A phone lying still, then each move (a smooth turn about a body axis) followed by a rest:
+    rows of (t, gyr, acc, mag) at FS with every sensor, and the true attitude."""
+    import numpy as np
+    from app import quaternion as qm
+    rng = np.random.default_rng(seed)
+    rates = [np.zeros((int(rest_s * FS), 3))]
+    for axis, angle, secs in moves:
+        n = int(secs * FS)
+        u = (np.arange(n) + 0.5) / n
+        w = np.zeros((n, 3))
+        w[:, axis] = angle / secs * (1.0 - np.cos(2.0 * np.pi * u))     # integrates to the angle
+        rates += [w, np.zeros((int(rest_s * FS), 3))]
+    w = np.concatenate(rates)
+    q = np.empty((len(w), 4))
+    cur = np.array([1.0, 0.0, 0.0, 0.0])
+    for k in range(len(w)):
+        cur = qm.normalize(qm.quat_mul(cur, qm.quat_from_rotvec(w[k] / FS)))
+        q[k] = cur
+    t = np.arange(len(w)) / FS + 0.01
+    gyr = w * (1.0 + np.asarray(scale)) + np.asarray(BIAS) + 0.003 * rng.standard_normal(w.shape)
+    acc = qm.rotate_inv_many(q, np.tile(G_WORLD, (len(w), 1))) + 0.03 * rng.standard_normal(w.shape)
+    mag = qm.rotate_inv_many(q, np.tile(M_WORLD, (len(w), 1))) + 0.3 * rng.standard_normal(w.shape)
+    return t, gyr, acc, mag, q
+
+
+def turns_log_lines(t, gyr, acc, mag) -> list[str]:
+    """The rows as the Sensor Fusion app's log lines, one sensor per line (ms stamps)."""
+    from app.sources.sensorfusion import format_line
+    return [format_line(round(1000.0 * tk, 3), tag, v) for k, tk in enumerate(t)
+            for tag, v in (("ACC", acc[k]), ("GYR", gyr[k]), ("MAG", mag[k]))]

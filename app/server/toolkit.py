@@ -22,6 +22,7 @@ from app.server.engine import Engine
 from app.server.presets import check_save, save_preset
 from app.toolkit.calibration import CalibrationService
 from app.toolkit.errors import ToolError
+from app.toolkit.gyro_scale import GyroScaleService
 from app.toolkit.inject import InjectionService
 from app.toolkit.magcal import MagCalService
 from app.toolkit.recording import RecordingLimits
@@ -41,6 +42,7 @@ class Toolkit:
     recording: RecordingService
     magcal: MagCalService
     calibration: CalibrationService
+    gyro_scale: GyroScaleService
     whatif: WhatIfService
     variants: VariantService
     replay: ReplayService
@@ -62,6 +64,7 @@ class Toolkit:
         files = recording.files
         return cls(engine=engine, settings=settings, injection=injection, recording=recording,
                    magcal=magcal, calibration=CalibrationService(core, files),
+                   gyro_scale=GyroScaleService(core, files),
                    whatif=WhatIfService(core, files), variants=VariantService(core),
                    replay=ReplayService(engine, settings, tasks, files))
 

@@ -37,12 +37,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
 from app import quaternion as qm
 from app.params import dump_toml
 from app.toolkit.errors import ToolError
+from app.toolkit.jobs import JobQueue
 
 G = 9.81
 REST_GYR = math.radians(2.0)      # rad/s: VQF restThGyr 2 °/s
@@ -291,3 +293,52 @@ def to_preset(f: GyroScaleFit) -> str:
             out[est] = {"gyr_scale": list(f.preset_scale())}
     header = "orientlab preset from recordings with rests (orientlab gyro-scale)\n\n" + format_report(f).rstrip("\n")
     return dump_toml(out, header=header)
+
+
+def to_json(f: GyroScaleFit) -> dict[str, Any]:
+    """The fit as plain JSON (the page and the API), with the report's text."""
+    return {"scale": [float(v) for v in f.scale], "std": [float(v) for v in f.std],
+            "measured": [bool(v) for v in f.measured], "preset_scale": list(f.preset_scale()),
+            "spans": f.spans, "rests": dict(f.rests), "rms_before_deg": f.rms_before_deg,
+            "rms_after_deg": f.rms_after_deg, "warnings": list(f.warnings), "report": format_report(f)}
+
+
+class GyroScaleService:
+    """``orientlab gyro-scale`` on the live server: the fit over recordings of the lab's folder
+    (a heavy job: one at a time, a few waiting, more refused), and what "apply" sets.
+
+    ``core``: the live core; ``files(name)``: a recording's files (ToolError if none)."""
+
+    def __init__(self, core, files: Callable[[str], dict]):
+        self.core = core
+        self.files = files
+        self.last: dict[str, Any] | None = None
+        self.jobs = JobQueue("gyroscope scale fit")
+
+    async def fit_job(self, names: list[str]) -> dict[str, Any]:
+        """:meth:`fit_recordings` off the event loop."""
+        return await self.jobs.run(lambda: self.fit_recordings(names))
+
+    def fit_recordings(self, names: list[str]) -> dict[str, Any]:
+        from app.sources.readers import read_log_data
+        recs = []
+        for name in names:
+            rec = read_log_data(self.files(name)["log"])
+            recs.append(Recording(name, rec.t, rec.gyr, rec.acc))
+        out = to_json(fit(recs))
+        out["recordings"] = list(names)
+        self.last = out
+        return out
+
+    def change(self) -> dict[str, dict[str, Any]]:
+        """What "apply" sets: ``gyr_scale`` of every estimator on the ensemble that has it."""
+        if self.last is None:
+            raise ToolError("gyro_scale", "no fit yet: POST /api/gyro-scale first", 409)
+        if not any(self.last["measured"]):
+            raise ToolError("gyro_scale", "no axis was measured: " + "; ".join(self.last["warnings"]), 409)
+        ens = self.core.ensemble
+        out = {name: {"gyr_scale": self.last["preset_scale"]} for name in ens.names
+               if hasattr(ens.params_of(name), "gyr_scale")}
+        if not out:
+            raise ToolError("gyro_scale", "no estimator on the page has gyr_scale (robust, lab)", 409)
+        return out

@@ -15,7 +15,7 @@ import pytest
 from app.toolkit.calibration import calibrate
 from app.sources.readers import read_log_data
 from app.toolkit.recording import read_estimates, read_events
-from harness import Phone, running_server, wait_for
+from harness import ALL_AXES, SCALE, Phone, running_server, turns_log_lines, turns_session, wait_for
 
 STILL = "alekodu_activityrecognition/sensorLog_20221024T182616_standstill.txt"
 
@@ -250,7 +250,9 @@ def test_changing_routes_need_the_presenter(tmp_path):
                                    ("post", "/api/estimators", {"preset": "lab-approx"}),
                                    ("delete", "/api/estimators/lab-approx", None),
                                    ("post", "/api/replay", {"paused": True}),
-                                   ("post", "/api/magcal", {"seconds": 10})]:
+                                   ("post", "/api/magcal", {"seconds": 10}),
+                                   ("post", "/api/gyro-scale", {"recordings": ["x"]}),
+                                   ("post", "/api/gyro-scale/apply", None)]:
             kw = {"json": body} if body is not None else {}
             r = getattr(api, method)(path, **kw)
             assert r.status_code == 403, (path, r.status_code)
@@ -355,3 +357,41 @@ def test_a_presets_magnetometer_calibration_is_applied_when_it_is_loaded(tmp_pat
         r = api.post("/api/presets/upload", content=(tmp_path / "withmag.toml").read_bytes())
         assert r.status_code == 200, r.text
         assert applied() == b
+
+
+def test_gyroscope_scale_from_a_recorded_stream(tmp_path):
+    """The lab's flow: record a phone turned whole turns between rests (TCP, the app's lines),
+    measure its gyroscope's scale from the recording, apply it; refusals with their reasons."""
+    t, gyr, acc, mag, _ = turns_session(ALL_AXES)
+    lines = [ln.encode() for ln in turns_log_lines(t + 100.0, gyr, acc, mag)]
+    rec_dir = tmp_path / "recordings"
+    with running_server(recordings=rec_dir, preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=120.0) as api:
+        r = api.post("/api/gyro-scale/apply")
+        assert r.status_code == 409 and "no fit yet" in r.text
+        assert api.post("/api/recordings/start", json={"name": "turns"}).status_code == 200
+        with Phone(s.phone_port) as phone:
+            _send(phone, lines)
+            _processed(api, len(lines) - 50, "the turns processed")
+        wait_for(lambda: _state(api)["source"] == "phone-disconnected", what="disconnect")
+        api.post("/api/recordings/stop")
+        r = api.post("/api/gyro-scale", json={"recordings": ["turns"]})
+        assert r.status_code == 200, r.text
+        fit = r.json()
+        assert fit["rests"] == {"turns": len(ALL_AXES) + 1} and all(fit["measured"])
+        np.testing.assert_allclose(fit["scale"], SCALE, atol=5e-4)
+        assert "x: s = " in fit["report"]
+        assert api.get("/api/gyro-scale").json()["result"]["scale"] == fit["scale"]
+        r = api.post("/api/gyro-scale/apply", json={"save_as": "myphone"})
+        assert r.status_code == 200, r.text
+        p = api.get("/api/params").json()["estimators"]
+        for est in ("robust", "lab"):
+            np.testing.assert_allclose(p[est]["gyr_scale"], fit["preset_scale"], atol=1e-12)
+        assert "gyr_scale" in (tmp_path / "myphone.toml").read_text(encoding="utf-8")
+        # refused, each with its reason, nothing applied
+        for body, status, words in [({"recordings": "turns"}, 422, "list of"),
+                                    ({"recordings": []}, 422, "list of"),
+                                    ({"recordings": ["nope"]}, 404, "nope"),
+                                    ({"names": ["turns"]}, 422, "unknown key")]:
+            r = api.post("/api/gyro-scale", json=body)
+            assert r.status_code == status and words in r.text, (body, r.status_code, r.text)

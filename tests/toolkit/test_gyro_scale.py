@@ -17,49 +17,15 @@ import numpy as np
 import pytest
 
 from app import quaternion as qm
-from app.estimators import make_estimator
 from app.config import load_config
-from app.sources.sensorfusion import format_line
+from app.estimators import make_estimator
 from app.toolkit.errors import ToolError
 from app.toolkit.gyro_scale import MEASURED_STD, Recording, find_rests, fit, to_preset
+from harness import ALL_AXES, BIAS, FLAT, TURN, turns_log_lines, turns_session as session
+from harness import SCALE as _SCALE
 
 REPO = Path(__file__).resolve().parents[2]
-FS = 100.0
-G = np.array([0.0, 0.0, 9.81])
-M_WORLD = np.array([0.0, 20.0, -45.0])
-SCALE = np.array([0.015, -0.010, 0.020])       # the simulated gyroscope reads (1 + s) × the turn
-BIAS = np.array([0.03, -0.02, 0.04])
-TURN = 2.0 * np.pi
-# (body axis, angle, seconds): whole turns about x and y while the phone lies flat, a quarter
-# turn about x that stands it on its long edge, whole turns about z (now level), and back
-ALL_AXES = [(0, 2 * TURN, 4.0), (1, 2 * TURN, 4.0), (0, TURN / 4, 1.5), (2, 2 * TURN, 4.0),
-            (2, -2 * TURN, 4.0), (0, -TURN / 4, 1.5), (0, -2 * TURN, 4.0), (1, -2 * TURN, 4.0)]
-FLAT = [(0, 2 * TURN, 4.0), (2, 3 * TURN, 4.0), (1, 2 * TURN, 4.0), (2, -3 * TURN, 4.0),
-        (0, -2 * TURN, 4.0), (1, -2 * TURN, 4.0)]
-
-
-def session(moves, scale=SCALE, rest_s=2.5, seed=1):
-    """A phone lying still, then each move (a smooth turn about a body axis) followed by a rest:
-    rows of (t, gyr, acc, mag) at FS with every sensor, and the true attitude."""
-    rng = np.random.default_rng(seed)
-    rates = [np.zeros((int(rest_s * FS), 3))]
-    for axis, angle, secs in moves:
-        n = int(secs * FS)
-        u = (np.arange(n) + 0.5) / n
-        w = np.zeros((n, 3))
-        w[:, axis] = angle / secs * (1.0 - np.cos(2.0 * np.pi * u))     # integrates to the angle
-        rates += [w, np.zeros((int(rest_s * FS), 3))]
-    w = np.concatenate(rates)
-    q = np.empty((len(w), 4))
-    cur = np.array([1.0, 0.0, 0.0, 0.0])
-    for k in range(len(w)):
-        cur = qm.normalize(qm.quat_mul(cur, qm.quat_from_rotvec(w[k] / FS)))
-        q[k] = cur
-    t = np.arange(len(w)) / FS + 0.01
-    gyr = w * (1.0 + scale) + BIAS + 0.003 * rng.standard_normal(w.shape)
-    acc = qm.rotate_inv_many(q, np.tile(G, (len(w), 1))) + 0.03 * rng.standard_normal(w.shape)
-    mag = qm.rotate_inv_many(q, np.tile(M_WORLD, (len(w), 1))) + 0.3 * rng.standard_normal(w.shape)
-    return t, gyr, acc, mag, q
+SCALE = np.asarray(_SCALE)
 
 
 def rec(moves, name="phone", **kw) -> Recording:
@@ -146,9 +112,7 @@ def test_the_command_writes_a_preset_the_estimators_load(tmp_path):
 
     # the same session as the app's log (what the page's recorder writes): one sensor per line
     log = tmp_path / "turns.txt"
-    lines = [format_line(1000.0 * tk, tag, v) for k, tk in enumerate(t)
-             for tag, v in (("ACC", acc[k]), ("GYR", gyr[k]), ("MAG", mag[k]))]
-    log.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    log.write_text("\n".join(turns_log_lines(t, gyr, acc, mag)) + "\n", encoding="utf-8")
     p = _cli("gyro-scale", log, "--out", tmp_path / "log.toml")
     assert p.returncode == 0, p.stderr
     assert np.allclose(load_config(tmp_path / "log.toml")["robust"]["gyr_scale"], SCALE, atol=5e-4)

@@ -150,6 +150,16 @@ class VariantGhosts:
                 set_wxyz(f, est.q)
 
 
+def scale_markdown(out: dict) -> str:
+    """A gyroscope scale fit (``GyroScaleService``'s JSON) as short lines that fit the panel."""
+    lines = [f"**{a}**: {s * 100:+.3f} % ± {sd * 100:.3f} %" + ("" if m else " (not measured)")
+             for a, s, sd, m in zip("xyz", out["scale"], out["std"], out["measured"])]
+    lines.append(f"{out['spans']} spans between rests; tilt at the rests {out['rms_before_deg']:.2f}° "
+                 f"→ {out['rms_after_deg']:.2f}° with the fit")
+    lines += [f"*{w}*" for w in out["warnings"]]
+    return "  \n".join(lines)
+
+
 class ToolkitTab:
     """Builds the "Lab" tab in ``tabs`` (a viser tab group) of the shared GUI, on the
     toolkit ``tk``; ``server``: the viser server whose 3D scene the variants' ghosts
@@ -256,6 +266,17 @@ class ToolkitTab:
             mab.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.apply(False), "Applied"))
             mcb = gui.add_button("Clear (no correction)")
             mcb.on_click(lambda ev: self._do(ev, lambda: self.tk.magcal.apply(True), "Cleared"))
+        with gui.add_folder("Gyroscope scale (from a recording)", expand_by_default=False):
+            gui.add_markdown("Record: the phone still for 2 s, whole turns one way about one of its "
+                             "axes while that axis is level, still again; each axis, both ways. "
+                             "Then measure the recording (`orientlab gyro-scale`).")
+            self.gs_name = gui.add_dropdown("Turns recording", ("(none)",))
+            gb = gui.add_button("Measure the scale", hint="POST /api/gyro-scale {recordings: [name]}")
+            gb.on_click(self._measure_scale)
+            self.gs_md = gui.add_markdown("")
+            self.gs_apply = gui.add_button("Apply gyr_scale to the estimators", disabled=True,
+                                           hint="POST /api/gyro-scale/apply (the measured axes)")
+            self.gs_apply.on_click(lambda ev: self._call(self._apply_scale, ev))
         with gui.add_folder("Replay", expand_by_default=False):
             self.rp_name = gui.add_dropdown("Recording", ("(none)",))
             pb = gui.add_button("Replay it")
@@ -447,6 +468,33 @@ class ToolkitTab:
         self.tk.calibration.note_applied()
         self._notify(ev, "Done", ("applied anyway: " if force else "calibration applied: ") + ", ".join(
             f"{n}: {', '.join(p)}" for n, p in params.items()), color="green" if not force else "orange")
+
+    # ----------------------------------------------------------------- gyroscope scale
+    def _measure_scale(self, ev) -> None:
+        async def run():
+            self.gs_md.content = f"measuring `{self.gs_name.value}`..."
+            try:
+                out = await self.tk.gyro_scale.fit_job([self.gs_name.value])
+            except ToolError as e:
+                self.gs_md.content = f"**not measured**: {e.reason}"
+                self._notify(ev, "Gyroscope scale", e.reason)
+                return
+            self.gs_md.content = scale_markdown(out)
+            self.gs_apply.disabled = not any(out["measured"])
+            self._notify(ev, "Gyroscope scale", "measured: see the report", color="green")
+        self._call(run)
+
+    async def _apply_scale(self, ev) -> None:
+        try:
+            params = self.tk.gyro_scale.change()
+            change = self.core.validate({"estimators": params})
+        except ToolError as e:
+            self._notify(ev, "Not applied", e.reason)
+            return
+        except PatchError as e:
+            self._notify(ev, "Not applied", str(e))
+            return
+        await self._post(ev, change, "gyr_scale set: " + ", ".join(params))
 
     # ----------------------------------------------------------------- what-if
     def _wi_estimators(self) -> tuple[str, ...]:
@@ -677,7 +725,7 @@ class ToolkitTab:
         names = tuple(r["name"] for r in tk.recording.recordings()) or ("(none)",)
         if names != self._known_recordings:
             self._known_recordings = names
-            for dd in (self.rp_name, self.wi_name):
+            for dd in (self.rp_name, self.wi_name, self.gs_name):
                 v = dd.value
                 dd.options = names
                 if v in names:

@@ -13,6 +13,10 @@ recording's stretch is a heavy job: one at a time, two waiting, more refused (42
 60,000 samples and the seconds + 5 s of wall time), ``GET /api/magcal`` shows the
 coverage and the fit, or why it was refused; ``POST /api/magcal/apply {"clear"?,
 "save_as"?}`` applies it to every MAG sample (a refused fit: 409, its reason).
+``POST /api/gyro-scale {"recordings": [NAME, ...]}`` fits the gyroscope's scale factor per axis
+from recordings in which the phone turns whole turns between rests (``orientlab gyro-scale``;
+a heavy job), ``GET /api/gyro-scale`` shows the last fit, ``POST /api/gyro-scale/apply
+{"save_as"?}`` sets ``gyr_scale`` of the estimators that have it (no axis measured: 409).
 """
 
 from __future__ import annotations
@@ -129,6 +133,45 @@ async def magcal_apply(body: Any = Body(None), tk: Toolkit = Depends(get_toolkit
     if b.get("save_as"):
         tk.check_preset_name(b["save_as"])    # a refused preset name applies nothing
     out = tk.magcal.apply(bool(b.get("clear", False)))
+    if b.get("save_as"):
+        out["preset"] = str(tk.save_preset(b["save_as"]))
+    return out
+
+
+MAX_SCALE_RECORDINGS = 20
+
+
+@router.post("/gyro-scale", dependencies=[Depends(require_presenter)])
+async def gyro_scale(body: Any = Body(..., examples=[{"recordings": ["turns"]}]),
+                     tk: Toolkit = Depends(get_toolkit)) -> dict:
+    """The gyroscope's scale factor from recordings of one phone (whole turns between rests)."""
+    b = _obj(body, {"recordings"})
+    names = b.get("recordings")
+    if (not isinstance(names, list) or not names or len(names) > MAX_SCALE_RECORDINGS
+            or not all(isinstance(n, str) for n in names)):
+        raise ToolError("recordings", f"must be a list of 1-{MAX_SCALE_RECORDINGS} recording names")
+    return await tk.gyro_scale.fit_job(names)
+
+
+@router.get("/gyro-scale")
+async def gyro_scale_last(tk: Toolkit = Depends(get_toolkit)) -> dict:
+    """The last fit (null before the first)."""
+    return {"result": tk.gyro_scale.last}
+
+
+@router.post("/gyro-scale/apply", dependencies=[Depends(require_presenter)])
+async def gyro_scale_apply(body: Any = Body(None), tk: Toolkit = Depends(get_toolkit)) -> dict:
+    """Set the last fit's ``gyr_scale`` (measured axes; 0 for the others) in every estimator that
+    has it; ``save_as`` also writes a preset."""
+    b = _obj(body, {"save_as"})
+    params = tk.gyro_scale.change()
+    try:
+        change = tk.engine.core.validate({"estimators": params})
+    except PatchError as e:
+        raise ToolError(".".join(map(str, e.loc)), e.reason) from None
+    if b.get("save_as"):
+        tk.check_preset_name(b["save_as"])    # a refused preset name applies nothing
+    out = {"applied": params, "params": await tk.post(change)}
     if b.get("save_as"):
         out["preset"] = str(tk.save_preset(b["save_as"]))
     return out
