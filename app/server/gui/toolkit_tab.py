@@ -449,15 +449,10 @@ class ToolkitTab:
     async def _apply_calibration(self, ev, force: bool = False) -> None:
         """"Apply to the estimators" (a calibration over a phone that moved is refused,
         with its reasons) or, ``force``, "Apply anyway (the phone moved)"."""
-        try:
-            params = self.tk.calibration.change(force=force)
-            change = self.core.validate({"estimators": params})
-        except ToolError as e:
-            self._notify(ev, "Not applied", e.reason)
+        checked = self._validated(ev, lambda: self.tk.calibration.change(force=force))
+        if checked is None:
             return
-        except PatchError as e:
-            self._notify(ev, "Not applied", str(e))
-            return
+        params, change = checked
         done = self.loop.create_future()
         self.tk.engine.post(change, done)
         try:
@@ -485,16 +480,21 @@ class ToolkitTab:
         self._call(run)
 
     async def _apply_scale(self, ev) -> None:
+        checked = self._validated(ev, self.tk.gyro_scale.change)
+        if checked is not None:
+            await self._post(ev, checked[1], "gyr_scale set: " + ", ".join(checked[0]))
+
+    def _validated(self, ev, params_of: Callable[[], dict]):
+        """A calibration's parameters and their validated change, or None (the refusal
+        notified): nothing is applied unless all of it is valid."""
         try:
-            params = self.tk.gyro_scale.change()
-            change = self.core.validate({"estimators": params})
+            params = params_of()
+            return params, self.core.validate({"estimators": params})
         except ToolError as e:
             self._notify(ev, "Not applied", e.reason)
-            return
         except PatchError as e:
             self._notify(ev, "Not applied", str(e))
-            return
-        await self._post(ev, change, "gyr_scale set: " + ", ".join(params))
+        return None
 
     # ----------------------------------------------------------------- what-if
     def _wi_estimators(self) -> tuple[str, ...]:

@@ -22,7 +22,7 @@ a heavy job), ``GET /api/gyro-scale`` shows the last fit, ``POST /api/gyro-scale
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
 from fastapi import APIRouter, Body, Depends
 
@@ -65,6 +65,25 @@ def _stretch(b: dict) -> tuple[str, float, float | None]:
     return name, out[0], out[1]
 
 
+async def _apply(tk: Toolkit, params: dict, save_as: str | None,
+                 applied: Callable[[], None] | None = None) -> dict:
+    """Set a calibration's ``params`` ({estimator: {param: value}}) in the estimators, all or
+    nothing (validated first; a refused preset name applies nothing); then ``applied()`` and,
+    with ``save_as``, a preset."""
+    try:
+        change = tk.engine.core.validate({"estimators": params})
+    except PatchError as e:
+        raise ToolError(".".join(map(str, e.loc)), e.reason) from None
+    if save_as:
+        tk.check_preset_name(save_as)
+    out = {"applied": params, "params": await tk.post(change)}
+    if applied is not None:
+        applied()
+    if save_as:
+        out["preset"] = str(tk.save_preset(save_as))
+    return out
+
+
 @router.post("/calibrate", dependencies=[Depends(require_presenter)])
 async def calibrate(body: Any = Body(..., examples=[{"seconds": 10}]),
                     tk: Toolkit = Depends(get_toolkit)) -> dict:
@@ -99,17 +118,9 @@ async def apply_calibration(body: Any = Body(None), tk: Toolkit = Depends(get_to
     force = b.get("force", False)
     if not isinstance(force, bool):
         raise ToolError("force", "must be true or false")
-    params = tk.calibration.change(force=force)
-    try:
-        change = tk.engine.core.validate({"estimators": params})
-    except PatchError as e:
-        raise ToolError(".".join(map(str, e.loc)), e.reason) from None
-    if b.get("save_as"):
-        tk.check_preset_name(b["save_as"])    # a refused preset name applies nothing
-    out = {"applied": params, "params": await tk.post(change), "forced": force}
-    tk.calibration.note_applied()
-    if b.get("save_as"):
-        out["preset"] = str(tk.save_preset(b["save_as"]))
+    out = await _apply(tk, tk.calibration.change(force=force), b.get("save_as"),
+                       tk.calibration.note_applied)
+    out["forced"] = force
     return out
 
 
@@ -164,14 +175,4 @@ async def gyro_scale_apply(body: Any = Body(None), tk: Toolkit = Depends(get_too
     """Set the last fit's ``gyr_scale`` (measured axes; 0 for the others) in every estimator that
     has it; ``save_as`` also writes a preset."""
     b = _obj(body, {"save_as"})
-    params = tk.gyro_scale.change()
-    try:
-        change = tk.engine.core.validate({"estimators": params})
-    except PatchError as e:
-        raise ToolError(".".join(map(str, e.loc)), e.reason) from None
-    if b.get("save_as"):
-        tk.check_preset_name(b["save_as"])    # a refused preset name applies nothing
-    out = {"applied": params, "params": await tk.post(change)}
-    if b.get("save_as"):
-        out["preset"] = str(tk.save_preset(b["save_as"]))
-    return out
+    return await _apply(tk, tk.gyro_scale.change(), b.get("save_as"))
