@@ -379,7 +379,7 @@ def _param_fields():
 PRM, NPARAM = layout("ParamLayout", _param_fields())
 
 
-def derived(p: RobustParams) -> dict[str, float]:
+def derived(p: RobustParams) -> dict[str, float | tuple[float, ...]]:
     """The coefficients derived from the parameters (see ``DERIVED``)."""
     return {"gyr_gain": tuple(1.0 / (1.0 + s) for s in p.gyr_scale),
             "upd_dt": 1.0 / p.update_rate_hz if p.update_rate_hz > 0 else 0.0,
