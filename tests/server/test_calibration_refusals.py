@@ -195,10 +195,14 @@ def test_heavy_reruns_run_one_at_a_time_and_health_answers(tmp_path, shared_dir)
         assert api.get("/api/health").status_code == 200
         results: dict[int, httpx.Response] = {}
 
+        took: dict[int, float] = {}
+
         def rerun(i):
             with httpx.Client(base_url=s.url, timeout=600.0) as c:
+                t0 = time.monotonic()
                 results[i] = c.post("/api/recordings/long/rerun",
                                     json={"patch": {"lab": {"acc_std": 0.3 + 0.01 * i}}})
+                took[i] = time.monotonic() - t0
         threads = [threading.Thread(target=rerun, args=(i,)) for i in range(8)]
         for th in threads:
             th.start()
@@ -211,10 +215,15 @@ def test_heavy_reruns_run_one_at_a_time_and_health_answers(tmp_path, shared_dir)
         for th in threads:
             th.join()
         worst = max(d for d, _ in polls)
-        print(f"health during 8 re-runs: {len(polls)} polls, the slowest {worst:.3f} s")
+        # a loop blocked by a re-run would keep a poll waiting for the re-run's length: the
+        # slowest poll is held against the shortest re-run, which a loaded machine slows alike
+        # (not against a fixed time: this is no speed test)
+        one = min(took[i] for i, r in results.items() if r.status_code == 200)
+        print(f"health during 8 re-runs: {len(polls)} polls, the slowest {worst:.3f} s; "
+              f"the shortest re-run {one:.2f} s")
         assert len(polls) >= 5, polls
         assert all(code == 200 for _, code in polls)
-        assert worst < 0.5, (worst, polls)
+        assert worst < 0.25 * one, (worst, one, polls)
         codes = sorted(r.status_code for r in results.values())
         assert codes == [200] * 3 + [429] * 5, codes          # one runs, two wait
         for r in results.values():
