@@ -27,10 +27,10 @@ directions. A recording needs at least three rests: with two, its bias error tak
 span. An axis whose σ stays above ``MEASURED_STD`` is reported as not measured and left out of
 the preset.
 
-Rests are found as VQF finds them (``restThGyr`` 2 °/s, ``restThAcc`` 0.5 m/s², ``restMinT``
-1.5 s): blocks of ``REST_BLOCK_S`` whose gyroscope and accelerometer stay that close to their
-block means (RMS: a phone's noise is not a movement) and whose gravity direction stays within
-``REST_TILT`` of the run's.
+Rests are found with the thresholds of robust's rest detection, VQF's (``restThGyr`` 2 °/s,
+``restThAcc`` 0.5 m/s², ``restMinT`` 1.5 s): blocks of ``REST_BLOCK_S`` whose gyroscope and
+accelerometer stay that close to their block means (RMS: a phone's noise is not a movement)
+and whose gravity direction stays within ``REST_TILT`` of the run's.
 """
 
 from __future__ import annotations
@@ -42,14 +42,16 @@ from typing import Any, Callable
 import numpy as np
 
 from app import quaternion as qm
+from app.estimators.robust.params import GRAVITY, RobustParams
 from app.params import dump_toml
 from app.toolkit.errors import ToolError
 from app.toolkit.jobs import JobQueue
 
-G = 9.81
-REST_GYR = math.radians(2.0)      # rad/s: VQF restThGyr 2 °/s
-REST_ACC = 0.5                    # m/s²: VQF restThAcc
-REST_MIN_S = 1.5                  # s: VQF restMinT
+# a rest as robust's rest detection takes it (VQF's thresholds): one definition, its defaults
+_REST = RobustParams()
+REST_GYR = _REST.rest_gyr_th      # rad/s: VQF restThGyr 2 °/s
+REST_ACC = _REST.rest_acc_th      # m/s²: VQF restThAcc
+REST_MIN_S = _REST.rest_time      # s: VQF restMinT
 REST_BLOCK_S = 0.25               # s: the blocks a rest is made of
 REST_TILT = math.radians(0.5)     # rad: gravity's direction within a rest
 REST_NORM = 1.5                   # m/s²: | |a| - g | at rest (an accelerometer's own scale error)
@@ -120,7 +122,7 @@ def find_rests(rec: Recording) -> list[tuple[float, float]]:
     norm = np.linalg.norm(ma, axis=1)
     with np.errstate(invalid="ignore"):
         still = ((ng >= 2) & (na >= 2) & (dev_g < REST_GYR) & (dev_a < REST_ACC)
-                 & (np.abs(norm - G) < REST_NORM))
+                 & (np.abs(norm - GRAVITY) < REST_NORM))
     up = ma / np.maximum(norm, 1e-9)[:, None]
     rests, b = [], 0
     while b < nb:
@@ -208,7 +210,8 @@ def fit(recordings: list[Recording], max_iter: int = 5) -> GyroScaleFit:
     first = None
     for _ in range(max_iter):
         f = solve([evidence(rec, scale) for rec in recordings])
-        first = first or f
+        if first is None:
+            first = f
         step = (1.0 + scale) * (1.0 + f.scale) - 1.0 - scale
         scale = scale + step
         if np.max(np.abs(step)) < 1e-5:
