@@ -10,8 +10,9 @@ it may *watch*, only the presenter may *change* the session.
   in the page act as the presenter. A script sends it as ``X-Orientlab-Token: ...`` or
   ``Authorization: Bearer ...`` (``?token=...`` in the URL works too).
 - **Without the token** the page and the 3D viewer are watch-only: the viewer's
-  controls are shown disabled and any change a viewer sends is refused (the control is
-  set back), and every changing API call answers **403**.
+  controls are shown disabled (also one enabled later for everyone, such as an "apply"
+  button after the presenter's fit), any change a viewer sends is refused (the control
+  is set back), and every changing API call answers **403**.
 - ``--open`` (``Settings.open_access``) turns the token off, for a trusted network.
 - **Origin.** A browser names the page a request comes from. A state-changing request
   or a WebSocket (``/ws/state`` and the viewer's) whose ``Origin`` is not a page of this
@@ -339,6 +340,42 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
         if loop is not None:
             for delay in (1.0, 4.0):
                 loop.call_later(delay, _disable_controls, viewer, client)
+
+    def _keep_disabled(message) -> None:
+        """A control enabled later (an "apply" button after a fit, an input added) is
+        enabled for every client: show it disabled again to the watch-only ones."""
+        uuid = va.enabled_input(message)
+        if uuid is None:
+            return
+        loop = va.background_loop(viewer)
+        if loop is None:
+            return
+        # the broadcast and a client's own messages leave on two queues, in no fixed
+        # order: say it after the broadcast has gone out, and once more
+        for delay in KEEP_DISABLED_AFTER_S:
+            loop.call_soon_threadsafe(loop.call_later, delay, _disable_for_watchers,
+                                      viewer, access, uuid)
+
+    va.on_broadcast(viewer, _keep_disabled)
+
+
+# seconds after a control is enabled for all when the watch-only clients are told it is not
+KEEP_DISABLED_AFTER_S = (0.2, 1.0)
+
+
+def _disable_for_watchers(viewer, access: Access, uuid: str) -> None:
+    """Show the input ``uuid`` disabled to every watch-only client (on viser's loop)."""
+    from app.server import viser_adapter as va
+    h = va.gui_input_handle(viewer, uuid)
+    if h is None or va.is_removed(h):
+        return
+    for client_id, client in viewer.get_clients().items():
+        if access.viewer_allowed(client_id):
+            continue
+        try:
+            va.queue_to_client(client, va.gui_update_message(uuid, {"disabled": True}))
+        except Exception:  # a client gone meanwhile
+            log.debug("could not disable a viewer's control", exc_info=True)
 
 
 def _disable_controls(viewer, client) -> None:

@@ -43,6 +43,7 @@ except ImportError:  # pragma: no cover - another viser: check() names what is m
 GuiUpdateMessage = getattr(_messages, "GuiUpdateMessage", None)
 SetOrientationMessage = getattr(_messages, "SetOrientationMessage", None)
 SceneNodeUpdateMessage = getattr(_messages, "SceneNodeUpdateMessage", None)
+GuiBaseProps = getattr(_messages, "GuiBaseProps", None)
 
 
 class ViserInternalsError(RuntimeError):
@@ -86,6 +87,39 @@ def websocket_server(viewer) -> Any:
         return viewer._websock_server
     except AttributeError as e:
         raise _missing("ViserServer._websock_server", e) from e
+
+
+def on_broadcast(viewer, cb: Callable[[Any], None]) -> None:
+    """Call ``cb(message)`` after each message the server queues for every client (the
+    shared GUI's and the scene's), on the thread that queued it: ``cb`` must be cheap.
+
+    Relies on: the shared GUI and scene sending through ``WebsockServer.queue_message``,
+    looked up on the server at every send (``gui_api._websock_interface.queue_message``)."""
+    server = websocket_server(viewer)
+    try:
+        queue = server.queue_message
+    except AttributeError as e:
+        raise _missing("WebsockServer.queue_message", e) from e
+
+    def queue_message(message) -> None:
+        queue(message)
+        cb(message)
+
+    server.queue_message = queue_message
+
+
+def enabled_input(message) -> str | None:
+    """The uuid of the GUI input an outgoing ``message`` shows enabled, else None: an
+    update that sets ``disabled`` to False, or an input added enabled.
+
+    Relies on: ``GuiUpdateMessage.updates`` and the add messages' ``props``
+    (a ``GuiBaseProps`` with ``disabled``) beside their ``uuid``."""
+    if GuiUpdateMessage is not None and isinstance(message, GuiUpdateMessage):
+        return message.uuid if message.updates.get("disabled") is False else None
+    props = getattr(message, "props", None)
+    if GuiBaseProps is not None and isinstance(props, GuiBaseProps) and not props.disabled:
+        return getattr(message, "uuid", None)
+    return None
 
 
 def background_loop(viewer) -> asyncio.AbstractEventLoop | None:
@@ -369,7 +403,8 @@ def _probes() -> list[tuple[str, Callable[[], bool]]]:
         return mod("viser.infra._async_message_buffer").AsyncMessageBuffer
 
     probes = [(f"viser._messages.{n}", (lambda n=n: hasattr(_messages, n)))
-              for n in ("GuiUpdateMessage", "SetOrientationMessage", "SceneNodeUpdateMessage")]
+              for n in ("GuiUpdateMessage", "SetOrientationMessage", "SceneNodeUpdateMessage",
+                        "GuiBaseProps")]
     probes += [
         ("ViserServer._websock_server",
          lambda: _assigned_in(viser.ViserServer.__init__, "_websock_server")),
@@ -379,6 +414,9 @@ def _probes() -> list[tuple[str, Callable[[], bool]]]:
         ("WebsockServer._broadcast_buffer",
          lambda: any(_assigned_in(getattr(infra().WebsockServer, f), "_broadcast_buffer")
                      for f in ("__init__", "start"))),
+        ("WebsockServer.queue_message",
+         lambda: callable(getattr(infra().WebsockServer, "queue_message", None))),
+        ("GuiBaseProps.disabled", lambda: _field(_messages.GuiBaseProps, "disabled")),
         ("WebsockServer._live_connections",
          lambda: _assigned_in(infra().WebsockServer.__init__, "_live_connections")),
         ("WebsockServer._incoming_handlers",

@@ -20,9 +20,10 @@ import pytest
 import viser
 import websockets
 import websockets.sync.client
+import zstandard
 from viser import _messages as vm
 
-from harness import Phone, running_server, wait_for
+from harness import ALL_AXES, Phone, running_server, turns_log_lines, turns_session, wait_for
 
 TOKEN = "presenter-token-for-tests"
 AUTH = {"X-Orientlab-Token": TOKEN}
@@ -151,6 +152,22 @@ class ViewerClient:
             return False
         return False
 
+    def gui_updates(self, uuid: str, seconds: float) -> list[dict]:
+        """Every GuiUpdateMessage's ``updates`` for ``uuid`` this client receives in the next
+        ``seconds`` (viser's wire format: two lengths, zstd-compressed msgpack, buffers)."""
+        out, deadline = [], time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                raw = self.ws.recv(timeout=left)
+            except TimeoutError:
+                break
+            size, clen = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+            inner = zstandard.ZstdDecompressor().decompress(raw[16:16 + clen], max_output_size=size)
+            for m in msgspec.msgpack.decode(inner)["messages"]:
+                if m.get("type") == "GuiUpdateMessage" and m.get("uuid") == uuid:
+                    out.append(m["updates"])
+        return out
+
     def close(self) -> None:
         self.ws.close()
 
@@ -179,6 +196,44 @@ def test_viewer_controls_need_the_token(srv, api):
             presenter.close()
     finally:
         watcher.close()
+
+
+def test_a_control_enabled_later_stays_disabled_for_watchers(tmp_path):
+    """Attack: a button the presenter's fit enables (apply the gyroscope's scale) is enabled
+    for every viewer; a student's must show it disabled again, the presenter's enabled."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    t, gyr, acc, mag, _ = turns_session(ALL_AXES)
+    (rec / "turns.txt").write_text("\n".join(turns_log_lines(t, gyr, acc, mag)) + "\n",
+                                   encoding="utf-8")
+    with running_server(open_access=False, token=TOKEN, preset_dir=tmp_path,
+                        recordings=rec) as s, \
+            httpx.Client(base_url=s.url, timeout=120.0, headers=AUTH):
+        uuid = s.app.state.toolkit_tab.gs_apply._impl.uuid
+        watcher = ViewerClient(s.viewer_port)
+        presenter = ViewerClient(s.viewer_port, token=TOKEN)
+        try:
+            wait_for(lambda: len(s.app.state.viewer.get_clients()) >= 2, what="two viewers")
+            watcher.gui_updates(uuid, 5.0)       # past the connect-time "disabled" messages
+            presenter.gui_updates(uuid, 0.5)
+            # the presenter picks the recording and clicks "Measure" (what the Lab tab sends)
+            tab = s.app.state.toolkit_tab
+            wait_for(lambda: "turns" in tab.gs_name.options, what="the recording listed")
+            presenter.send(vm.GuiUpdateMessage(tab.gs_name._impl.uuid, {"value": "turns"}))
+            wait_for(lambda: tab.gs_name.value == "turns", what="the recording picked")
+            measure = next(h for _, h in s.app.state.viewer.gui._gui_input_handle_from_uuid.items()
+                           if getattr(h, "label", None) == "Measure the scale")
+            presenter.send(vm.GuiUpdateMessage(measure._impl.uuid, {"value": True}))
+            wait_for(lambda: s.app.state.toolkit_tab.gs_apply.disabled is False, 30.0,
+                     what="apply enabled")
+            seen = watcher.gui_updates(uuid, 3.0)
+            shown = [u["disabled"] for u in seen if "disabled" in u]
+            assert shown and shown[-1] is True, seen      # the student's button: disabled
+            shown = [u["disabled"] for u in presenter.gui_updates(uuid, 1.0) if "disabled" in u]
+            assert shown == [False]                       # the presenter's: enabled, once
+        finally:
+            watcher.close()
+            presenter.close()
 
 
 def test_viewer_websocket_checks_origin(srv):
