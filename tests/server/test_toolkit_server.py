@@ -382,6 +382,9 @@ def test_gyroscope_scale_from_a_recorded_stream(tmp_path):
         np.testing.assert_allclose(fit["scale"], SCALE, atol=5e-4)
         assert "x: s = " in fit["report"]
         assert api.get("/api/gyro-scale").json()["result"]["scale"] == fit["scale"]
+        tab = s.app.state.toolkit_tab      # the Lab tab shows a fit made through the API too
+        wait_for(lambda: tab.gs_apply.disabled is False, 30.0, what="the Lab tab's apply enabled")
+        assert "spans between rests" in tab.gs_md.content
         r = api.post("/api/gyro-scale/apply", json={"save_as": "myphone"})
         assert r.status_code == 200, r.text
         p = api.get("/api/params").json()["estimators"]

@@ -174,6 +174,7 @@ class ToolkitTab:
         self.ghosts = VariantGhosts(server, tk) if server is not None else None
         self._rerun_result: dict[str, Any] | None = None
         self._cal_shown = None
+        self._scale_shown: dict[str, Any] | None = None   # the gyroscope-scale fit on the page
         self._known_recordings: tuple = ()
         self._monitor_due = 0.0           # loop time of the heading plot's next refresh
         self.monitor_sent = 0             # heading plot refreshes sent (tests, benchmarks)
@@ -474,10 +475,15 @@ class ToolkitTab:
                 self.gs_md.content = f"**not measured**: {e.reason}"
                 self._notify(ev, "Gyroscope scale", e.reason)
                 return
-            self.gs_md.content = scale_markdown(out)
-            self.gs_apply.disabled = not any(out["measured"])
+            self._show_scale(out)
             self._notify(ev, "Gyroscope scale", "measured: see the report", color="green")
         self._call(run)
+
+    def _show_scale(self, out: dict[str, Any]) -> None:
+        """The gyroscope-scale fit on the page, its apply button enabled if an axis was measured."""
+        self._scale_shown = out
+        self.gs_md.content = scale_markdown(out)
+        self.gs_apply.disabled = not any(out["measured"])
 
     async def _apply_scale(self, ev) -> None:
         checked = self._validated(ev, self.tk.gyro_scale.change)
@@ -741,6 +747,9 @@ class ToolkitTab:
             if cap is not None and cap.error:
                 self.cal_md.content = f"**calibration failed**: {cap.error}"
             self._draw_calibration()
+        # gyroscope scale: the last fit, measured here or through the API
+        if tk.gyro_scale.last is not None and tk.gyro_scale.last is not self._scale_shown:
+            self._show_scale(tk.gyro_scale.last)
         # magnetometer calibration
         ms = tk.magcal.status()
         c = ms.get("capture")
