@@ -293,6 +293,8 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
     tests/server/test_faults.py."""
     from app.server import viser_adapter as va
 
+    refused: set = set()    # connections closed for their Origin: never greeted
+
     async def _check(conn) -> None:   # awaited before any message flows to the client
         live = va.websocket_connection(viewer, conn.client_id)
         req = getattr(live, "request", None)
@@ -300,6 +302,8 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
         if not access.origin_ok(headers.get("Origin"), headers.get("Host"),
                                 getattr(live, "local_address", None)):
             log.warning("viewer: refused a WebSocket from Origin %.80s", headers.get("Origin"))
+            with access.lock:
+                refused.add(conn.client_id)
             await live.close(1008, "foreign Origin")
             return
         query = parse_qs(urlsplit(req.path).query) if req is not None else {}
@@ -313,6 +317,7 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
     async def _gone(conn) -> None:
         with access.lock:
             access.presenters.discard(conn.client_id)
+            refused.discard(conn.client_id)
 
     va.on_websocket_disconnect(viewer, _gone)
 
@@ -329,8 +334,10 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
     def _watch_only(client) -> None:
         if access.viewer_allowed(client.client_id):
             return
-        if client.client_id not in viewer.get_clients():
-            return   # already gone (a WebSocket refused for its Origin is closed at once)
+        with access.lock:
+            gone = client.client_id in refused or client.client_id not in viewer.get_clients()
+        if gone:
+            return   # refused for its Origin (closed, maybe not yet unregistered), or gone
         client.add_notification("Watch-only", "Only the presenter can change the session "
                                 "(the presenter's link holds a token).", color="blue",
                                 auto_close_seconds=8.0)
