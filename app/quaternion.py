@@ -334,6 +334,24 @@ def quat_from_rotvec_many(v: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(0.5 * a)[..., None], v * s[..., None]], axis=-1)
 
 
+def rotate_many(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Q(q) v for (N, 4) q and (N, 3) or (3,) v (a sensor vector in the world frame):
+    :func:`rotate` for many at once."""
+    v = np.broadcast_to(np.asarray(v, float), (len(q), 3))
+    return np.einsum("nij,nj->ni", Q_many(q), v)
+
+
+def integrate_many(q0, steps: np.ndarray) -> np.ndarray:
+    """The attitudes (N, 4) after each of ``steps`` (N, 3), body-frame rotation vectors
+    (rad; a gyroscope's ω dt), starting from ``q0``: q_k = q_k-1 ⊗ exp(step_k), normalised."""
+    out = np.empty((len(steps), 4))
+    q = normalize(np.asarray(q0, float))
+    for k, dq in enumerate(quat_from_rotvec_many(steps)):
+        q = normalize(quat_mul(q, dq))
+        out[k] = q
+    return out
+
+
 def rotate_inv_many(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Q(q)ᵀ v for (..., 4) q and (..., 3) or (3,) v (a world vector in the sensor frame):
     :func:`rotate_inv` for many at once."""

@@ -47,8 +47,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from accuracy_phones import BROAD, PHONES, load_broad, load_phones  # noqa: E402
 from app.estimators.robust import RobustParams  # noqa: E402
 from app.estimators.robust.state import lp_coef  # noqa: E402
-from app.quaternion import (Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul,  # noqa: E402
-                            quat_mul_many, rotvec_from_quat_many, wrap_angle)
+from app.quaternion import (Q_many, integrate_many, quat_conj_many, quat_mul_many,  # noqa: E402
+                            rotvec_from_quat_many, wrap_angle)
 from evalkit import KINDS, broad_kind  # noqa: E402
 from gyro_scale import rates  # noqa: E402
 
@@ -77,14 +77,7 @@ def gyro_alone(tr: dict) -> tuple[np.ndarray, np.ndarray]:
     t = tr["t"]
     g = np.nan_to_num(tr["gyr"] - _bias(tr))
     dt = np.diff(t, prepend=t[0])
-    step = quat_from_rotvec_many(g * dt[:, None])
-    qg = np.empty((len(t), 4))
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-    for k in range(len(t)):
-        q = quat_mul(q, step[k])
-        q /= np.linalg.norm(q)
-        qg[k] = q
-    return g, qg
+    return g, integrate_many((1.0, 0.0, 0.0, 0.0), g * dt[:, None])
 
 
 def window_walk(ref: np.ndarray, qg: np.ndarray, i0: np.ndarray, i1: np.ndarray) -> np.ndarray:

@@ -48,7 +48,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from ablation import SHARP  # noqa: E402
 from accuracy_phones import BROAD, errors  # noqa: E402
-from app.quaternion import Q_many, quat_mul_many  # noqa: E402
+from app.quaternion import Q_many, quat_from_rotvec_many, quat_mul_many, rotate_many  # noqa: E402
 from app.toolkit.gyro_scale import Recording, fit, format_report  # noqa: E402
 from evalkit import estimate, pool, trials  # noqa: E402
 from noise_densities import gyro_alone, window_walk  # noqa: E402
@@ -131,13 +131,13 @@ def field_fit(i: int) -> tuple[float, float, float, float]:
     tilt (module doc, 5)."""
     tr = trials("broad")[i]
     q = estimate(tr)
-    mw = np.einsum("nij,nj->ni", Q_many(q), np.nan_to_num(tr["mag"]))
+    mw = rotate_many(q, np.nan_to_num(tr["mag"]))
     az = np.arctan2(mw[:, 0], mw[:, 1])          # the field's azimuth, clockwise from north
     # a heading error e (counter-clockwise) shows the field at az - e: turn it back by az - mean
-    half = 0.5 * (az - np.angle(np.mean(np.exp(1j * az))))
-    qf = quat_mul_many(np.stack([np.cos(half), 0 * half, 0 * half, np.sin(half)], axis=1), q)
+    back = np.outer(az - np.angle(np.mean(np.exp(1j * az))), [0.0, 0.0, 1.0])
+    qf = quat_mul_many(quat_from_rotvec_many(back), q)
     out = []
-    for ref in (None, qf * np.where(qf[:, :1] < 0.0, -1.0, 1.0)):
+    for ref in (None, qf):
         e, x = windows(tr, ref)
         a = np.concatenate([x[:, 2, :3], x[:, 2, 3:].sum(axis=1, keepdims=True)], axis=1)
         c = np.linalg.lstsq(a, e[:, 2], rcond=None)[0]

@@ -11,8 +11,8 @@ log's own pace. :func:`sim_rows` gives the simulator's samples as the rows a pho
 from __future__ import annotations
 
 import contextlib
-import math
 import dataclasses
+import math
 import random
 import shutil
 import socket
@@ -350,11 +350,7 @@ def turns_session(moves, scale=SCALE, rest_s=2.5, seed=1):
         w[:, axis] = angle / secs * (1.0 - np.cos(2.0 * np.pi * u))     # integrates to the angle
         rates += [w, np.zeros((int(rest_s * FS), 3))]
     w = np.concatenate(rates)
-    q = np.empty((len(w), 4))
-    cur = np.array([1.0, 0.0, 0.0, 0.0])
-    for k in range(len(w)):
-        cur = qm.normalize(qm.quat_mul(cur, qm.quat_from_rotvec(w[k] / FS)))
-        q[k] = cur
+    q = qm.integrate_many((1.0, 0.0, 0.0, 0.0), w / FS)
     t = np.arange(len(w)) / FS + 0.01
     gyr = w * (1.0 + np.asarray(scale)) + np.asarray(BIAS) + 0.003 * rng.standard_normal(w.shape)
     acc = qm.rotate_inv_many(q, np.tile(G_WORLD, (len(w), 1))) + 0.03 * rng.standard_normal(w.shape)

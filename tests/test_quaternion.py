@@ -297,6 +297,8 @@ def test_vectorised_helpers_equal_the_scalar_ones():
                                atol=1e-12)
     np.testing.assert_allclose(qm.rotate_inv_many(q, v[0]), [qm.Q(a).T @ v[0] for a in q],
                                atol=1e-12)
+    np.testing.assert_allclose(qm.rotate_many(q, v), [qm.Q(a) @ x for a, x in zip(q, v)], atol=1e-12)
+    np.testing.assert_allclose(qm.rotate_many(q, v[0]), [qm.Q(a) @ v[0] for a in q], atol=1e-12)
     np.testing.assert_allclose(qm.quat_conj_many(q), [qm.quat_conj(a) for a in q], atol=0)
     signed = np.vstack([q, -q, [[1.0, 0.0, 0.0, 0.0]]])       # w < 0 too, and no rotation
     np.testing.assert_allclose(qm.rotvec_from_quat_many(signed),
@@ -325,3 +327,19 @@ def test_Q_many_is_Q_row_by_row():
     rng = np.random.default_rng(3)
     qs = quat_from_rotvec_many(rng.normal(size=(50, 3)))
     np.testing.assert_allclose(Q_many(qs), np.array([Q(q) for q in qs]), atol=1e-15)
+
+
+def test_integrate_many_is_the_exact_time_update_step_by_step():
+    """A gyroscope's turns, integrated from q0: each attitude is the last one turned by its step
+    in the body frame (time_update_exact's rotation), unit, w >= 0."""
+    rng = np.random.default_rng(11)
+    q0 = qm.normalize(rng.standard_normal(4))
+    w, T = rng.standard_normal((50, 3)), 0.01
+    got = qm.integrate_many(q0, w * T)
+    want, q = [], q0
+    for x in w:
+        q = qm.normalize(qm.time_update_exact(q, x, T))
+        want.append(q)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    assert np.all(got[:, 0] >= 0.0)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-12)

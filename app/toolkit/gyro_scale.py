@@ -156,21 +156,17 @@ def span_evidence(rec: Recording, rests: list[tuple[float, float]],
     for (_, end0), (start1, end1) in zip(rests[:-1], rests[1:]):
         up0 = _mean_in(rec.t, rec.acc, (end0 - REST_MIN_S, end0))
         up1 = _mean_in(rec.t, rec.acc, (start1, end1))
-        q = np.asarray(qm.q_from_acc_mag(up0, up0, False), dtype=float)
+        q0 = qm.normalize(np.asarray(qm.q_from_acc_mag(up0, up0, False), dtype=float))
         sel = np.flatnonzero((tg > end0) & (tg <= start1))
         if len(sel) < 2:
             continue
         t_prev = np.concatenate([[tg[max(sel[0] - 1, 0)]], tg[sel[:-1]]])
         dt = tg[sel] - t_prev
         w = (g[sel] - bias) * gain
-        steps = qm.quat_from_rotvec_many(w * dt[:, None])
-        qs = np.empty((len(sel), 4))                   # the attitude each sample's turn starts from
-        for j in range(len(sel)):
-            qs[j] = q
-            q = qm.normalize(qm.quat_mul(q, steps[j]))
-        R = qm.Q_many(qs)
+        qs = qm.integrate_many(q0, w * dt[:, None])
+        R = qm.Q_many(np.vstack([q0, qs[:-1]]))         # the attitude each sample's turn starts from
         x = np.concatenate([R * dt[:, None, None], R * (w * dt[:, None])[:, None, :]], axis=2).sum(axis=0)
-        u = qm.Q(q) @ (up1 / np.linalg.norm(up1))     # gravity through the integrated attitude
+        u = qm.Q(qs[-1]) @ (up1 / np.linalg.norm(up1))  # gravity through the integrated attitude
         errs.append([-u[1], u[0]])                     # δ × z = (δy, -δx, 0)
         regs.append(x[:2])
     return np.array(errs).reshape(-1, 2), np.array(regs).reshape(-1, 2, 6)
