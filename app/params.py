@@ -61,6 +61,15 @@ def param(default, *, unit: str = "", lo: float | None = None, hi: float | None 
     return field(default=default, metadata=meta)
 
 
+def gyr_scale_param():
+    """``gyr_scale``, the gyroscope's scale-factor calibration (``orientlab gyro-scale``): one
+    definition for every estimator that applies it."""
+    return param((0.0, 0.0, 0.0), lo=-0.1, hi=0.1, tunable=False,
+                 doc="gyroscope scale-factor error per sensor axis (calibration: orientlab gyro-scale): "
+                     "the gyroscope reads (1 + s) × the turn, so each axis, its bias removed, is "
+                     "divided by 1 + s")
+
+
 DEG = 180.0 / math.pi
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from app import quaternion as qm
 from app.jitcache import compiled
-from app.params import CommonParams, DEG, ParamError, param
+from app.params import CommonParams, DEG, ParamError, gyr_scale_param, param
 from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
                    F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
                    R_WAIT, Diagnostics, Estimator, align_step, begin_row, vec3)
@@ -63,10 +63,7 @@ class LabParams(CommonParams):
                              "from the data at alignment, formula (7)")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="gyroscope bias subtracted from every sample (calibration)")
-    gyr_scale: tuple = param((0.0, 0.0, 0.0), lo=-0.1, hi=0.1, tunable=False,
-                             doc="gyroscope scale-factor error per sensor axis (calibration: orientlab "
-                                 "gyro-scale): the gyroscope reads (1 + s) × the turn, so each axis, its "
-                                 "bias removed, is divided by 1 + s")
+    gyr_scale: tuple = gyr_scale_param()
     acc_band_rel: float = param(0.25, lo=0.0, hi=2.0,
                                 doc="accelerometer used only while | |a| - |g0| | <= this × |g0|; 0: off",
                                 rejects=True)

@@ -43,7 +43,7 @@ import numpy as np
 
 from app import quaternion as qm
 from app.estimators.robust.params import GRAVITY, RobustParams
-from app.params import dump_toml
+from app.params import dump_toml, fields_of
 from app.toolkit.errors import ToolError
 from app.toolkit.jobs import JobQueue
 
@@ -280,16 +280,10 @@ def format_report(f: GyroScaleFit) -> str:
 def to_preset(f: GyroScaleFit) -> str:
     """A TOML preset (for ``--config``) setting ``gyr_scale`` of the estimators that have it; the
     report is kept above as comments."""
-    from app.estimators import estimator_class
+    from app.estimators import NAMES, estimator_class
 
-    out = {}
-    for est in ("robust", "lab"):
-        try:
-            cls = estimator_class(est).Params
-        except ImportError:  # that estimator is not installed
-            continue
-        if "gyr_scale" in cls.__dataclass_fields__:
-            out[est] = {"gyr_scale": list(f.preset_scale())}
+    out = {est: {"gyr_scale": list(f.preset_scale())} for est in NAMES
+           if "gyr_scale" in fields_of(estimator_class(est).Params)}
     header = "orientlab preset from recordings with rests (orientlab gyro-scale)\n\n" + format_report(f).rstrip("\n")
     return dump_toml(out, header=header)
 

@@ -16,7 +16,7 @@ from dataclasses import MISSING, dataclass, fields as dataclass_fields
 
 import numpy as np
 
-from app.params import CommonParams, DEG, param
+from app.params import CommonParams, DEG, gyr_scale_param, param
 
 GRAVITY = 9.81
 
@@ -75,10 +75,7 @@ class RobustParams(CommonParams):
                                           "grows with it")
     gyr_bias: tuple = param((0.0, 0.0, 0.0), unit="rad/s", lo=-1.0, hi=1.0, tunable=False,
                             doc="initial gyroscope bias (calibration)")
-    gyr_scale: tuple = param((0.0, 0.0, 0.0), lo=-0.1, hi=0.1, tunable=False,
-                             doc="gyroscope scale-factor error per sensor axis (calibration: orientlab "
-                                 "gyro-scale): the gyroscope reads (1 + s) × the turn, so each axis, its "
-                                 "bias removed, is divided by 1 + s")
+    gyr_scale: tuple = gyr_scale_param()
     tilt_noise: float = param(0.015, unit="rad·√s", lo=1e-5, hi=10.0, log=True, user_unit="deg·√s",
                               user_scale=DEG, doc="noise density of the low-passed gravity direction")
     acc_tau: float = param(3.0, unit="s", lo=0.0, hi=60.0,
