@@ -320,6 +320,76 @@ def magnet_rows(size_ut=None, scenes=MAGNET_TURNS, seed=3):
     return rows, truth
 
 
+# ---- the 3D viewer's WebSocket, as a script (or a browser tab) speaks it
+
+def viser_messages(raw: bytes) -> list[dict]:
+    """The messages of one frame viser sends a client (two lengths, zstd-compressed msgpack,
+    then binary buffers), as dicts with their ``type``."""
+    import msgspec
+    import zstandard
+    size, clen = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
+    inner = zstandard.ZstdDecompressor().decompress(raw[16:16 + clen], max_output_size=size)
+    return msgspec.msgpack.decode(inner)["messages"]
+
+
+class ViserClient:
+    """A bare viser client (what a 20-line script does): viser's WebSocket protocol, blocking."""
+
+    def __init__(self, port: int, token: str | None = None, origin: str | None = None):
+        import viser
+        import websockets.sync.client
+        from viser import _messages as vm
+        url = f"ws://127.0.0.1:{port}/" + (f"?token={token}" if token else "")
+        self.ws = websockets.sync.client.connect(
+            url, subprotocols=[f"viser-v{viser.__version__}"], origin=origin,
+            open_timeout=10, max_size=None)
+        self.send(vm.ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 1.0),
+                                         fov=1.0, near=0.01, far=100.0, image_height=400,
+                                         image_width=600, look_at=(0.0, 0.0, 0.0),
+                                         up_direction=(0.0, 0.0, 1.0)))
+
+    def send(self, msg) -> None:
+        import msgspec
+        import websockets
+        try:
+            self.ws.send(msgspec.msgpack.encode(msg.as_serializable_dict()))
+        except websockets.exceptions.ConnectionClosed:
+            pass   # closed by the server: closed() says so
+
+    def click(self, handle) -> None:
+        """What a browser sends when a GUI button (or a checkbox) is clicked."""
+        from viser import _messages as vm
+        self.send(vm.GuiUpdateMessage(handle._impl.uuid, {"value": True}))
+
+    def closed(self, timeout: float = 10.0) -> bool:
+        import websockets
+        deadline = time.monotonic() + timeout
+        try:
+            while time.monotonic() < deadline:
+                self.ws.recv(timeout=deadline - time.monotonic())
+        except websockets.exceptions.ConnectionClosed:
+            return True
+        except TimeoutError:
+            return False
+        return False
+
+    def gui_updates(self, uuid: str, seconds: float) -> list[dict]:
+        """Every GuiUpdateMessage's ``updates`` for ``uuid`` this client receives in the next
+        ``seconds``."""
+        out, deadline = [], time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                raw = self.ws.recv(timeout=left)
+            except TimeoutError:
+                break
+            out += [m["updates"] for m in viser_messages(raw)
+                    if m.get("type") == "GuiUpdateMessage" and m.get("uuid") == uuid]
+        return out
+
+    def close(self) -> None:
+        self.ws.close()
+
+
 # ---- a phone with a gyroscope scale error turned whole turns between rests (orientlab
 # gyro-scale: tests/toolkit/test_gyro_scale.py, tests/server/test_toolkit_server.py)
 FS = 100.0

@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-from harness import Phone, running_server, wait_for
+from harness import Phone, ViserClient, running_server, wait_for
 
 LOGS = "data/sensorfusion-app/alekodu_activityrecognition/"
 STILL = LOGS + "sensorLog_20221024T182616_standstill.txt"
@@ -75,13 +75,23 @@ def test_a_moving_phones_calibration_is_applied_only_when_forced(tmp_path, share
             # the page: "Apply anyway (the phone moved)" shown only now
             tab = s.app.state.toolkit_tab
             wait_for(lambda: tab.cal_force.visible, what="the page's apply-anyway button")
-            # the explicit "apply anyway"
-            r = api.post("/api/calibrate/apply", json={"force": True})
-            assert r.status_code == 200, r.text
+            # the explicit "apply anyway": the page's button, as a viewer clicks it
+            viewer = ViserClient(s.viewer_port)
+            try:
+                wait_for(lambda: s.app.state.viewer.get_clients(), what="the viewer")
+                viewer.click(tab.cal_force)
+                wait_for(lambda: _params(api) != before, what="the page's apply-anyway applied")
+            finally:
+                viewer.close()
             p = _params(api)
             np.testing.assert_allclose(p["robust"]["gyr_bias"], cal["gyr_bias"], atol=1e-9)
             np.testing.assert_allclose(p["lab"]["m0"], cal["m0"], atol=1e-9)
-            assert p != before
+            wait_for(lambda: s.app.state.toolkit.calibration.applied is not None,
+                     what="the applied calibration kept for a preset's header")
+            # and through the API
+            r = api.post("/api/calibrate/apply", json={"force": True})
+            assert r.status_code == 200 and r.json()["forced"] is True, r.text
+            assert _params(api) == p
 
 
 # ---------------------------------------------------------------- magnetometer fits

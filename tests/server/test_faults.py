@@ -15,15 +15,15 @@ import socket
 import time
 
 import httpx
-import msgspec
 import pytest
-import viser
 import websockets
 import websockets.sync.client
-import zstandard
 from viser import _messages as vm
 
-from harness import ALL_AXES, Phone, running_server, turns_log_lines, turns_session, wait_for
+from app.server.viser_adapter import gui_input_handles
+
+from harness import (ALL_AXES, Phone, ViserClient, running_server, turns_log_lines, turns_session,
+                     wait_for)
 
 TOKEN = "presenter-token-for-tests"
 AUTH = {"X-Orientlab-Token": TOKEN}
@@ -122,56 +122,6 @@ def test_state_websocket_checks_origin(srv):
         assert "state" in json.loads(ws.recv(timeout=10))
 
 
-class ViewerClient:
-    """A bare viser client (what a 20-line script does): viser's WebSocket protocol."""
-
-    def __init__(self, port: int, token: str | None = None, origin: str | None = None):
-        url = f"ws://127.0.0.1:{port}/" + (f"?token={token}" if token else "")
-        self.ws = websockets.sync.client.connect(
-            url, subprotocols=[f"viser-v{viser.__version__}"], origin=origin,
-            open_timeout=10, max_size=None)
-        self.send(vm.ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, 1.0),
-                                         fov=1.0, near=0.01, far=100.0, image_height=400,
-                                         image_width=600, look_at=(0.0, 0.0, 0.0),
-                                         up_direction=(0.0, 0.0, 1.0)))
-
-    def send(self, msg) -> None:
-        try:
-            self.ws.send(msgspec.msgpack.encode(msg.as_serializable_dict()))
-        except websockets.exceptions.ConnectionClosed:
-            pass   # closed by the server: closed() says so
-
-    def closed(self, timeout: float = 10.0) -> bool:
-        deadline = time.monotonic() + timeout
-        try:
-            while time.monotonic() < deadline:
-                self.ws.recv(timeout=deadline - time.monotonic())
-        except websockets.exceptions.ConnectionClosed:
-            return True
-        except TimeoutError:
-            return False
-        return False
-
-    def gui_updates(self, uuid: str, seconds: float) -> list[dict]:
-        """Every GuiUpdateMessage's ``updates`` for ``uuid`` this client receives in the next
-        ``seconds`` (viser's wire format: two lengths, zstd-compressed msgpack, buffers)."""
-        out, deadline = [], time.monotonic() + seconds
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                raw = self.ws.recv(timeout=left)
-            except TimeoutError:
-                break
-            size, clen = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
-            inner = zstandard.ZstdDecompressor().decompress(raw[16:16 + clen], max_output_size=size)
-            for m in msgspec.msgpack.decode(inner)["messages"]:
-                if m.get("type") == "GuiUpdateMessage" and m.get("uuid") == uuid:
-                    out.append(m["updates"])
-        return out
-
-    def close(self) -> None:
-        self.ws.close()
-
-
 def _use_mag(api) -> bool:
     return api.get("/api/params").json()["use_mag"]
 
@@ -180,12 +130,12 @@ def test_viewer_controls_need_the_token(srv, api):
     """Attack: drive the viser GUI from a script (switch the magnetometer off)."""
     uuid = srv.app.state.gui.switches["use_mag"]._impl.uuid
     assert _use_mag(api) is True
-    watcher = ViewerClient(srv.viewer_port)
+    watcher = ViserClient(srv.viewer_port)
     try:
         wait_for(lambda: len(srv.app.state.viewer.get_clients()) >= 1, what="viewer client")
         watcher.send(vm.GuiUpdateMessage(uuid, {"value": False}))
         # a presenter's change after it: once applied, the watcher's had its chance
-        presenter = ViewerClient(srv.viewer_port, token=TOKEN)
+        presenter = ViserClient(srv.viewer_port, token=TOKEN)
         try:
             wait_for(lambda: len(srv.app.state.viewer.get_clients()) >= 2, what="presenter")
             assert _use_mag(api) is True        # the watcher's change was refused
@@ -210,8 +160,8 @@ def test_a_control_enabled_later_stays_disabled_for_watchers(tmp_path):
                         recordings=rec) as s, \
             httpx.Client(base_url=s.url, timeout=120.0, headers=AUTH):
         uuid = s.app.state.toolkit_tab.gs_apply._impl.uuid
-        watcher = ViewerClient(s.viewer_port)
-        presenter = ViewerClient(s.viewer_port, token=TOKEN)
+        watcher = ViserClient(s.viewer_port)
+        presenter = ViserClient(s.viewer_port, token=TOKEN)
         try:
             wait_for(lambda: len(s.app.state.viewer.get_clients()) >= 2, what="two viewers")
             watcher.gui_updates(uuid, 5.0)       # past the connect-time "disabled" messages
@@ -221,9 +171,8 @@ def test_a_control_enabled_later_stays_disabled_for_watchers(tmp_path):
             wait_for(lambda: "turns" in tab.gs_name.options, what="the recording listed")
             presenter.send(vm.GuiUpdateMessage(tab.gs_name._impl.uuid, {"value": "turns"}))
             wait_for(lambda: tab.gs_name.value == "turns", what="the recording picked")
-            measure = next(h for _, h in s.app.state.viewer.gui._gui_input_handle_from_uuid.items()
-                           if getattr(h, "label", None) == "Measure the scale")
-            presenter.send(vm.GuiUpdateMessage(measure._impl.uuid, {"value": True}))
+            presenter.click(next(h for _, h in gui_input_handles(s.app.state.viewer)
+                                 if getattr(h, "label", None) == "Measure the scale"))
             wait_for(lambda: s.app.state.toolkit_tab.gs_apply.disabled is False, 30.0,
                      what="apply enabled")
             seen = watcher.gui_updates(uuid, 3.0)
@@ -238,9 +187,9 @@ def test_a_control_enabled_later_stays_disabled_for_watchers(tmp_path):
 
 def test_viewer_websocket_checks_origin(srv):
     """Attack: a foreign page opens the viewer's WebSocket."""
-    bad = ViewerClient(srv.viewer_port, token=TOKEN, origin="http://evil.example")
+    bad = ViserClient(srv.viewer_port, token=TOKEN, origin="http://evil.example")
     assert bad.closed()
-    good = ViewerClient(srv.viewer_port, origin=f"http://127.0.0.1:{srv.settings.port}")
+    good = ViserClient(srv.viewer_port, origin=f"http://127.0.0.1:{srv.settings.port}")
     try:
         assert not good.closed(timeout=1.0)
     finally:

@@ -19,12 +19,10 @@ import time
 from collections import Counter
 
 import httpx
-import msgspec
 import viser
 import websockets
-import zstandard
 
-from harness import running_server, wait_for
+from harness import running_server, viser_messages, wait_for
 
 
 class ViewerClient:
@@ -54,7 +52,6 @@ class ViewerClient:
             return self.updates[uuid]
 
     async def _run(self) -> None:
-        dz = zstandard.ZstdDecompressor()
         async with websockets.connect(self.url, max_size=None,
                                       subprotocols=[f"viser-v{viser.__version__}"]) as ws:
             while not self._stop.is_set():
@@ -63,10 +60,7 @@ class ViewerClient:
                 except asyncio.TimeoutError:
                     continue
                 self.bytes += len(raw)
-                n_inner = int.from_bytes(raw[:8], "little")
-                n_comp = int.from_bytes(raw[8:16], "little")
-                inner = dz.decompress(raw[16:16 + n_comp], max_output_size=n_inner)
-                for m in msgspec.msgpack.decode(inner)["messages"]:
+                for m in viser_messages(raw):
                     with self._lock:
                         self.messages += 1
                         if m.get("type") == "GuiUpdateMessage" and "data" in m["updates"]:

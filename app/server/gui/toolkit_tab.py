@@ -428,14 +428,17 @@ class ToolkitTab:
             await self._post(ev, change, f"{self.var_remove.value} removed")
         self._call(run)
 
-    async def _post(self, ev, change, ok_text: str) -> None:
+    async def _post(self, ev, change, ok_text: str, color: str = "green") -> bool:
+        """Post a validated change to the filter task and say how it went: True once applied."""
         done = self.loop.create_future()
         self.tk.engine.post(change, done)
         try:
             await asyncio.wait_for(done, 5.0)
-            self._notify(ev, "Done", ok_text, color="green")
         except Exception as e:
             self._notify(ev, "Refused", str(e))
+            return False
+        self._notify(ev, "Done", ok_text, color=color)
+        return True
 
     def _start_calibration(self, ev) -> None:
         async def run():
@@ -454,16 +457,10 @@ class ToolkitTab:
         if checked is None:
             return
         params, change = checked
-        done = self.loop.create_future()
-        self.tk.engine.post(change, done)
-        try:
-            await asyncio.wait_for(done, 5.0)
-        except Exception as e:
-            self._notify(ev, "Refused", str(e))
-            return
-        self.tk.calibration.note_applied()
-        self._notify(ev, "Done", ("applied anyway: " if force else "calibration applied: ") + ", ".join(
-            f"{n}: {', '.join(p)}" for n, p in params.items()), color="green" if not force else "orange")
+        text = ("applied anyway: " if force else "calibration applied: ") + ", ".join(
+            f"{n}: {', '.join(p)}" for n, p in params.items())
+        if await self._post(ev, change, text, color="orange" if force else "green"):
+            self.tk.calibration.note_applied()
 
     # ----------------------------------------------------------------- gyroscope scale
     def _measure_scale(self, ev) -> None:
