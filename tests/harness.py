@@ -39,6 +39,16 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"   # screenshots of failed browser tests
 
 
+def browser_test() -> list:
+    """Every browser test module's marks (``pytestmark = browser_test()``): marked ``browser``,
+    skipped with the reason when there is no Chromium. (pytest imported here: the benchmarks
+    use this module without the test tools.)"""
+    import pytest
+    return [pytest.mark.browser,
+            pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: the browser test is "
+                               "SKIPPED (install Debian's chromium to run it)")]
+
+
 def click(page, locator, timeout: float = 60_000) -> None:
     """A mouse click at the element's centre: Playwright's own click waits for the
     element to be "stable", which a viewer re-rendering at a few FPS on a loaded machine

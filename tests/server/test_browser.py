@@ -7,15 +7,10 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, chromium_page, running_server, wait_for
+from harness import ARTIFACTS, browser_test, chromium_page, running_server, wait_for
 
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None,
-                       reason="NO CHROMIUM FOUND: the browser test is SKIPPED "
-                              "(install Debian's chromium to run it)"),
-]
+pytestmark = browser_test()
 
 
 def test_page_shows_viewer_and_magnetometer_switch_works(tmp_path):

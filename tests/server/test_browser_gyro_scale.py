@@ -8,13 +8,10 @@ import httpx
 import numpy as np
 import pytest
 
-from harness import (ALL_AXES, ARTIFACTS, CHROMIUM, SCALE, chromium_page, click, running_server,
+from harness import (ALL_AXES, ARTIFACTS, SCALE, browser_test, chromium_page, click, running_server,
                      turns_log_lines, turns_session, wait_for)
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: the browser test is SKIPPED"),
-]
+pytestmark = browser_test()
 
 
 def test_measure_and_apply_the_gyroscope_scale_from_the_lab_tab(tmp_path):

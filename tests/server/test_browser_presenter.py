@@ -8,16 +8,11 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from harness import CHROMIUM, CHROMIUM_ARGS, running_server, wait_for
+from harness import CHROMIUM, CHROMIUM_ARGS, browser_test, running_server, wait_for
 
 TOKEN = "browser-test-token"
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None,
-                       reason="NO CHROMIUM FOUND: the browser test is SKIPPED "
-                              "(install Debian's chromium to run it)"),
-]
+pytestmark = browser_test()
 
 
 def test_only_the_presenters_browser_can_change_the_session(tmp_path):

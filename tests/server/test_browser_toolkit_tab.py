@@ -8,12 +8,9 @@ import httpx
 import numpy as np
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, chromium_page, click, running_server, wait_for
+from harness import ARTIFACTS, browser_test, chromium_page, click, running_server, wait_for
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: the browser test is SKIPPED"),
-]
+pytestmark = browser_test()
 
 
 def test_toolkit_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):

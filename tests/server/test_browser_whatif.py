@@ -9,13 +9,10 @@ import math
 import httpx
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, chromium_page, click, running_server, wait_for
+from harness import ARTIFACTS, browser_test, chromium_page, click, running_server, wait_for
 from toolkit.test_whatif_first_try import demo_recording
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: the browser test is SKIPPED"),
-]
+pytestmark = browser_test()
 
 # every row of the what-if's table (its header too) and its width against the panel
 TABLE_JS = """() => {

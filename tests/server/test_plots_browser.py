@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from harness import (ARTIFACTS, CHROMIUM, Phone, chromium_page, log_lines, running_server,
+from harness import (ARTIFACTS, Phone, browser_test, chromium_page, log_lines, running_server,
                      wait_for)
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
@@ -24,10 +24,7 @@ REAL = SHARED / "data" / "sensorfusion-app"
 FULL_LOG = REAL / "alekodu_activityrecognition" / "sensorLog_20221024T182635_walking_hand.txt"
 ACC_ONLY_LOG = REAL / "BaiLiping_WASP_IMU" / "data1.txt"
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: browser test SKIPPED"),
-]
+pytestmark = browser_test()
 
 # Per chart of the page: how many pixels of each series' colour its canvas holds, the
 # reason shown beside it (null: none) and its x range.

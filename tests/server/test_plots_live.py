@@ -13,16 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from harness import ARTIFACTS, CHROMIUM, chromium_page, log_lines, play_paced, running_server
+from harness import ARTIFACTS, browser_test, chromium_page, log_lines, play_paced, running_server
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 FULL_LOG = (SHARED / "data" / "sensorfusion-app" / "alekodu_activityrecognition"
             / "sensorLog_20221024T182635_walking_hand.txt")
 
-pytestmark = [
-    pytest.mark.browser,
-    pytest.mark.skipif(CHROMIUM is None, reason="NO CHROMIUM FOUND: browser test SKIPPED"),
-]
+pytestmark = browser_test()
 
 KEYS = ("euler", "error", "acc", "mag", "nis")
 MIN_REDRAWS_PER_S = 10.0
