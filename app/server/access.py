@@ -342,6 +342,7 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
                                 "(the presenter's link holds a token).", color="blue",
                                 auto_close_seconds=8.0)
         _disable_controls(viewer, client)
+        va.show_slider_boxes_disabled(client)
         # the GUI's own messages may still be on their way to this client: say it again
         loop = va.background_loop(viewer)
         if loop is not None:

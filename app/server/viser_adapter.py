@@ -1,6 +1,6 @@
 """Every use of viser's internals, in one place: a viser upgrade touches this file.
 
-orientlab leans on viser 1.1 beyond its public API in three places, each for a reason
+orientlab leans on viser 1.1 beyond its public API in four places, each for a reason
 its public API cannot serve:
 
 - **the watch-only guard** (:func:`app.server.access.guard_viewer`): it needs the
@@ -11,7 +11,9 @@ its public API cannot serve:
   the broadcast buffer's event and loop are replaced by loop-safe, quiet ones;
 - **the cheap updates** (:func:`app.server.gui.scene.set_wxyz`, ``set_prop``,
   :func:`app.server.gui.plots.send_data`): the scene pose 100 times a second and the
-  plots' pre-encoded data are queued without viser's per-call casting.
+  plots' pre-encoded data are queued without viser's per-call casting;
+- **the watch-only page's slider boxes** (:func:`show_slider_boxes_disabled`): a style
+  for the client's own page, written against its DOM.
 
 Every function below names the internal it relies on (its docstring's "Relies on").
 :func:`check` verifies that all of them exist in the installed viser and raises
@@ -120,6 +122,30 @@ def enabled_input(message) -> str | None:
     if GuiBaseProps is not None and isinstance(props, GuiBaseProps) and not props.disabled:
         return getattr(message, "uuid", None)
     return None
+
+
+# viser's slider (its client's ``Slider.tsx``) hands ``disabled`` to its track only: the
+# number box beside it stays editable. This style, on a watch-only client's page only,
+# shows that box as disabled and takes the pointer off it. A value typed into it anyway
+# (the keyboard can still reach it) is refused and set back like any other.
+_SLIDER_BOX_DISABLED_CSS = (
+    "<style>"
+    ".mantine-Slider-root:has([data-disabled]) + .mantine-NumberInput-root{cursor:not-allowed}"
+    ".mantine-Slider-root:has([data-disabled]) + .mantine-NumberInput-root input{"
+    "pointer-events:none;opacity:.6;"
+    "background:var(--mantine-color-disabled,#f1f3f5);"
+    "color:var(--mantine-color-disabled-color,#adb5bd)}"
+    "</style>")
+
+
+def show_slider_boxes_disabled(client) -> Any:
+    """On this client's page only, show a disabled slider's number box disabled too.
+
+    Relies on: the viser client's slider being a Mantine ``Slider`` whose track carries
+    ``data-disabled``, followed by a Mantine ``NumberInput`` (their static class names),
+    and ``add_html`` rendering its content as HTML. Not in :func:`check` (it is the
+    browser's DOM): ``tests/server/test_browser_presenter.py`` pins it."""
+    return client.gui.add_html(_SLIDER_BOX_DISABLED_CSS)
 
 
 def background_loop(viewer) -> asyncio.AbstractEventLoop | None:

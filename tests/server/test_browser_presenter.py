@@ -1,6 +1,8 @@
 """Presenter control in real browsers (issue 10): the presenter opens the link with the
 token and can switch the magnetometer off; a second browser (a student's, no token)
-sees the same controls disabled, and its forced clicks change nothing."""
+sees the same controls disabled, and its forced clicks change nothing. A slider's number
+box, which viser's client leaves editable on a disabled slider, is out of the student's
+pointer's reach and in the presenter's."""
 
 from __future__ import annotations
 
@@ -11,6 +13,13 @@ import pytest
 from harness import CHROMIUM, CHROMIUM_ARGS, browser_test, running_server, wait_for
 
 TOKEN = "browser-test-token"
+
+# For the first slider on the page: is its number box what the pointer meets at the box's
+# centre, and the box's computed opacity.
+SLIDER_BOX = """s => { const box = s.parentElement.querySelector('.mantine-NumberInput-root input');
+  const r = box.getBoundingClientRect();
+  const hit = document.elementFromPoint(r.x + r.width / 2, r.y + r.height / 2);
+  return [hit === box, getComputedStyle(box).opacity]; }"""
 
 pytestmark = browser_test()
 
@@ -31,6 +40,10 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
             s_mag.click(force=True, no_wait_after=True, timeout=30_000)   # a determined student
             student.wait_for_timeout(1000)
             assert api.get("/api/params").json()["use_mag"] is True
+            s_slider = s_frame.locator(".mantine-Slider-root").first
+            s_slider.scroll_into_view_if_needed()
+            wait_for(lambda: s_slider.evaluate(SLIDER_BOX) == [False, "0.6"], 30.0, 0.2,
+                     what="the student's slider box out of the pointer's reach")
 
             presenter = browser.new_context(viewport={"width": 1400, "height": 850}).new_page()
             presenter.goto(f"{srv.url}/?token={TOKEN}")      # the link printed at start
@@ -40,6 +53,9 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
             p_mag.wait_for(state="visible", timeout=60_000)
             presenter.wait_for_timeout(1500)
             assert p_mag.is_enabled()
+            p_slider = p_frame.locator(".mantine-Slider-root").first
+            p_slider.scroll_into_view_if_needed()
+            assert p_slider.evaluate(SLIDER_BOX) == [True, "1"]
             p_mag.click(no_wait_after=True, timeout=60_000)
             try:     # the click lands on the checkbox (a loaded machine re-renders it under the mouse)
                 wait_for(lambda: not p_mag.is_checked(), 10.0, 0.2, what="the presenter's box unticked")
