@@ -1,7 +1,7 @@
 """What the plots put on the wire (app/server/gui/plots.py): the live feed of WS /ws/plots
 (the whole window once, then only new points, every row once, at most POINTS_PER_S rows a
 second per sensor, one clock); and for the Lab tab's viser chart, values on a binary grid
-finer than a pixel, gaps as null, a constant line as its two ends."""
+finer than a pixel, gaps as null, a constant line as its two ends, angles unwrapped."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from app.live import LiveCore
-from app.server.gui.plots import POINTS_PER_S, X_STEP, Y_BITS, PlotFeed, ends, quantize, wire
+from app.server.gui.plots import (POINTS_PER_S, X_STEP, Y_BITS, PlotFeed, ends, quantize, unwrap_deg,
+                                  wire)
 from app.sources.simulate import simulate
 from harness import feed_lines, log_lines
 
@@ -59,6 +60,33 @@ def test_a_constant_line_is_its_two_ends():
     x = np.linspace(0.0, 20.0, 300)
     assert wire(ends(x, 3.5)) == [3.5] + [None] * 298 + [3.5]
     assert wire(ends(x, None)) == [None] * 300
+
+
+def test_angles_unwrap_to_calm_lines_and_stay_together_when_aligned():
+    rng = np.random.default_rng(1)
+    wrap = lambda d: (d + 180.0) % 360.0 - 180.0   # noqa: E731 - as the estimators report
+    south = 179.0 + rng.normal(0.0, 1.5, 200)          # a phone facing south: a comb at ±180
+    south[-1] = 179.0                                   # ends at +179, the other at -179
+    other = south + 2.0                                 # a second estimator, 2° off
+    cols = np.column_stack((wrap(south), wrap(other)))
+    cols[50:60, 0] = np.nan                             # a gap: unwrapped across it
+    assert np.nanmax(np.abs(np.diff(cols[:, 0]))) > 300.0
+    out = unwrap_deg(cols)
+    for k in range(2):
+        assert np.nanmax(np.abs(np.diff(out[:, k]))) < 20.0
+        assert -180.0 <= out[-1, k] <= 180.0           # the newest value in ±180
+    assert np.isnan(out[50:60, 0]).all()
+    both = unwrap_deg(cols, align=True)
+    np.testing.assert_allclose(both[:, 0], out[:, 0], equal_nan=True)   # the first as alone
+    assert np.nanmax(np.abs(both[:, 1] - both[:, 0] - 2.0)) < 1e-9   # together
+    assert abs(out[-1, 1] - out[-1, 0]) > 300.0        # unwrapped alone: drawn a turn apart
+    # a phone spun round and round stays in ±180 with a gap where it wraps
+    spin = wrap(np.linspace(0.0, 1080.0, 300))[:, None]
+    spun = unwrap_deg(np.column_stack((spin[:, 0], spin[:, 0])), align=True)
+    assert np.nanmax(np.abs(spun)) <= 180.0 and np.isnan(spun[:, 0]).sum() >= 2
+    assert np.nanmax(np.abs(np.diff(spun[:, 0]))) < 20.0
+    untouched = unwrap_deg(np.array([[np.nan], [10.0]]))   # one value: nothing to unwrap
+    assert untouched[1, 0] == 10.0
 
 
 def test_quantized_plot_data_compresses_to_a_fraction():

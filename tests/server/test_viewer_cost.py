@@ -19,10 +19,11 @@ import time
 from collections import Counter
 
 import httpx
+import numpy as np
 import viser
 import websockets
 
-from harness import running_server, viser_messages, wait_for
+from harness import play_paced, running_server, viser_messages, wait_for
 
 
 class ViewerClient:
@@ -158,3 +159,46 @@ def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
             with viewer._lock:
                 data = viewer.last[monitor]
             assert len(data[0]) <= 300 and len(data) == len(toolkit_tab.p_monitor.series)
+
+
+def test_lab_heading_plot_of_a_phone_facing_south_is_one_calm_line_per_estimator(tmp_path):
+    """A phone lying still with its top to the south: every estimator's Euler yaw is near
+    ±180°, some just above -180, some just below +180. The heading plot unwraps them
+    (app.server.gui.plots.unwrap_deg): no comb between +180 and -180, and no two
+    estimators drawn 360° apart."""
+    from app.sources.sensorfusion import format_line
+    from app.sources.simulate import SimConfig, simulate
+    sim = simulate(("still",), duration_s=40.0, seed=5, config=SimConfig(heading_deg=180.0))
+    lines = [format_line(*x) for x in sim.samples]
+    stop = threading.Event()
+    with running_server(preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        toolkit_tab = srv.app.state.toolkit_tab
+        monitor = toolkit_tab.p_monitor._impl.uuid
+        phone = threading.Thread(target=play_paced, args=(srv.phone_port, lines, stop), daemon=True)
+        phone.start()
+        try:
+            with ViewerClient(srv.viewer_port) as viewer:
+                r = api.post("/api/estimators", json={"preset": "no-rejection"})
+                assert r.status_code == 200, r.text
+                # 8 s of heading in the plot's window
+                wait_for(lambda: viewer.count(monitor) >= 2 and len(toolkit_tab.monitor.t) > 400,
+                         60.0, what="the heading plot of the south-facing phone")
+                n0 = viewer.count(monitor)
+                wait_for(lambda: viewer.count(monitor) > n0, 30.0, what="one more refresh")
+                with viewer._lock:
+                    data = viewer.last[monitor]
+        finally:
+            stop.set()
+            phone.join(10.0)
+    heads = np.array([[np.nan if v is None else v for v in col] for col in data[1:-1]], float)
+    drawn = heads[np.isfinite(heads).any(axis=1)]            # the estimators running
+    assert len(drawn) >= 5, len(drawn)
+    last = drawn[:, -1]
+    assert np.all(np.abs(np.abs(last) - 180.0) < 10.0), last  # the phone faces south
+    # each line calm (a comb would jump by ~360° between neighbours) ...
+    # the stream's first row is before the estimators' alignment (their start attitude)
+    steps = np.abs(np.diff(drawn[:, 1:], axis=1))
+    assert np.nanmax(steps) < 20.0, np.nanmax(steps)
+    # ... and the estimators drawn together, as they agree
+    assert np.ptp(last) < 20.0, last

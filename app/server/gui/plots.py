@@ -11,7 +11,8 @@ plots); values are rounded to what the sensors tell; gaps are ``null``. The page
 yaw and roll over its window as :func:`unwrap_deg` does (no vertical strokes at ±180°,
 no comb when the phone faces south).
 
-**viser's charts** (the Lab tab's heading plot) use :func:`send_data`. Why the data goes
+**viser's charts** (the Lab tab's heading plots, unwrapped by :func:`unwrap_deg` here)
+use :func:`send_data`. Why the data goes
 out as lists with ``null`` and not as arrays with NaN: viser sends a float array as a
 ``Float64Array``, where a missing value can only be NaN, and uPlot does not treat NaN as
 a gap: a series whose first value in view is NaN (or that is NaN throughout) turns its
@@ -136,14 +137,20 @@ def break_wraps(deg: np.ndarray, jump: float = 180.0) -> np.ndarray:
     return out
 
 
-def unwrap_deg(deg: np.ndarray, max_span: float = 540.0) -> np.ndarray:
+def unwrap_deg(deg: np.ndarray, max_span: float = 540.0, align: bool = False) -> np.ndarray:
     """Angle columns (deg, ±180) unwrapped over the window (no jump of 360° between
     neighbours, across NaN gaps too), shifted by whole turns so that each column's
     newest value lies in [-180, 180]: a phone facing south draws a calm line near 180°
     instead of a comb between +180 and -180. A column that turned more than
     ``max_span`` degrees in the window (a phone spun round and round) stays in ±180
-    with a break (a gap) where it wraps, so the chart keeps a readable scale."""
+    with a break (a gap) where it wraps, so the chart keeps a readable scale.
+
+    ``align``: one angle in every column (the estimators' headings, before and after):
+    each unwrapped column is shifted by whole turns to lie nearest the first unwrapped one
+    at their last common row, so two headings at +179° and -179° are drawn 2° apart, not
+    358°."""
     out = np.array(deg, dtype=float, copy=True)
+    unwrapped = np.zeros(out.shape[1], dtype=bool)
     for k in range(out.shape[1]):
         col = out[:, k]
         ok = np.flatnonzero(np.isfinite(col))
@@ -153,8 +160,17 @@ def unwrap_deg(deg: np.ndarray, max_span: float = 540.0) -> np.ndarray:
         u -= 360.0 * np.round(u[-1] / 360.0)
         if np.ptp(u) <= max_span:
             col[ok] = u
+            unwrapped[k] = True
         else:
             out[:, k] = break_wraps(col)
+    cols = np.flatnonzero(unwrapped)
+    if align and cols.size > 1:
+        ref = out[:, cols[0]]
+        for k in cols[1:]:
+            both = np.flatnonzero(np.isfinite(ref) & np.isfinite(out[:, k]))
+            if both.size:
+                i = both[-1]
+                out[:, k] -= 360.0 * np.round((out[i, k] - ref[i]) / 360.0)
     return out
 
 

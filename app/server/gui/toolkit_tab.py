@@ -27,7 +27,7 @@ import numpy as np
 
 from app.quaternion import q2euler_many
 from app.live.changes import Change, PatchError, Variant
-from app.server.gui.plots import send_data
+from app.server.gui.plots import send_data, unwrap_deg
 from app.server.gui.scene import set_wxyz
 from app.server.toolkit import Toolkit
 from app.toolkit.errors import ToolError
@@ -650,6 +650,8 @@ class ToolkitTab:
         for plot, key in ((self.p_wi_err, "error_deg"), (self.p_wi_yaw, "yaw_deg")):
             a, b2 = arr(e["before"]["series"][key]), arr(after["series"][key])
             ok = np.isfinite(a) & np.isfinite(b2)   # uPlot's autoscale fails on NaN: drop them
+            if key == "yaw_deg" and ok.any():
+                a[ok], b2[ok] = unwrap_deg(np.column_stack((a[ok], b2[ok])), align=True).T
             plot.data = (t[ok], a[ok], b2[ok]) if ok.any() else (np.zeros(2),) * 3
 
     def _draw_calibration(self, force: bool = False) -> None:
@@ -847,6 +849,8 @@ class ToolkitTab:
             y = m.yaw.get(n) if n is not None else None
             cols.append(np.array(y, float)[keep] if y is not None and len(y) == len(m.t)
                         else np.full(len(t), np.nan))
+        # one heading in every column: no comb at ±180°, no two estimators 360° apart
+        cols = list(unwrap_deg(np.column_stack(cols), align=True).T)
         labels = self._mon_builtins + [variants[i] if i < len(variants) else f"variant {i + 1}"
                                        for i in range(VARIANT_SLOTS)]
         current = [s["label"] for s in self.p_monitor.series][1:-1]
