@@ -22,6 +22,11 @@ ensure_fresh()   # before anything compiled runs: a cache older than its sources
 
 _SQRT_EPS = np.sqrt(np.finfo(np.float64).eps)
 
+# No rotation. Every estimator reports it exactly until its alignment (no estimate yet):
+# from real sensors' data an estimate is never exactly this.
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+IDENTITY.setflags(write=False)
+
 
 @compiled
 def normalize(q):

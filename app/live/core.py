@@ -27,6 +27,7 @@ import numpy as np
 
 from app.estimators.base import F_ACC_NIS, F_MAG_NIS
 from app.params import describe, to_dict
+from app.quaternion import IDENTITY
 from app.sources.samples import Sample
 from app.live import views
 from app.live.ensemble import Ensemble, Records
@@ -37,7 +38,6 @@ from app.sources.slot import PHONE_APPS
 
 log = logging.getLogger("orientlab.live")
 
-_IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 RecordListener = Callable[[Session, Records], None]    # (session, what one chunk made)
 
 
@@ -127,7 +127,7 @@ class LiveCore:
         h = self.history
         q = rec.primary_q
         if not init0:   # no estimate before the alignment (the identity): a gap in the plots
-            moved = np.logical_or.accumulate(np.any(q != _IDENTITY, axis=1))
+            moved = np.logical_or.accumulate(np.any(q != IDENTITY, axis=1))
             q = np.where(moved[:, None], q, np.nan)
         h.pose.extend(rec.t, q, rec.phone_q)
         kind = rec.kind

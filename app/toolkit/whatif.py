@@ -43,7 +43,7 @@ import numpy as np
 from app.estimators import REJECTIONS, Reason, make_estimator
 from app.estimators.base import F_ACC, F_MAG
 from app.params import ParamError, to_dict
-from app.quaternion import error_angles, q2euler_many
+from app.quaternion import IDENTITY, error_angles, q2euler_many
 from app.sources.readers import LogData, read_log_data
 from app.toolkit.errors import ToolError
 from app.toolkit.jobs import JobQueue, run_in_chunks
@@ -157,6 +157,7 @@ def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | 
                 (ref_kind == "phone" and key == "error_to_phone_deg"):
             err_series = tot
     eul = np.degrees(q2euler_many(res.q[idx]))
+    eul[np.all(res.q[idx] == IDENTITY, axis=1)] = np.nan     # before the alignment: no estimate
     out["series"] = {"yaw_deg": _clean(eul[:, 0]), "pitch_deg": _clean(eul[:, 1]),
                      "roll_deg": _clean(eul[:, 2]),
                      "error_deg": None if err_series is None else _clean(np.degrees(err_series[idx]))}
@@ -183,7 +184,7 @@ def _phone_entry(phone: np.ndarray | None, truth: np.ndarray | None,
             a, h, _ = error_angles(phone[both], truth[both])
             err[both], head[both] = a, h
         out["error_to_truth_deg"] = {**_stats_deg(err[both]), "heading": _stats_deg(head[both])}
-    q = np.where(ok[:, None], phone, np.array([1.0, 0.0, 0.0, 0.0]))
+    q = np.where(ok[:, None], phone, IDENTITY)
     eul = np.degrees(q2euler_many(q[idx]))
     eul[~ok[idx]] = np.nan
     out["series"] = {"yaw_deg": _clean(eul[:, 0]), "pitch_deg": _clean(eul[:, 1]),

@@ -73,6 +73,9 @@ def test_rerun_before_and_after_a_patch(tmp_path):
     assert worst["nr"] > 3.0 * worst["robust"], worst
     n = len(out["t"])
     assert n == len(r["before"]["series"]["error_deg"]) == len(r["after"]["series"]["yaw_deg"])
+    # the stream's first row comes before the alignment: no yaw there (not 0°), then yaw
+    yaw = r["before"]["series"]["yaw_deg"]
+    assert yaw[0] is None and all(v is not None for v in yaw[5:])
 
 
 def test_a_bad_patch_is_refused_before_anything_runs(shared_dir):
