@@ -157,3 +157,26 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path):
         got = wait_drawn(page, {"euler": ["pitch", "roll"], "acc": ["|acc|"]},
                          absent=("mag", "error"))
         assert "no magnetometer" in got["mag"]["why"]
+
+
+def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
+    """A student opens the watch-only link on a phone (390×844): the 3D view fills most of
+    the screen, the Plots tab follows below it (the page scrolls down, never sideways), and
+    its charts draw."""
+    pytest.importorskip("playwright.sync_api")
+    with running_server(source="demo", preset_dir=tmp_path) as srv, \
+            chromium_page(srv.url + "/", tmp_path / "profile", size=(390, 844)) as (page, _):
+        page.locator("#tab-plots").click()
+        page.locator("#plots").scroll_into_view_if_needed()
+        wait_drawn(page, {"euler": ["yaw", "pitch", "roll"], "acc": ["|acc|"]}, timeout=60.0)
+        box = page.evaluate("""() => {
+          const r = (s) => document.querySelector(s).getBoundingClientRect();
+          const v = r('#viewer'), a = r('aside');
+          return {viewer: [v.top, v.bottom, v.width], aside: [a.top, a.width],
+                  scroll_w: document.documentElement.scrollWidth}; }""")
+        assert box["viewer"][1] <= box["aside"][0] + 1, box         # the plots below the view
+        assert box["viewer"][1] - box["viewer"][0] >= 0.6 * 844, box  # the view keeps the screen
+        assert box["viewer"][2] == box["aside"][1] == 390, box        # both the screen's width
+        assert box["scroll_w"] <= 390, box                            # no sideways scrolling
+        page.screenshot(path=str(ARTIFACTS / "page_390x844.png"), full_page=True) \
+            if ARTIFACTS.is_dir() else None
