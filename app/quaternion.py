@@ -22,10 +22,15 @@ ensure_fresh()   # before anything compiled runs: a cache older than its sources
 
 _SQRT_EPS = np.sqrt(np.finfo(np.float64).eps)
 
-# No rotation. Every estimator reports it exactly until its alignment (no estimate yet):
-# from real sensors' data an estimate is never exactly this.
-IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])     # no rotation
 IDENTITY.setflags(write=False)
+
+
+def not_estimated(q: np.ndarray) -> np.ndarray:
+    """The rows of estimates ``q`` (..., 4) that are no estimate yet: an estimator reports
+    :data:`IDENTITY`, exactly, until its alignment; from real sensors' data an estimate is
+    never exactly that. Plots draw these rows as gaps, not as 0°."""
+    return np.all(np.asarray(q) == IDENTITY, axis=-1)
 
 
 @compiled

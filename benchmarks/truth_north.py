@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from ablation import SHARP  # noqa: E402
 from accuracy_phones import BROAD  # noqa: E402
-from app.quaternion import error_angles, quat_mul_many, rotate_many  # noqa: E402
+from app.quaternion import IDENTITY, error_angles, quat_mul_many, rotate_many  # noqa: E402
 from evalkit import estimate, heading_error, pool, trials  # noqa: E402
 
 DEG = 180.0 / np.pi
@@ -52,7 +52,7 @@ def field_north(trial: dict) -> tuple[float, float, float, float]:
     rest = known & (np.arange(len(q)) < first_move) & \
         (np.arange(len(q)) >= first_move - int(REST_S * trial["fs"]))
     move = known & moving
-    mw = rotate_many(np.where(known[:, None], q, [1.0, 0.0, 0.0, 0.0]), mag)
+    mw = rotate_many(np.where(known[:, None], q, IDENTITY), mag)
     az = np.arctan2(mw[:, 0], mw[:, 1]) * DEG
     n = np.linalg.norm(mag, axis=1)
     return (float(np.median(az[rest])), float(np.median(az[move])),

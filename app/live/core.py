@@ -27,7 +27,7 @@ import numpy as np
 
 from app.estimators.base import F_ACC_NIS, F_MAG_NIS
 from app.params import describe, to_dict
-from app.quaternion import IDENTITY
+from app.quaternion import not_estimated
 from app.sources.samples import Sample
 from app.live import views
 from app.live.ensemble import Ensemble, Records
@@ -102,9 +102,8 @@ class LiveCore:
         if s is not self.session or not samples:
             return None
         lk0 = self._primary_lk()
-        init0 = self.ensemble.estimator(self.ensemble.primary).initialized
         rec = self.ensemble.step(samples)
-        self._record(rec, lk0, init0)
+        self._record(rec, lk0)
         s.count_processed(rec.n_samples)
         self.totals.samples += rec.n_samples
         for cb in self.record_listeners:
@@ -114,9 +113,9 @@ class LiveCore:
                 log.exception("record listener failed")
         return rec
 
-    def _record(self, rec: Records, lk0: float, init0: bool) -> None:
+    def _record(self, rec: Records, lk0: float) -> None:
         """The plots' rows (primary) and the last sensor vectors; ``lk0``: the primary's
-        L_k before the chunk, ``init0``: whether it was initialised then."""
+        L_k before the chunk."""
         if rec.t_last is not None:
             self.t_sent = rec.t_last
         n = len(rec)
@@ -126,9 +125,7 @@ class LiveCore:
             self.t_first = float(rec.t[0])
         h = self.history
         q = rec.primary_q
-        if not init0:   # no estimate before the alignment (the identity): a gap in the plots
-            moved = np.logical_or.accumulate(np.any(q != IDENTITY, axis=1))
-            q = np.where(moved[:, None], q, np.nan)
+        q = np.where(not_estimated(q)[:, None], np.nan, q)   # before the alignment: a gap
         h.pose.extend(rec.t, q, rec.phone_q)
         kind = rec.kind
         sel = np.flatnonzero(kind == 0)

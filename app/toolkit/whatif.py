@@ -43,7 +43,7 @@ import numpy as np
 from app.estimators import REJECTIONS, Reason, make_estimator
 from app.estimators.base import F_ACC, F_MAG
 from app.params import ParamError, to_dict
-from app.quaternion import IDENTITY, error_angles, q2euler_many
+from app.quaternion import IDENTITY, error_angles, not_estimated, q2euler_many
 from app.sources.readers import LogData, read_log_data
 from app.toolkit.errors import ToolError
 from app.toolkit.jobs import JobQueue, run_in_chunks
@@ -157,7 +157,7 @@ def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | 
                 (ref_kind == "phone" and key == "error_to_phone_deg"):
             err_series = tot
     eul = np.degrees(q2euler_many(res.q[idx]))
-    eul[np.all(res.q[idx] == IDENTITY, axis=1)] = np.nan     # before the alignment: no estimate
+    eul[not_estimated(res.q[idx])] = np.nan     # before the alignment: a gap
     out["series"] = {"yaw_deg": _clean(eul[:, 0]), "pitch_deg": _clean(eul[:, 1]),
                      "roll_deg": _clean(eul[:, 2]),
                      "error_deg": None if err_series is None else _clean(np.degrees(err_series[idx]))}

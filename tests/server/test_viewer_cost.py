@@ -52,6 +52,11 @@ class ViewerClient:
         with self._lock:
             return self.updates[uuid]
 
+    def data(self, uuid: str):
+        """The last ``data`` sent to the plot ``uuid``."""
+        with self._lock:
+            return self.last[uuid]
+
     async def _run(self) -> None:
         async with websockets.connect(self.url, max_size=None,
                                       subprotocols=[f"viser-v{viser.__version__}"]) as ws:
@@ -156,8 +161,7 @@ def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
             r = api.post("/api/estimators", json={"preset": "no-rejection"})
             assert r.status_code == 200, r.text
             wait_for(lambda: viewer.count(monitor) >= 2, 30.0, what="heading plot updates")
-            with viewer._lock:
-                data = viewer.last[monitor]
+            data = viewer.data(monitor)
             assert len(data[0]) <= 300 and len(data) == len(toolkit_tab.p_monitor.series)
 
 
@@ -189,8 +193,7 @@ def test_lab_heading_plot_of_a_phone_facing_south_is_one_calm_line_per_estimator
                          60.0, what="the heading plot of the south-facing phone")
                 n0 = viewer.count(monitor)
                 wait_for(lambda: viewer.count(monitor) > n0, 30.0, what="one more refresh")
-                with viewer._lock:
-                    data = viewer.last[monitor]
+                data = viewer.data(monitor)
         finally:
             stop.set()
             phone.join(10.0)

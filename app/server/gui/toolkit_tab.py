@@ -25,7 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from app.quaternion import IDENTITY, q2euler_many
+from app.quaternion import not_estimated, q2euler_many
 from app.live.changes import Change, PatchError, Variant
 from app.server.gui.plots import send_data, unwrap_deg
 from app.server.gui.scene import set_wxyz
@@ -84,7 +84,7 @@ class Monitor:
         if names:
             qs = np.stack([rec.q[n][sel] for n in names])          # (instances, rows, 4)
             yaw = np.degrees(q2euler_many(qs.reshape(-1, 4))[:, 0]).reshape(len(names), -1)
-            yaw[np.all(qs == IDENTITY, axis=-1)] = np.nan     # before its alignment: a gap
+            yaw[not_estimated(qs)] = np.nan     # before its alignment: a gap
             for name, y in zip(names, yaw.tolist()):
                 self.yaw.setdefault(name, [math.nan] * n0).extend(y)
         for name, col in self.yaw.items():
