@@ -383,16 +383,23 @@ class ViserClient:
             return False
         return False
 
+    def receive(self, timeout: float) -> tuple[int, list[dict]] | None:
+        """The next frame the server sends: its size in bytes and its messages; None when
+        nothing came within ``timeout`` s (``ConnectionClosed`` once the server closed)."""
+        try:
+            raw = self.ws.recv(timeout=timeout)
+        except TimeoutError:
+            return None
+        return len(raw), viser_messages(raw)
+
     def gui_updates(self, uuid: str, seconds: float) -> list[dict]:
         """Every GuiUpdateMessage's ``updates`` for ``uuid`` this client receives in the next
         ``seconds``."""
         out, deadline = [], time.monotonic() + seconds
         while (left := deadline - time.monotonic()) > 0:
-            try:
-                raw = self.ws.recv(timeout=left)
-            except TimeoutError:
+            if (frame := self.receive(left)) is None:
                 break
-            out += [m["updates"] for m in viser_messages(raw)
+            out += [m["updates"] for m in frame[1]
                     if m.get("type") == "GuiUpdateMessage" and m.get("uuid") == uuid]
         return out
 

@@ -119,7 +119,8 @@ def test_real_log_plots_draw_for_every_primary(tmp_path):
             assert "no reference" in got["error"]["why"]
             if primary == "phone":
                 assert "ORI" in got["euler"]["why"]
-        page.screenshot(path=str(ARTIFACTS / "plots_real_log.png")) if ARTIFACTS.is_dir() else None
+        if ARTIFACTS.is_dir():
+            page.screenshot(path=str(ARTIFACTS / "plots_real_log.png"))
 
 
 def test_acc_only_log_and_demo_plots_draw(tmp_path):
@@ -178,5 +179,5 @@ def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
         assert box["viewer"][1] - box["viewer"][0] >= 0.6 * 844, box  # the view keeps the screen
         assert box["viewer"][2] == box["aside"][1] == 390, box        # both the screen's width
         assert box["scroll_w"] <= 390, box                            # no sideways scrolling
-        page.screenshot(path=str(ARTIFACTS / "page_390x844.png"), full_page=True) \
-            if ARTIFACTS.is_dir() else None
+        if ARTIFACTS.is_dir():
+            page.screenshot(path=str(ARTIFACTS / "page_390x844.png"), full_page=True)

@@ -20,33 +20,34 @@ from collections import Counter
 
 import httpx
 import numpy as np
-import viser
 import websockets
 
-from harness import play_paced, running_server, viser_messages, wait_for
+from harness import ViserClient, play_paced, running_server, wait_for
 
 
 class ViewerClient:
-    """A viser client in a thread: counts the ``data`` updates per GUI handle uuid and
-    keeps the last data sent to each."""
+    """A viser client (``harness.ViserClient``) read in a thread: counts the ``data`` updates
+    per GUI handle uuid and keeps the last data sent to each."""
 
     def __init__(self, port: int):
-        self.url = f"ws://127.0.0.1:{port}"
+        self.port = port
         self.updates: Counter = Counter()
         self.last: dict[str, object] = {}
         self.messages = 0
         self.bytes = 0
         self._stop = threading.Event()
         self._lock = threading.Lock()
-        self._thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
+        self._thread = threading.Thread(target=self._run, daemon=True)
 
     def __enter__(self) -> "ViewerClient":
+        self._client = ViserClient(self.port)
         self._thread.start()
         return self
 
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join(10)
+        self._client.close()
 
     def count(self, uuid: str) -> int:
         with self._lock:
@@ -57,21 +58,22 @@ class ViewerClient:
         with self._lock:
             return self.last[uuid]
 
-    async def _run(self) -> None:
-        async with websockets.connect(self.url, max_size=None,
-                                      subprotocols=[f"viser-v{viser.__version__}"]) as ws:
-            while not self._stop.is_set():
-                try:
-                    raw = await asyncio.wait_for(ws.recv(), 0.5)
-                except asyncio.TimeoutError:
-                    continue
-                self.bytes += len(raw)
-                for m in viser_messages(raw):
-                    with self._lock:
-                        self.messages += 1
-                        if m.get("type") == "GuiUpdateMessage" and "data" in m["updates"]:
-                            self.updates[m["uuid"]] += 1
-                            self.last[m["uuid"]] = m["updates"]["data"]
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                frame = self._client.receive(0.5)
+            except websockets.exceptions.ConnectionClosed:
+                return
+            if frame is None:
+                continue
+            size, messages = frame
+            with self._lock:
+                self.bytes += size
+                for m in messages:
+                    self.messages += 1
+                    if m.get("type") == "GuiUpdateMessage" and "data" in m["updates"]:
+                        self.updates[m["uuid"]] += 1
+                        self.last[m["uuid"]] = m["updates"]["data"]
 
 
 class PlotsClient:
