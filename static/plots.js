@@ -17,8 +17,15 @@
   const fmtFixed = (d) => (v) => (v === null || v === undefined || !isFinite(v) ? "–" : v.toFixed(d));
   const fmtSig = (v) => (v === null || v === undefined || !isFinite(v) ? "–" : (v >= 100 ? v.toFixed(0) : Number(v.toPrecision(2)).toString()));
 
-  // The charts: key, title (with unit), series (label, colour, dashed, spanGaps, width, role),
-  // the unit and format of the legend's values, and the y scale.
+  // A series measured once per Kalman update (NIS) is joined across the bins without one
+  // (an update every other bin, a phone's 10 Hz magnetometer) but not across a gap longer
+  // than this (s): a field refused as disturbed (a magnet) lasts at least
+  // mag_min_undisturbed (0.5 s) and shows as a break in the line, not as a long diagonal.
+  const JOIN_S = 0.4;
+
+  // The charts: key, title (with unit), series (label, colour, dashed, span, width, role),
+  // the unit and format of the legend's values, and the y scale. span: true joins every gap
+  // (a constant line sent as its two ends), a number (s) joins the gaps shorter than that.
   // role: "data" (counts for "has data"), "band" (a gate's constant line), "marker" (injected).
   const SPECS = [
     // the phone's own angles (dashed) are told in their estimate's legend item: "yaw 12.3° (phone 12.0°)"
@@ -35,7 +42,7 @@
       ["|mag|", "#9467bd", false], ["L_k", "#e377c2", false], ["band lo", GREY, true, true, 1.5, "band", "gate band"],
       ["band hi", GREY, true, true, 1.5, "band", null], ["magnet injected", "#d62728", false, false, 4, "marker"]] },
     { key: "nis", title: "NIS (log scale)", unit: "", fmt: fmtSig, log: true, series: [
-      ["acc NIS", "#1f77b4", false, true], ["mag NIS", "#9467bd", false, true],
+      ["acc NIS", "#1f77b4", false, JOIN_S], ["mag NIS", "#9467bd", false, JOIN_S],
       ["acc gate", NIS_GATE_COLORS[0], true, true, 1.5, "band"], ["mag gate", NIS_GATE_COLORS[1], true, true, 1.5, "band"]] },
   ];
 
@@ -134,7 +141,7 @@
       const g = r.mag, n = g[0].length, band = m.mag_band || [null, null];
       return [g[0], g[1], g[2], ends(n, band[0]), ends(n, band[1]), during(g[0], g[1], "magnet")];
     }
-    // NIS: acc and mag rows merged on one time axis, each null (a spanned gap) at the other's times
+    // NIS: acc and mag rows merged on one time axis, each null at the other's times (joined: JOIN_S)
     const a = r.acc, g = r.mag, x = [], na = [], nm = [];
     let i = 0, j = 0;
     while (i < a[0].length || j < g[0].length) {
@@ -157,6 +164,18 @@
     if (!(min > 0) || !(max > 0)) return out;
     for (let e = Math.ceil(Math.log10(min) - 1e-9); e <= Math.floor(Math.log10(max) + 1e-9); e++) out.push(10 ** e);
     return out;
+  }
+
+  // uPlot's gaps hook for a series that does not span gaps: it gets the null runs as pixel
+  // ranges from the point before each run to the point after it, and draws a break for those
+  // it returns. The runs shorter than `s` seconds of the x scale are joined.
+  function joinShorter(s) {
+    return (u, sidx, i0, i1, gaps) => {
+      const span = u.scales.x.max - u.scales.x.min;
+      if (!(span > 0)) return gaps;
+      const px = s * u.bbox.width / span;
+      return gaps.filter(([a, b]) => b - a > px);
+    };
   }
 
   function build(spec, root) {
@@ -195,7 +214,8 @@
           } : {}) },
       ],
       series: [{ label: "t [s]" }].concat(spec.series.map(([label, color, dash, span, width]) => ({
-        label, stroke: color, width: width || 1.5, dash: dash ? [6, 4] : undefined, spanGaps: !!span,
+        label, stroke: color, width: width || 1.5, dash: dash ? [6, 4] : undefined, spanGaps: span === true,
+        ...(typeof span === "number" ? { gaps: joinShorter(span) } : {}),
         points: { show: false } }))),
       hooks: { setCursor: [(u) => { if (chart.u) legendAt(chart, u.cursor.idx); }] },
     };

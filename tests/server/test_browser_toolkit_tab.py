@@ -12,6 +12,14 @@ from harness import ARTIFACTS, browser_test, chromium_page, click, running_serve
 
 pytestmark = browser_test()
 
+# The breaks uPlot draws in each NIS line (its path's gaps), as seconds of the x scale.
+NIS_GAPS_JS = """() => {
+  const u = window.orientlabPlots.charts.nis.u;
+  const pxs = u.bbox.width / (u.scales.x.max - u.scales.x.min);
+  return Object.fromEntries(u.series.slice(1, 3).map(s => [s.label,
+    ((s._paths && s._paths.gaps) || []).map(([a, b]) => (b - a) / pxs)]));
+}"""
+
 
 def test_toolkit_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path):
     pytest.importorskip("playwright.sync_api")
@@ -70,6 +78,9 @@ def test_an_injected_magnet_and_shake_are_marked_in_the_plots_panel(tmp_path):
         before = wait_drawn(page, {"mag": ["|mag|"], "acc": ["|acc|"]}, timeout=60.0)
         assert before["mag"]["counts"]["magnet injected"] < MIN_PIXELS
         assert before["acc"]["counts"]["shake injected"] < MIN_PIXELS
+        # robust has learned the field (its band is out): a magnet is then a disturbance,
+        # before that the first field it sees
+        page.wait_for_function("window.orientlabPlots.store.meta.mag_band", timeout=60_000)
         r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 50, "seconds": 8})
         assert r.status_code == 200, r.text
         r = api.post("/api/inject", json={"kind": "shake", "amplitude_ms2": 8, "seconds": 8})
@@ -80,3 +91,10 @@ def test_an_injected_magnet_and_shake_are_marked_in_the_plots_panel(tmp_path):
         # the mark covers the injection only: the chart's own line still draws the rest
         d = page.evaluate(COUNT_JS)
         assert d["mag"]["counts"]["|mag|"] >= MIN_PIXELS
+        # the NIS chart: the field refused while the magnet is on has no NIS, and its line
+        # breaks there (no diagonal drawn across the refusal); the accelerometer's, never
+        # refused, is joined across the bins where only the field's NIS is
+        assert page.evaluate(NIS_GAPS_JS)["acc NIS"] == [], "acc NIS line broken before"
+        gaps = wait_for(lambda: (lambda g: g if any(s > 2.0 for s in g["mag NIS"]) else None)(
+            page.evaluate(NIS_GAPS_JS)), 30.0, what="a break in the mag NIS line")
+        assert gaps["acc NIS"] == [], gaps
