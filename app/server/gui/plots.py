@@ -179,23 +179,6 @@ def angle_deg(qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
     return np.degrees(angle_between_many(qa, qb))
 
 
-def series(specs: Iterable[tuple], x_label: str = "t [s]") -> tuple[dict[str, Any], ...]:
-    """uPlot series: the x series, then one per ``(label, colour, dashed, span_gaps,
-    width)`` (the last two optional)."""
-    out: list[dict[str, Any]] = [{"label": x_label}]
-    for spec in specs:
-        label, color, dash = spec[:3]
-        span = spec[3] if len(spec) > 3 else False
-        width = spec[4] if len(spec) > 4 else 1.5
-        s: dict[str, Any] = {"label": label, "stroke": color, "width": width}
-        if dash:
-            s["dash"] = [6, 4]
-        if span:
-            s["spanGaps"] = True
-        out.append(s)
-    return tuple(out)
-
-
 # --------------------------------------------------------------------------- live feed
 # The dashboard's plots are drawn by the landing page (static/plots.js, uPlot vendored
 # under static/vendor/), fed by WS /ws/plots: a first message with the whole window, then
