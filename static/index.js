@@ -13,7 +13,6 @@ async function init() {
     url += `?websocket=${encodeURIComponent(ws)}`;
   }
   document.body.classList.toggle("watch-only", !presenter);
-  if (!presenter) $("source").title = "watch-only: the presenter's link holds the token that allows changes";
   $("viewer").src = url;
   $("viewer-link").href = url;
   $("watch-note").hidden = presenter;
@@ -134,6 +133,8 @@ async function poll() {
   try {
     const st = await (await fetch("/api/state")).json();
     badge.textContent = st.status;
+    // the whole status on hover: a narrow header cuts the badge short
+    badge.title = st.status + (presenter ? "" : "\nwatch-only: the presenter's link holds the token that allows changes");
     badge.className = "badge" + (st.source === "phone" ? " phone" : st.source === "phone-disconnected" ? " warn" : "");
     if (!tabPicked && st.t !== null && st.t !== undefined && $("tab-plots").getAttribute("aria-selected") !== "true") showPanel($("tab-plots"));
     if (!poll.ready) {  // the first start compiles the filters: which are ready

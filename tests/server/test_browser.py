@@ -30,3 +30,35 @@ def test_page_shows_viewer_and_magnetometer_switch_works(tmp_path):
                  what="use_mag false after the click")
         page.wait_for_timeout(2500)    # let the plots fill for the screenshot
         page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
+
+
+# The header's box and its status badge's: their heights (one line: the header's own 44 px)
+HEADER_JS = """() => {
+  const h = document.querySelector('header'), b = document.querySelector('#source');
+  return {header: h.getBoundingClientRect().height, header_scroll: h.scrollHeight,
+          badge: b.getBoundingClientRect().height, line: parseFloat(getComputedStyle(b).lineHeight) ||
+          1.2 * parseFloat(getComputedStyle(b).fontSize), text: b.textContent, title: b.title};
+}"""
+
+
+def test_on_a_projector_the_header_keeps_one_line_with_the_longest_status(tmp_path):
+    """At 1280×720 (a classroom projector) the status of a phone that hung up, the longest
+    there is, stays on the header's one line: the subtitle gives way first, and the badge
+    shows its whole text on hover."""
+    pytest.importorskip("playwright.sync_api")
+    from harness import Phone, turns_log_lines, turns_session
+    lines = turns_log_lines(*turns_session([(2, 1.0, 2.0)])[:4])
+    with running_server(source="demo", preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        with Phone(srv.phone_port) as ph:
+            ph.send_lines(lines)
+            wait_for(lambda: api.get("/api/state").json()["source"] == "phone", 30.0, what="the phone")
+        status = wait_for(lambda: (lambda st: st["status"] if st["source"] == "phone-disconnected"
+                                   else None)(api.get("/api/state").json()), 30.0, what="the hang-up")
+        assert len(status) > 80, status
+        with chromium_page(srv.url + "/", tmp_path / "profile", size=(1280, 720)) as (page, _):
+            got = wait_for(lambda: (lambda g: g if g["text"] == status else None)(
+                page.evaluate(HEADER_JS)), 30.0, what="the status in the badge")
+            assert got["header"] == got["header_scroll"] == 44, got
+            assert got["badge"] < 2 * got["line"], got        # one line, not wrapped
+            assert got["title"].startswith(status), got       # the whole text on hover
