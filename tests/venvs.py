@@ -26,6 +26,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator
 
@@ -97,22 +98,46 @@ def bare_venv(python: str, name: str, work: Path) -> Iterator[Path]:
     """The venv ``<name>-venv-<key>`` of ``python`` with this checkout installed as ``make
     run`` installs it (``pip install -e .``, no extras), made once and reused; held under
     its lock while the block runs."""
-    root = cache_root()
-    root.mkdir(parents=True, exist_ok=True)
-    key = venv_key(python_version(python))
-    venv = root / f"{name}-venv-{key}"
-    with open(root / f"{name}-venv-{key}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with _locked_venv(python, name) as (venv, key):
         env = clean_env(venv)
-        if not (venv / ".complete").is_file():
-            shutil.rmtree(venv, ignore_errors=True)
-            run([python, "-m", "venv", venv], env, work)
-            run([venv / "bin" / "python", "-m", "pip", "install", "-q", "-e", REPO], env, work)
-            (venv / ".complete").write_text(key + "\n")
-        else:
+        if not _build(python, venv, key, env, work):
             run([venv / "bin" / "python", "-m", "pip", "install", "-q", "--no-deps",
                  "--force-reinstall", "-e", REPO], env, work)
         yield venv
+
+
+@contextlib.contextmanager
+def _locked_venv(python: str, name: str) -> Iterator[tuple[Path, str]]:
+    """The path and key of the venv ``name`` of ``python``, held under its lock."""
+    root = cache_root()
+    root.mkdir(parents=True, exist_ok=True)
+    key = venv_key(python_version(python))
+    with open(root / f"{name}-venv-{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield root / f"{name}-venv-{key}", key
+
+
+def _build(python: str, venv: Path, key: str, env: dict[str, str], work: Path) -> bool:
+    """Make the venv (``pip install -e .``) unless a complete one is there; True if made."""
+    if (venv / ".complete").is_file():
+        return False
+    shutil.rmtree(venv, ignore_errors=True)
+    run([python, "-m", "venv", venv], env, work)
+    run([venv / "bin" / "python", "-m", "pip", "install", "-q", "-e", REPO], env, work)
+    (venv / ".complete").write_text(key + "\n")
+    return True
+
+
+def prebuild_bare_venvs(wanted: list[tuple[str, str]], work: Path) -> None:
+    """Make the bare venvs ``(python, name)`` that are missing, all at once (each is a pip
+    child, each under its own lock): on a fresh machine (CI) they cost about the time of
+    the slowest instead of the sum. :func:`bare_venv` then finds them made."""
+    def one(python: str, name: str) -> None:
+        with _locked_venv(python, name) as (venv, key):
+            _build(python, venv, key, clean_env(venv), work)
+    with ThreadPoolExecutor(max_workers=max(1, len(wanted))) as pool:
+        for f in [pool.submit(one, py, name) for py, name in wanted]:
+            f.result()
 
 
 def http_get(url: str, timeout: float = 5.0) -> tuple[int, bytes]:

@@ -28,8 +28,8 @@ from pathlib import Path
 import pytest
 
 from harness import free_ports
-from venvs import (REPO, bare_venv, clean_env, python_version, run, stop_with_sigint,
-                   wait_until_answers)
+from venvs import (REPO, bare_venv, clean_env, prebuild_bare_venvs, python_version, run,
+                   stop_with_sigint, wait_until_answers)
 
 START_S = 120.0       # serve without JIT starts in a few seconds
 
@@ -52,15 +52,26 @@ pytestmark = pytest.mark.skipif(os.environ.get("ORIENTLAB_SKIP_PYTHONS") == "1",
                                 reason="ORIENTLAB_SKIP_PYTHONS=1")
 
 
+@pytest.fixture(scope="module")
+def _prebuilt(tmp_path_factory) -> None:
+    """Every version's venv made at once when missing (a fresh machine)."""
+    wanted = [(py, _venv_name(v)) for v in VERSIONS if (py := _python(v)) is not None]
+    prebuild_bare_venvs(wanted, tmp_path_factory.mktemp("prebuild"))
+
+
+def _venv_name(version: str) -> str:
+    return "py" + version.replace(".", "")
+
+
 @pytest.fixture(scope="module", params=VERSIONS)
-def venv_of(request, tmp_path_factory):
+def venv_of(request, tmp_path_factory, _prebuilt):
     version = request.param
     python = _python(version)
     if python is None:
         pytest.skip(f"no {PYENV}/versions/{version}.*/bin/python")
     assert python_version(python).startswith(version + "."), python
-    work = tmp_path_factory.mktemp("py" + version.replace(".", ""))
-    with bare_venv(python, "py" + version.replace(".", ""), work) as venv:
+    work = tmp_path_factory.mktemp(_venv_name(version))
+    with bare_venv(python, _venv_name(version), work) as venv:
         yield version, venv, clean_env(venv, jit=False), work
 
 
