@@ -95,11 +95,18 @@ def test_bare_venv_has_runtime_dependencies_only(bare):
     assert Path(r.stdout.strip()).resolve() == (REPO / "app" / "cli.py").resolve()
 
 
-def test_bare_first_estimate_says_it_compiles(bare, tmp_path):
-    """Cold numba cache (an empty NUMBA_CACHE_DIR): the lab filter (the one with `@`
-    through BLAS) compiles in the bare venv, and the user is told so."""
+def test_bare_first_estimate_compiles_then_compile_readies_every_filter(bare, tmp_path):
+    """A user's first steps, on one cold numba cache (a fresh NUMBA_CACHE_DIR; each filter
+    compiled once, in the bare venv itself):
+
+    1. the first ``orientlab estimate`` with the lab filter (the one with ``@`` through
+       BLAS) compiles it there, and the user is told so;
+    2. ``orientlab compile`` then readies every filter, with progress lines along the way
+       and nothing "dropped" (there was no stale cache to drop);
+    3. every filter estimates without compiling again.
+    """
     n = write_motion_csv(tmp_path / "in.csv")
-    env = bare.env(numba_cache=tmp_path / "cold-cache")
+    env = bare.env()
     r = run([bare.exe("orientlab"), "estimate", "in.csv", "-o", "out.csv", "-f", "lab"],
             env, tmp_path)
     assert "orientlab estimate: compiling the lab filter with numba" in r.stderr
@@ -107,20 +114,17 @@ def test_bare_first_estimate_says_it_compiles(bare, tmp_path):
     assert "Traceback" not in r.stderr
     check_estimate_output(tmp_path / "out.csv", n)
 
-
-def test_bare_compile_then_every_filter_estimates(bare, tmp_path):
-    r = run([bare.exe("orientlab"), "compile"], bare.env(), tmp_path)
+    r = run([bare.exe("orientlab"), "compile"], env, tmp_path)
     for name in NAMES:
         assert f"{name} ready" in r.stderr, r.stderr
-    # output to a pipe, a cold cache: progress lines all along, nothing "dropped" (there
-    # was no cache to drop); tests/test_first_start.py times the lines of serve's compile
+    # output to a pipe: progress lines all along (the filters other than lab compile
+    # here); tests/test_first_start.py times the lines of serve's compile
     assert "dropped" not in r.stderr, r.stderr
     assert re.search(r"compiling .*\(\d+ s\)", r.stderr), r.stderr
-    n = write_motion_csv(tmp_path / "in.csv")
     for name in NAMES:
         out = tmp_path / f"{name}.csv"
         r = run([bare.exe("orientlab"), "estimate", "in.csv", "-o", out.name, "-f", name],
-                bare.env(), tmp_path)
+                env, tmp_path)
         assert "compiling" not in r.stderr, f"{name} was not compiled by `orientlab compile`"
         check_estimate_output(out, n)
 
