@@ -179,5 +179,16 @@ def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
         assert box["viewer"][1] - box["viewer"][0] >= 0.6 * 844, box  # the view keeps the screen
         assert box["viewer"][2] == box["aside"][1] == 390, box        # both the screen's width
         assert box["scroll_w"] <= 390, box                            # no sideways scrolling
+        # the phone's camera: its view is narrower than a projector's, so the camera the
+        # browser reports shows the phone in the top 40 % of the view, above viser's panel
+        from test_scene import view_xy
+        viewer = srv.app.state.viewer
+
+        def phone_in_view():
+            cams = [c.camera for c in viewer.get_clients().values()]
+            return [view_xy((0.0, 0.0, 0.0), c.position, c.look_at, c.fov, c.aspect) for c in cams]
+        where = wait_for(lambda: (lambda v: v if v and all(y < 0.4 for _, y in v) else None)(
+            phone_in_view()), 30.0, what="the phone above the panel")
+        assert all(0.2 < x < 0.8 for x, _ in where), where
         if ARTIFACTS.is_dir():
             page.screenshot(path=str(ARTIFACTS / "page_390x844.png"), full_page=True)

@@ -6,7 +6,10 @@ import asyncio
 import threading
 import time
 
-from app.server.gui.scene import LoopSafeEvent, _QuietLoop, quiet_wakeups
+import numpy as np
+
+from app.server.gui.scene import (CAMERA_AT, GRAV_AT, LOOK_AT, MAG_AT, PORTRAIT_ASPECT,
+                                  LoopSafeEvent, _QuietLoop, narrow_view_camera, quiet_wakeups)
 from harness import running_server
 
 
@@ -152,3 +155,38 @@ def test_the_calibration_read_out_rounds_to_what_the_sensors_tell(tmp_path):
         text = tab.cal_md.content
         assert "g0 = (0.00, 0.00, 9.81) m/s²" in text and "m0 (formula 7) = (0.0, 19.9, -44.1) µT" in text
         assert not re.search(r"\d\.\d{5,}", text), text
+
+
+def view_xy(p, position, look_at, fov, aspect):
+    """Where the world point ``p`` shows in a view of a camera at ``position`` looking at
+    ``look_at`` (up +z): (x, y) as shares of the view's width and height from its top-left."""
+    f = np.asarray(look_at, float) - np.asarray(position, float)
+    f /= np.linalg.norm(f)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    d = np.asarray(p, float) - np.asarray(position, float)
+    z = d @ f
+    t = np.tan(fov / 2.0)
+    return 0.5 + 0.5 * (d @ right) / (z * t * aspect), 0.5 - 0.5 * (d @ up) / (z * t)
+
+
+def test_a_portrait_view_shows_the_phone_above_the_panel_and_both_arrows():
+    """A student's phone (portrait, 390x675 CSS px, viser's 75° field of view): the phone
+    sits in the top 40 % of the view, above the control panel viser lays over the bottom
+    60 % of a phone's view, and the two arrows stay within its width. The projector's view
+    (0.86 beside the panels at 1280x720) and wider keep the initial camera."""
+    fov = np.radians(75.0)
+    for aspect in (PORTRAIT_ASPECT, 0.86, 1.0, 1.8):
+        p, at = narrow_view_camera(aspect, fov)
+        assert np.allclose(p, CAMERA_AT) and np.allclose(at, LOOK_AT)
+    for aspect in (390 / 675, 360 / 640, 0.45):
+        p, at = narrow_view_camera(aspect, fov)
+        x, y = view_xy((0.0, 0.0, 0.0), p, at, fov, aspect)
+        assert 0.1 < y < 0.4 and 0.2 < x < 0.8, (aspect, x, y)
+        for arrow in (GRAV_AT, MAG_AT):
+            x, _ = view_xy(arrow, p, at, fov, aspect)
+            assert 0.0 < x < 1.0, (aspect, arrow, x)
+        # unchanged, the phone would be in the middle, under the panel
+        x, y = view_xy((0.0, 0.0, 0.0), CAMERA_AT, LOOK_AT, fov, aspect)
+        assert y > 0.4

@@ -42,6 +42,18 @@ MAX_CONE_DEG = 60.0
 GRAV_AT = np.array([-1.5, -1.4, 0.0])
 MAG_AT = np.array([1.5, -1.4, 0.0])
 CAMERA_AT = (2.1, -3.9, 2.5)
+LOOK_AT = (0.0, -0.3, -0.2)
+# The initial camera frames the phone and both arrows in a view this narrow (width / height:
+# a projector's 1280x720 leaves the view about 580 px wide beside the panels, 0.86).
+FRAMED_ASPECT = 0.86
+# A view narrower than PORTRAIT_ASPECT when it connects is a phone held upright (the page
+# gives the 3D view the screen's width: 0.45-0.6), and viser lays its control panel over the
+# bottom 60 % of a phone's view, the phone in the middle under it: the camera moves back by
+# FRAMED_ASPECT / aspect (the arrows stay in view) and the phone rises by PORTRAIT_LIFT of
+# the view's half-height. (A desktop's or a tablet's view is wider when it connects; viser
+# docks its panel beside the view there.)
+PORTRAIT_ASPECT = 0.7
+PORTRAIT_LIFT = 0.5
 GREY = (150, 150, 150)
 C_ACC, C_MAG, C_BAD = (0, 150, 255), (190, 0, 200), (230, 30, 30)
 AXIS_COLORS = ((220, 40, 40), (40, 170, 40), (40, 80, 230))
@@ -232,6 +244,40 @@ def _arrow_points(vec: np.ndarray | None) -> np.ndarray:
     return p
 
 
+def narrow_view_camera(aspect: float, fov: float, position=CAMERA_AT, look_at=LOOK_AT):
+    """The camera (position, look_at) for a view of ``aspect`` (width / height) with a
+    vertical field of view ``fov`` (rad): the initial one unless the view is narrower than
+    :data:`PORTRAIT_ASPECT`, then moved back along its line of sight by
+    :data:`FRAMED_ASPECT` / ``aspect`` and panned down by :data:`PORTRAIT_LIFT` of the
+    half-height there (the phone rises)."""
+    p, at = np.asarray(position, float), np.asarray(look_at, float)
+    if not aspect < PORTRAIT_ASPECT or not 0.0 < fov < np.pi:
+        return p, at
+    f = at - p
+    dist = float(np.linalg.norm(f)) * FRAMED_ASPECT / max(aspect, 0.1)
+    f /= np.linalg.norm(f)
+    up = np.array([0.0, 0.0, 1.0]) - f[2] * f          # the screen's up, in the world
+    up /= np.linalg.norm(up)
+    at = at - PORTRAIT_LIFT * dist * np.tan(fov / 2.0) * up
+    return at - dist * f, at
+
+
+def frame_narrow_view(client) -> None:
+    """On a client's connection (viser calls it once the client's camera, with its canvas
+    size, has come): a phone's upright view gets :func:`narrow_view_camera`. Once only: the
+    viewer's own moves and "Reset View" (the initial camera) are theirs."""
+    cam = client.camera
+    try:
+        aspect, fov = cam.aspect, cam.fov
+    except (AssertionError, ZeroDivisionError):
+        return      # no canvas size yet
+    if aspect < PORTRAIT_ASPECT:
+        position, look_at = narrow_view_camera(aspect, fov)
+        with client.atomic():
+            cam.position = position         # (viser moves look_at with it: set it after)
+            cam.look_at = look_at
+
+
 class Scene:
     """Builds the scene once; :meth:`draw` updates it from a snapshot."""
 
@@ -300,7 +346,8 @@ class Scene:
         # the phone in the middle of the 3D view, the arrows beside it, the whole at a
         # projector's 1280x720 too (the view is then about 580 px wide beside the panels)
         server.initial_camera.position = CAMERA_AT
-        server.initial_camera.look_at = (0.0, -0.3, -0.2)
+        server.initial_camera.look_at = LOOK_AT
+        server.on_client_connect(frame_narrow_view)
 
     # ------------------------------------------------------------------ switches
     def show(self, what: str, on: bool) -> None:
