@@ -450,3 +450,18 @@ def turns_log_lines(t, gyr, acc, mag) -> list[str]:
     from app.sources.sensorfusion import format_line
     return [format_line(round(1000.0 * tk, 3), tag, v) for k, tk in enumerate(t)
             for tag, v in (("ACC", acc[k]), ("GYR", gyr[k]), ("MAG", mag[k]))]
+
+
+def view_xy(p, position, look_at, fov, aspect):
+    """Where the world point ``p`` shows in a view of a camera at ``position`` looking at
+    ``look_at`` (up +z): (x, y) as shares of the view's width and height from its top-left."""
+    import numpy as np
+    f = np.asarray(look_at, float) - np.asarray(position, float)
+    f /= np.linalg.norm(f)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    d = np.asarray(p, float) - np.asarray(position, float)
+    z = d @ f
+    t = np.tan(fov / 2.0)
+    return 0.5 + 0.5 * (d @ right) / (z * t * aspect), 0.5 - 0.5 * (d @ up) / (z * t)

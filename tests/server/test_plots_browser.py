@@ -17,7 +17,7 @@ import httpx
 import pytest
 
 from harness import (ARTIFACTS, Phone, browser_test, chromium_page, log_lines, running_server,
-                     wait_for)
+                     view_xy, wait_for)
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 REAL = SHARED / "data" / "sensorfusion-app"
@@ -181,7 +181,6 @@ def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
         assert box["scroll_w"] <= 390, box                            # no sideways scrolling
         # the phone's camera: its view is narrower than a projector's, so the camera the
         # browser reports shows the phone in the top 40 % of the view, above viser's panel
-        from test_scene import view_xy
         viewer = srv.app.state.viewer
 
         def phone_in_view():

@@ -10,7 +10,7 @@ import numpy as np
 
 from app.server.gui.scene import (CAMERA_AT, GRAV_AT, LOOK_AT, MAG_AT, PORTRAIT_ASPECT,
                                   LoopSafeEvent, _QuietLoop, narrow_view_camera, quiet_wakeups)
-from harness import running_server
+from harness import running_server, view_xy
 
 
 def test_a_loop_safe_event_set_from_another_thread_wakes_its_loop():
@@ -157,27 +157,13 @@ def test_the_calibration_read_out_rounds_to_what_the_sensors_tell(tmp_path):
         assert not re.search(r"\d\.\d{5,}", text), text
 
 
-def view_xy(p, position, look_at, fov, aspect):
-    """Where the world point ``p`` shows in a view of a camera at ``position`` looking at
-    ``look_at`` (up +z): (x, y) as shares of the view's width and height from its top-left."""
-    f = np.asarray(look_at, float) - np.asarray(position, float)
-    f /= np.linalg.norm(f)
-    right = np.cross(f, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, f)
-    d = np.asarray(p, float) - np.asarray(position, float)
-    z = d @ f
-    t = np.tan(fov / 2.0)
-    return 0.5 + 0.5 * (d @ right) / (z * t * aspect), 0.5 - 0.5 * (d @ up) / (z * t)
-
-
 def test_a_portrait_view_shows_the_phone_above_the_panel_and_both_arrows():
     """A student's phone (portrait, 390x675 CSS px, viser's 75° field of view): the phone
     sits in the top 40 % of the view, above the control panel viser lays over the bottom
     60 % of a phone's view, and the two arrows stay within its width. The projector's view
     (0.86 beside the panels at 1280x720) and wider keep the initial camera."""
     fov = np.radians(75.0)
-    for aspect in (PORTRAIT_ASPECT, 0.86, 1.0, 1.8):
+    for aspect in (0.0, PORTRAIT_ASPECT, 0.86, 1.0, 1.8):     # 0: no canvas yet
         p, at = narrow_view_camera(aspect, fov)
         assert np.allclose(p, CAMERA_AT) and np.allclose(at, LOOK_AT)
     for aspect in (390 / 675, 360 / 640, 0.45):

@@ -251,10 +251,10 @@ def narrow_view_camera(aspect: float, fov: float, position=CAMERA_AT, look_at=LO
     :data:`FRAMED_ASPECT` / ``aspect`` and panned down by :data:`PORTRAIT_LIFT` of the
     half-height there (the phone rises)."""
     p, at = np.asarray(position, float), np.asarray(look_at, float)
-    if not aspect < PORTRAIT_ASPECT or not 0.0 < fov < np.pi:
-        return p, at
+    if not 0.0 < aspect < PORTRAIT_ASPECT or not 0.0 < fov < np.pi:
+        return p, at            # not narrow, or no canvas to frame
     f = at - p
-    dist = float(np.linalg.norm(f)) * FRAMED_ASPECT / max(aspect, 0.1)
+    dist = float(np.linalg.norm(f)) * FRAMED_ASPECT / aspect
     f /= np.linalg.norm(f)
     up = np.array([0.0, 0.0, 1.0]) - f[2] * f          # the screen's up, in the world
     up /= np.linalg.norm(up)
