@@ -16,6 +16,7 @@ Usage: ``python benchmarks/accuracy_broad.py [--data DIR] [--only NAME ...]``
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 import time
@@ -120,10 +121,9 @@ def main(argv=None) -> int:
     methods = {n: run_orientlab(n, overrides.get(n)) for n in NAMES if n != "phone"}  # no ORI in BROAD
     if overrides:
         print("changed parameters: " + "; ".join(f"{n}: {p}" for n, p in overrides.items()))
-    try:
-        import vqf  # noqa: F401
+    if importlib.util.find_spec("vqf") is not None:
         methods["VQF"] = run_vqf
-    except ImportError:
+    else:
         print("!! vqf is not installed (pip install vqf): the VQF column is left out !!")
     methods["Madgwick"] = run_madgwick
     if args.only:

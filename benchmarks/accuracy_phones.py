@@ -30,6 +30,7 @@ Usage: ``python benchmarks/accuracy_phones.py [--jobs 2] [--no-cv] [--set KEY=VA
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import itertools
 import json
 import sys
@@ -208,9 +209,7 @@ def main(argv=None) -> int:
     phones = load_phones()
     broad = load_broad() if (BROAD / "trials.json").is_file() else []
     methods = [m for m in METHODS if not args.only or m in args.only]
-    try:
-        import vqf  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("vqf") is None:
         print("!! vqf is not installed (pip install vqf): the VQF column is left out !!")
         methods = [m for m in methods if m != "VQF"]
     for m in methods:  # compile once in this process (numba caches to disk for the workers)
