@@ -186,8 +186,28 @@ def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
         def phone_in_view():
             cams = [c.camera for c in viewer.get_clients().values()]
             return [view_xy((0.0, 0.0, 0.0), c.position, c.look_at, c.fov, c.aspect) for c in cams]
-        where = wait_for(lambda: (lambda v: v if v and all(y < 0.4 for _, y in v) else None)(
-            phone_in_view()), 30.0, what="the phone above the panel")
+        def framed(what):
+            return wait_for(lambda: (lambda v: v if v and all(y < 0.4 for _, y in v) else None)(
+                phone_in_view()), 30.0, what=what)
+        where = framed("the phone above the panel")
         assert all(0.2 < x < 0.8 for x, _ in where), where
+
+        def moved_away():   # the viewer turns the view: the camera is theirs
+            client = next(iter(viewer.get_clients().values()))
+            with client.atomic():
+                client.camera.position = (3.0, 3.0, 1.5)
+                client.camera.look_at = (0.0, 0.0, 0.0)
+            wait_for(lambda: (lambda v: v if v and all(abs(y - 0.5) < 0.05 for _, y in v) else None)(
+                phone_in_view()), 30.0, what="the viewer's own camera")
+        moved_away()
+        # viser's "Reset View" (in its settings, kept in the page while folded) puts the camera
+        # back at the initial one, the projector's framing: a phone's view is framed again
+        page.frame_locator("#viewer").locator("button", has_text="Reset View").evaluate("b => b.click()")
+        framed("the phone above the panel after Reset View")
+        # viser's client resets its camera by itself when the scene's up direction arrives
+        # (after this hook has framed it, on a loaded machine): framed again
+        moved_away()
+        viewer.scene.set_up_direction("+z")
+        framed("the phone above the panel after the client reset its camera")
         if ARTIFACTS.is_dir():
             page.screenshot(path=str(ARTIFACTS / "page_390x844.png"), full_page=True)

@@ -9,7 +9,8 @@ import time
 import numpy as np
 
 from app.server.gui.scene import (CAMERA_AT, GRAV_AT, LOOK_AT, MAG_AT, PORTRAIT_ASPECT,
-                                  LoopSafeEvent, _QuietLoop, narrow_view_camera, quiet_wakeups)
+                                  LoopSafeEvent, _QuietLoop, at_initial_camera, narrow_view_camera,
+                                  quiet_wakeups)
 from harness import running_server, view_xy
 
 
@@ -176,3 +177,16 @@ def test_a_portrait_view_shows_the_phone_above_the_panel_and_both_arrows():
         # unchanged, the phone would be in the middle, under the panel
         x, y = view_xy((0.0, 0.0, 0.0), CAMERA_AT, LOOK_AT, fov, aspect)
         assert y > 0.4
+        # the framed camera is no longer the initial one: it is framed once, not again
+        assert not at_initial_camera(p, at)
+
+
+def test_the_initial_camera_is_recognised_to_float32_not_a_moved_one():
+    """The phone's view is framed when its camera is back at the initial one ("Reset View",
+    the client's own reset): the pose as the browser reports it (float32, through viser's
+    frame transform) counts; a camera the viewer moved by a centimetre does not."""
+    p32 = np.asarray(CAMERA_AT, np.float32).astype(float)
+    at32 = np.asarray(LOOK_AT, np.float32).astype(float)
+    assert at_initial_camera(CAMERA_AT, LOOK_AT) and at_initial_camera(p32, at32)
+    assert not at_initial_camera(np.add(CAMERA_AT, (0.01, 0.0, 0.0)), LOOK_AT)
+    assert not at_initial_camera(CAMERA_AT, np.add(LOOK_AT, (0.0, 0.0, 0.01)))

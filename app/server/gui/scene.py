@@ -262,20 +262,38 @@ def narrow_view_camera(aspect: float, fov: float, position=CAMERA_AT, look_at=LO
     return at - dist * f, at
 
 
+def at_initial_camera(position, look_at, tol: float = 1e-3) -> bool:
+    """Whether a camera (position, look_at) is the initial one (:data:`CAMERA_AT`,
+    :data:`LOOK_AT`), to ``tol`` of its distance: where viser's client puts it when it
+    starts and on "Reset View"."""
+    scale = tol * float(np.linalg.norm(np.subtract(CAMERA_AT, LOOK_AT)))
+    return (float(np.linalg.norm(np.subtract(position, CAMERA_AT))) <= scale
+            and float(np.linalg.norm(np.subtract(look_at, LOOK_AT))) <= scale)
+
+
 def frame_narrow_view(client) -> None:
     """On a client's connection (viser calls it once the client's camera, with its canvas
-    size, has come): a phone's upright view gets :func:`narrow_view_camera`. Once only: the
-    viewer's own moves and "Reset View" (the initial camera) are theirs."""
+    size, has come): a phone's upright view gets :func:`narrow_view_camera`, now and
+    whenever its camera is back at the initial one. viser's client puts it there itself:
+    on "Reset View", and when the scene's up direction or initial camera arrives, which can
+    be after this hook has moved it (the phone-screen browser test once lost its framing
+    so, with the suite on two workers). A camera the viewer has moved is theirs and stays."""
     cam = client.camera
-    try:
-        aspect, fov = cam.aspect, cam.fov
-    except (AssertionError, ZeroDivisionError):
-        return      # no canvas size yet
-    if aspect < PORTRAIT_ASPECT:
-        position, look_at = narrow_view_camera(aspect, fov)
-        with client.atomic():
-            cam.position = position         # (viser moves look_at with it: set it after)
-            cam.look_at = look_at
+
+    def frame(_=None) -> None:
+        try:
+            aspect, fov = cam.aspect, cam.fov
+            position, look_at = cam.position, cam.look_at
+        except (AssertionError, ZeroDivisionError):
+            return      # no canvas size yet
+        if aspect < PORTRAIT_ASPECT and at_initial_camera(position, look_at):
+            position, look_at = narrow_view_camera(aspect, fov)
+            with client.atomic():
+                cam.position = position         # (viser moves look_at with it: set it after)
+                cam.look_at = look_at
+
+    cam.on_update(frame)
+    frame()
 
 
 class Scene:
