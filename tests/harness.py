@@ -68,14 +68,30 @@ def hide_notices(frame) -> None:
         " b.appendChild(s); }")
 
 
+def console_errors(page) -> list[str]:
+    """The errors in the console of ``page`` and its frames (the viewer's among them) from now
+    on, filled as they come: a script's uncaught exception, an error it logs, a resource
+    the server refused."""
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(f"{m.text} ({m.location.get('url', '')})")
+            if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(f"uncaught: {e}"))
+    return errors
+
+
 @contextlib.contextmanager
 def chromium_page(url: str, profile: str | Path, size: tuple[int, int] = (1600, 900),
-                  viewer: bool = True, timeout_ms: int = 60_000):
+                  viewer: bool = True, timeout_ms: int = 60_000,
+                  console_errors_ok: tuple[str, ...] = ()):
     """A page of Debian's headless Chromium (Playwright, no browser download; its profile in
     the folder ``profile``) opened on ``url``, at ``size``; with ``viewer``, once the
     embedded 3D view (``iframe#viewer``) draws. Yields ``(page, frame)``: the page and the
     viewer's frame locator. The browser is closed on leaving, whatever happened.
-    (The caller has checked ``CHROMIUM`` and imported Playwright with ``importorskip``.)"""
+    An error in the console of the page or of its viewer (a script's exception, an error it
+    logs, a resource refused) fails the test when it leaves without an exception of its own,
+    unless the error's text holds one of ``console_errors_ok``: ``page.console_errors`` lists
+    them meanwhile. (The caller has checked ``CHROMIUM`` and imported Playwright with
+    ``importorskip``.)"""
     from playwright.sync_api import sync_playwright
     with sync_playwright() as pw:
         ctx = pw.chromium.launch_persistent_context(
@@ -83,11 +99,14 @@ def chromium_page(url: str, profile: str | Path, size: tuple[int, int] = (1600, 
             viewport={"width": size[0], "height": size[1]})
         try:
             page = ctx.new_page()
+            page.console_errors = errors = console_errors(page)
             page.goto(url)
             frame = page.frame_locator("iframe#viewer")
             if viewer:
                 frame.locator("canvas").first.wait_for(state="visible", timeout=timeout_ms)
             yield page, frame
+            unexpected = [e for e in errors if not any(ok in e for ok in console_errors_ok)]
+            assert not unexpected, f"errors in the browser's console: {unexpected}"
         finally:
             ctx.close()
 
