@@ -375,7 +375,7 @@ def _disable_for_watchers(viewer, access: Access, uuid: str) -> None:
     """Show the input ``uuid`` disabled to every watch-only client (on viser's loop)."""
     from app.server import viser_adapter as va
     h = va.gui_input_handle(viewer, uuid)
-    if h is None or va.is_removed(h):
+    if h is None or va.is_removed(h) or not va.can_be_disabled(h):
         return
     for client_id, client in viewer.get_clients().items():
         if access.viewer_allowed(client_id):
@@ -395,7 +395,7 @@ def _disable_controls(viewer, client) -> None:
         handles = va.gui_input_handles(viewer)
         with client.atomic():
             for uuid, h in handles:
-                if not va.is_removed(h):
+                if not va.is_removed(h) and va.can_be_disabled(h):
                     va.queue_to_client(client, va.gui_update_message(uuid, {"disabled": True}))
     except Exception:  # a client gone meanwhile
         log.debug("could not disable a viewer's controls", exc_info=True)

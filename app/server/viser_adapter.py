@@ -298,6 +298,17 @@ def handle_uuid(handle) -> str:
         raise _missing("_GuiHandleState.uuid (a GUI handle's _impl)", e) from e
 
 
+def can_be_disabled(handle) -> bool:
+    """Whether a GUI input has a ``disabled`` property (a progress bar, listed among the
+    inputs for its value, has none: viser's client logs an error for an update of it).
+
+    Relies on: ``_GuiHandleState.props`` (``handle._impl``), the element's props."""
+    try:
+        return hasattr(handle._impl.props, "disabled")
+    except AttributeError as e:
+        raise _missing("_GuiHandleState.props (a GUI handle's _impl)", e) from e
+
+
 def is_removed(handle) -> bool:
     """Whether a GUI or scene handle was removed.
 
@@ -525,7 +536,7 @@ __all__ = [
     "background_loop", "broadcast_buffer", "buffer_wakeup", "set_buffer_wakeup",
     "on_websocket_connect", "on_websocket_disconnect", "websocket_connection",
     "wrap_incoming_handlers", "queue_to_client", "gui_input_handles", "gui_input_handle",
-    "handle_value", "handle_uuid", "is_removed", "queue_update", "stored_wxyz", "node_props",
+    "handle_value", "handle_uuid", "can_be_disabled", "is_removed", "queue_update", "stored_wxyz", "node_props",
     "set_orientation_message", "scene_update_message", "queue_scene_message",
     "after_prop_assigned",
 ]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from harness import CHROMIUM, CHROMIUM_ARGS, browser_test, running_server, wait_for
+from harness import CHROMIUM, CHROMIUM_ARGS, browser_test, console_errors, running_server, wait_for
 
 TOKEN = "browser-test-token"
 
@@ -32,6 +32,7 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
         browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
         try:
             student = browser.new_context(viewport={"width": 1400, "height": 850}).new_page()
+            s_errors = console_errors(student)
             student.goto(srv.url + "/")
             s_frame = student.frame_locator("iframe#viewer")
             s_mag = s_frame.get_by_label("Magnetometer", exact=True)
@@ -46,6 +47,7 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
                      what="the student's slider box out of the pointer's reach")
 
             presenter = browser.new_context(viewport={"width": 1400, "height": 850}).new_page()
+            p_errors = console_errors(presenter)
             presenter.goto(f"{srv.url}/?token={TOKEN}")      # the link printed at start
             assert "token" not in presenter.url              # kept in a cookie, not the URL
             p_frame = presenter.frame_locator("iframe#viewer")
@@ -70,5 +72,8 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
             # the student's page follows the presenter's change and stays disabled
             wait_for(lambda: not s_mag.is_checked(), 30.0, 0.2, what="the student's view follows")
             assert s_mag.is_disabled()
+            # neither console has an error: the student's viewer is told to disable only
+            # what can be disabled (viser lists progress bars among the inputs)
+            assert not s_errors and not p_errors, (s_errors, p_errors)
         finally:
             browser.close()

@@ -203,6 +203,10 @@ def test_gui_input_handles_and_their_values(viewer):
     assert va.is_removed(h) is False
     md = viewer.gui.add_markdown("not an input")
     assert all(x is not md for _, x in va.gui_input_handles(viewer))
+    # a progress bar is listed for its value, but has no disabled property to show
+    bar = viewer.gui.add_progress_bar(30.0)
+    assert (va.handle_uuid(bar), bar) in va.gui_input_handles(viewer)
+    assert va.can_be_disabled(h) and not va.can_be_disabled(bar)
     h.remove()
     assert va.is_removed(h) is True
 
