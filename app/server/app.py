@@ -17,6 +17,7 @@ from pathlib import Path
 
 import viser
 from fastapi import FastAPI, Request
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -152,7 +153,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 st.toolkit.close()
             st.viewer.stop()
 
-    app = FastAPI(title="orientlab", lifespan=lifespan,
+    app = FastAPI(title="orientlab", lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Live orientation estimation from a phone's sensors: state, "
                               "parameters and a WebSocket stream of every estimate.")
     app.state.access = access
@@ -169,6 +170,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for r in (recordings, calibrate, replay, estimators, inject_router, push, connect):
         app.include_router(r.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/docs", include_in_schema=False)
+    async def api_docs():
+        # Swagger UI from orientlab's own files, not FastAPI's default CDN: a classroom
+        # network may have no way out
+        sw = "/static/vendor/swagger-ui"
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title="orientlab API",
+                                   swagger_js_url=f"{sw}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{sw}/swagger-ui.css",
+                                   swagger_favicon_url=f"{sw}/favicon-32x32.png")
 
     @app.get("/", include_in_schema=False)
     async def index(request: Request, token: str | None = None):

@@ -62,3 +62,27 @@ def test_on_a_projector_the_header_keeps_one_line_with_the_longest_status(tmp_pa
             assert got["header"] == got["header_scroll"] == 44, got
             assert got["badge"] < 2 * got["line"], got        # one line, not wrapped
             assert got["title"].startswith(status), got       # the whole text on hover
+
+
+def test_the_api_docs_work_on_a_network_without_internet(tmp_path):
+    """The header's "API docs" link (/docs, Swagger UI) on a classroom network with no way
+    out: every request that leaves the PC is refused, and the docs still draw, with their
+    "Try it out" buttons, from orientlab's own files."""
+    pytest.importorskip("playwright.sync_api")
+    left: list[str] = []
+
+    def only_this_pc(route):
+        host = route.request.url.split("/")[2].split(":")[0]
+        if host in ("127.0.0.1", "localhost"):
+            return route.continue_()
+        left.append(route.request.url)
+        return route.abort()
+
+    with running_server(source="none", preset_dir=tmp_path) as srv, \
+            chromium_page(srv.url + "/", tmp_path / "profile", viewer=False) as (page, _):
+        page.context.route("**/*", only_this_pc)
+        page.goto(srv.url + "/docs")
+        page.locator(".swagger-ui .info .title").filter(has_text="orientlab").wait_for(timeout=30_000)
+        page.locator(".opblock-summary-path", has_text="/api/params").first.click()
+        page.get_by_role("button", name="Try it out").first.wait_for(timeout=10_000)
+        assert not left, left
