@@ -536,7 +536,7 @@ __all__ = [
     "background_loop", "broadcast_buffer", "buffer_wakeup", "set_buffer_wakeup",
     "on_websocket_connect", "on_websocket_disconnect", "websocket_connection",
     "wrap_incoming_handlers", "queue_to_client", "gui_input_handles", "gui_input_handle",
-    "handle_value", "handle_uuid", "can_be_disabled", "is_removed", "queue_update", "stored_wxyz", "node_props",
-    "set_orientation_message", "scene_update_message", "queue_scene_message",
+    "handle_value", "handle_uuid", "can_be_disabled", "is_removed", "queue_update",
+    "stored_wxyz", "node_props", "set_orientation_message", "scene_update_message", "queue_scene_message",
     "after_prop_assigned",
 ]
