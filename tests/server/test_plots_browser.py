@@ -186,6 +186,7 @@ def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
         def phone_in_view():
             cams = [c.camera for c in viewer.get_clients().values()]
             return [view_xy((0.0, 0.0, 0.0), c.position, c.look_at, c.fov, c.aspect) for c in cams]
+
         def framed(what):
             return wait_for(lambda: (lambda v: v if v and all(y < 0.4 for _, y in v) else None)(
                 phone_in_view()), 30.0, what=what)

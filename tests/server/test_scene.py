@@ -10,7 +10,7 @@ import numpy as np
 
 from app.server.gui.scene import (CAMERA_AT, GRAV_AT, LOOK_AT, MAG_AT, PORTRAIT_ASPECT,
                                   LoopSafeEvent, _QuietLoop, at_initial_camera, narrow_view_camera,
-                                  quiet_wakeups)
+                                  quiet_wakeups, reframed_camera)
 from harness import running_server, view_xy
 
 
@@ -190,3 +190,16 @@ def test_the_initial_camera_is_recognised_to_float32_not_a_moved_one():
     assert at_initial_camera(CAMERA_AT, LOOK_AT) and at_initial_camera(p32, at32)
     assert not at_initial_camera(np.add(CAMERA_AT, (0.01, 0.0, 0.0)), LOOK_AT)
     assert not at_initial_camera(CAMERA_AT, np.add(LOOK_AT, (0.0, 0.0, 0.01)))
+
+
+def test_only_a_narrow_view_at_the_initial_camera_is_moved():
+    """What the camera watcher does with each camera message: a phone's view at the initial
+    camera is framed; a framed or moved camera, a projector's view and a view with no canvas
+    yet (aspect 0) are left alone, so setting the camera never answers its own message."""
+    fov = np.radians(75.0)
+    framed = reframed_camera(0.5, fov, CAMERA_AT, LOOK_AT)
+    assert framed is not None and not at_initial_camera(*framed)
+    assert reframed_camera(0.5, fov, *framed) is None                  # framed: once
+    assert reframed_camera(0.5, fov, (3.0, 3.0, 1.5), (0.0, 0.0, 0.0)) is None   # moved
+    for aspect in (0.0, PORTRAIT_ASPECT, 0.86, 1.8):                   # no canvas, or wide
+        assert reframed_camera(aspect, fov, CAMERA_AT, LOOK_AT) is None, aspect

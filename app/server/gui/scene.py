@@ -46,12 +46,12 @@ LOOK_AT = (0.0, -0.3, -0.2)
 # The initial camera frames the phone and both arrows in a view this narrow (width / height:
 # a projector's 1280x720 leaves the view about 580 px wide beside the panels, 0.86).
 FRAMED_ASPECT = 0.86
-# A view narrower than PORTRAIT_ASPECT when it connects is a phone held upright (the page
+# A view narrower than PORTRAIT_ASPECT at the initial camera is a phone held upright (the page
 # gives the 3D view the screen's width: 0.45-0.6), and viser lays its control panel over the
 # bottom 60 % of a phone's view, the phone in the middle under it: the camera moves back by
 # FRAMED_ASPECT / aspect (the arrows stay in view) and the phone rises by PORTRAIT_LIFT of
-# the view's half-height. (A desktop's or a tablet's view is wider when it connects; viser
-# docks its panel beside the view there.)
+# the view's half-height. (A desktop's or a tablet's view is wider; viser docks its panel
+# beside the view there.)
 PORTRAIT_ASPECT = 0.7
 PORTRAIT_LIFT = 0.5
 GREY = (150, 150, 150)
@@ -271,26 +271,35 @@ def at_initial_camera(position, look_at, tol: float = 1e-3) -> bool:
             and float(np.linalg.norm(np.subtract(look_at, LOOK_AT))) <= scale)
 
 
+def reframed_camera(aspect: float, fov: float, position, look_at):
+    """The camera (position, look_at) a view of ``aspect`` and ``fov`` should be moved to,
+    or None to leave it: a view at the initial camera gets :func:`narrow_view_camera` when
+    that differs from it (a narrow view with a canvas); a camera the viewer has moved, a
+    wide view and a view with no canvas yet (aspect 0) are left as they are."""
+    if not at_initial_camera(position, look_at):
+        return None
+    framed = narrow_view_camera(aspect, fov)
+    return None if at_initial_camera(*framed) else framed
+
+
 def frame_narrow_view(client) -> None:
     """On a client's connection (viser calls it once the client's camera, with its canvas
     size, has come): a phone's upright view gets :func:`narrow_view_camera`, now and
-    whenever its camera is back at the initial one. viser's client puts it there itself:
-    on "Reset View", and when the scene's up direction or initial camera arrives, which can
-    be after this hook has moved it (the phone-screen browser test once lost its framing
-    so, with the suite on two workers). A camera the viewer has moved is theirs and stays."""
+    whenever its camera is back at the initial one (:func:`reframed_camera`). viser's
+    client puts it there itself: on "Reset View", and when the scene's up direction or
+    initial camera arrives, which can be after this hook has moved it (the phone-screen
+    browser test once lost its framing so, with the suite on two workers)."""
     cam = client.camera
 
     def frame(_=None) -> None:
         try:
-            aspect, fov = cam.aspect, cam.fov
-            position, look_at = cam.position, cam.look_at
+            to = reframed_camera(cam.aspect, cam.fov, cam.position, cam.look_at)
         except (AssertionError, ZeroDivisionError):
             return      # no canvas size yet
-        if aspect < PORTRAIT_ASPECT and at_initial_camera(position, look_at):
-            position, look_at = narrow_view_camera(aspect, fov)
+        if to is not None:
             with client.atomic():
-                cam.position = position         # (viser moves look_at with it: set it after)
-                cam.look_at = look_at
+                cam.position = to[0]        # (viser moves look_at with it: set it after)
+                cam.look_at = to[1]
 
     cam.on_update(frame)
     frame()
