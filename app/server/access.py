@@ -371,11 +371,18 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
 KEEP_DISABLED_AFTER_S = (0.2, 1.0)
 
 
+def _shown_disabled(handle) -> bool:
+    """Whether a GUI input is one a watch-only client is shown disabled: still there, and
+    with a ``disabled`` property (viser lists progress bars among the inputs too)."""
+    from app.server import viser_adapter as va
+    return not va.is_removed(handle) and va.can_be_disabled(handle)
+
+
 def _disable_for_watchers(viewer, access: Access, uuid: str) -> None:
     """Show the input ``uuid`` disabled to every watch-only client (on viser's loop)."""
     from app.server import viser_adapter as va
     h = va.gui_input_handle(viewer, uuid)
-    if h is None or va.is_removed(h) or not va.can_be_disabled(h):
+    if h is None or not _shown_disabled(h):
         return
     for client_id, client in viewer.get_clients().items():
         if access.viewer_allowed(client_id):
@@ -395,7 +402,7 @@ def _disable_controls(viewer, client) -> None:
         handles = va.gui_input_handles(viewer)
         with client.atomic():
             for uuid, h in handles:
-                if not va.is_removed(h) and va.can_be_disabled(h):
+                if _shown_disabled(h):
                     va.queue_to_client(client, va.gui_update_message(uuid, {"disabled": True}))
     except Exception:  # a client gone meanwhile
         log.debug("could not disable a viewer's controls", exc_info=True)
