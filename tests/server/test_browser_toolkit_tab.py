@@ -4,6 +4,8 @@ Presets tab's load brings a preset's magnetometer calibration back."""
 
 from __future__ import annotations
 
+import time
+
 import httpx
 import numpy as np
 import pytest
@@ -32,9 +34,24 @@ def test_toolkit_tab_adds_the_no_rejection_variant_and_brings_a_magnet(tmp_path)
         wait_for(lambda: "robust-no-rejection" in [e["name"] for e in
                                                    api.get("/api/estimators").json()["estimators"]],
                  30.0, what="the variant added by the click")
+        # robust has learned the field: the magnet is then a disturbance its pill shows
+        wait_for(lambda: api.get("/api/state").json()["diagnostics"].get("mag_band"), 60.0,
+                 what="robust's learned field")
+        shake = frame.get_by_role("button", name="Shake", exact=True)
+        where = [shake.bounding_box()]
         click(page, frame.get_by_role("button", name="Bring a magnet"))
         wait_for(lambda: api.get("/api/inject").json()["marks"], 30.0, what="the magnet's start mark")
-        page.wait_for_timeout(4000)     # the heading plot shows both estimators
+        # while the pills light up and go out (the heading plot meanwhile shows both
+        # estimators), the controls under them stay where they are: a teacher's next
+        # click lands on what they aimed at
+        lit, deadline = 0, time.monotonic() + 4.0
+        while time.monotonic() < deadline:
+            where.append(shake.bounding_box())
+            lit += api.get("/api/state").json()["mag_rejected"]
+            page.wait_for_timeout(100)
+        assert lit, "robust never refused the magnet's field: the status never changed"
+        assert {(b["x"], b["y"]) for b in where} == {(where[0]["x"], where[0]["y"])}, \
+            f"the Shake button moved while the status changed: {sorted({b['y'] for b in where})}"
         page.screenshot(path=str(ARTIFACTS / "lab_magnet.png"))
         st = api.get("/api/state").json()
         assert "robust-no-rejection" in st["estimators"]

@@ -426,14 +426,28 @@ class Gui:
         src = html.escape(st["status"])
         t0 = self.stream_t0()
         t = "–" if st["t"] is None or t0 is None else f"{st['t'] - t0:.1f} s"
-        self.status.content = (
-            f"<div style='font-size:0.92em;line-height:1.35'><b>Source:</b> {src}<br>"
-            f"<b>Stream time:</b> {t} &nbsp; <b>Primary:</b> {html.escape(st['primary'])}"
-            f"{_error_text(st)}</div>")
+        self.status.content = _status_html(src, t, html.escape(st["primary"]), _error_text(st))
         self.readouts.content = _readouts_html(st)
 
     def refresh(self) -> None:
         self.refresh_text()
+
+
+# The status and the indicators sit above the tabs: each line keeps its height whatever it
+# says, so that a pill lighting up (a magnet brought, a shake) never moves the controls
+# below under the pointer. A text too long for its line ends in "…" and is whole on hover.
+_ONE_LINE = "white-space:nowrap;overflow:hidden;text-overflow:ellipsis;height:1.35em"
+_TWO_LINES = ("display:-webkit-box;-webkit-box-orient:vertical;-webkit-line-clamp:2;"
+              "overflow:hidden;height:2.7em")
+
+
+def _status_html(src: str, t: str, primary: str, error: str) -> str:
+    """The status block, always four lines: the source (two), the stream time and primary,
+    the error (``error``: already HTML, "–" when there is nothing to compare with)."""
+    return (f"<div style='font-size:0.92em;line-height:1.35'>"
+            f"<div title='{src}' style='{_TWO_LINES}'><b>Source:</b> {src}</div>"
+            f"<div style='{_ONE_LINE}'><b>Stream time:</b> {t} &nbsp; <b>Primary:</b> {primary}</div>"
+            f"<div style='{_ONE_LINE}'><b>Error:</b> {error}</div></div>")
 
 
 def _error_text(st: dict) -> str:
@@ -442,7 +456,7 @@ def _error_text(st: dict) -> str:
         parts.append(f"to truth {st['error_to_truth_deg']:.1f}°")
     if st["error_to_phone_deg"] is not None:
         parts.append(f"to phone's own {st['error_to_phone_deg']:.1f}°")
-    return ("<br><b>Error:</b> " + ", ".join(parts)) if parts else ""
+    return ", ".join(parts) or "–"
 
 
 def _pill(on: bool, text: str, color: str) -> str:
@@ -453,14 +467,22 @@ def _pill(on: bool, text: str, color: str) -> str:
 
 
 def _indicators_html(ind: Indicators) -> str:
-    parts = [_pill(ind.rest, "standstill", "#2ca02c")]
+    """The three pills, each with its fixed words, and under them one line that says why: the
+    gate that refused a sensor and its value, or what the estimate waits for."""
+    pills = [_pill(ind.rest, "standstill", "#2ca02c")]
+    why = []
     for sensor in ("acc", "mag"):
         text = getattr(ind, sensor)
-        title = f"{sensor} disturbed"
-        parts.append(_pill(text is not None, f"{title}: {text}" if text else title, "#d62728"))
+        pills.append(_pill(text is not None, f"{sensor} disturbed", "#d62728"))
+        if text is not None:
+            why.append(f"{sensor} disturbed: {text}")
     if ind.aligning:
-        parts.append(_pill(True, ind.waiting_for, "#ff7f0e"))
-    return "<div>" + "".join(parts) + "</div>"
+        why.insert(0, ind.waiting_for)
+    line = html.escape(" · ".join(why))
+    color = "#ff7f0e" if ind.aligning else "#d62728"
+    return (f"<div style='white-space:nowrap;overflow:hidden'>{''.join(pills)}</div>"
+            f"<div title='{line}' style='{_ONE_LINE};font-size:0.85em;color:{color}'>"
+            f"{line or '&nbsp;'}</div>")
 
 
 def _deg3(v) -> str:
