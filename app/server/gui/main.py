@@ -456,7 +456,7 @@ def _error_text(st: dict) -> str:
         parts.append(f"to truth {st['error_to_truth_deg']:.1f}°")
     if st["error_to_phone_deg"] is not None:
         parts.append(f"to phone's own {st['error_to_phone_deg']:.1f}°")
-    return ", ".join(parts) or "–"
+    return ", ".join(parts) or "– (no reference in this stream)"
 
 
 def _pill(on: bool, text: str, color: str) -> str:
