@@ -78,9 +78,9 @@ def main() -> int:
             page.wait_for_timeout(5000)
             click(page, frame.get_by_role("button", name="Bring a magnet"))
             # the page says the magnet is on (it lags the server on a busy machine): 4 of
-            # its 5 s in the heading plot
+            # its 5 s in the heading plot, the status still on
             frame.get_by_text("of at most").first.wait_for(state="visible", timeout=120_000)
-            page.wait_for_timeout(4000)
+            page.wait_for_timeout(3000)
             frame.get_by_text("Record", exact=True).first.scroll_into_view_if_needed(timeout=20_000)
             page.screenshot(path=str(out / "lab_magnet.png"))
             api.post("/api/replay", json={"stop": True})

@@ -19,6 +19,7 @@ refreshes the read-outs and plots a few times a second.
 from __future__ import annotations
 
 import asyncio
+import html
 import logging
 import math
 from typing import Any, Callable
@@ -161,6 +162,15 @@ def scale_markdown(out: dict) -> str:
     return "  \n".join(lines)
 
 
+def injections_html(active: list[str], cap: int) -> str:
+    """The disturbances on now, in a box of fixed height (three lines; more scroll inside it):
+    the Lab tab's controls below it stay where they are as disturbances start and end."""
+    text = (f"active ({len(active)} of at most {cap}): " + "; ".join(active)) if active \
+        else f"no disturbance active (at most {cap} at once)"
+    return ("<div style='height:4em;overflow-y:auto;padding:2px 10px;font-size:0.9em;line-height:1.33'>"
+            f"{html.escape(text)}</div>")
+
+
 class ToolkitTab:
     """Builds the "Lab" tab in ``tabs`` (a viser tab group) of the shared GUI, on the
     toolkit ``tk``; ``server``: the viser server whose 3D scene the variants' ghosts
@@ -211,7 +221,7 @@ class ToolkitTab:
             nr = gui.add_button("Add the primary without rejection",
                                 hint="a variant of the primary with every gate off, beside it")
             nr.on_click(lambda ev: self._add_variant(ev, "no-rejection"))
-            self.inject_md = gui.add_markdown("")
+            self.inject_status = gui.add_html(injections_html([], 0))
             self.monitor_follow = gui.add_checkbox(
                 "Live heading plot", False,
                 hint="Keep the heading plot below following the stream. Without it the plot "
@@ -798,9 +808,7 @@ class ToolkitTab:
         # disturbances and the monitor
         act = tk.injection.injector.active
         cap = tk.injection.max_active
-        self.inject_md.content = (f"active ({len(act)} of at most {cap}): "
-                                  + "; ".join(a.d.describe() for a in act)) if act \
-            else f"no disturbance active (at most {cap} at once)"
+        self.inject_status.content = injections_html([a.d.describe() for a in act], cap)
         self._draw_monitor()
 
     def _readouts(self) -> str:
