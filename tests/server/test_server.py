@@ -316,13 +316,13 @@ def test_demo_source_and_phone_takeover(tmp_path):
         assert st["error_to_truth_deg"] is not None
         gui = s.app.state.gui
         gui.refresh_text()
-        assert gui.resume.visible is False        # the demo runs: nothing to resume
+        assert gui.resume.disabled is True       # the demo runs: nothing to resume
         lines = simulate(("still",), seed=2).lines()
         with Phone(s.phone_port) as ph:
             ph.send_lines(lines[:200])
             wait_for(lambda: api.get("/api/state").json()["source"] == "phone", what="the phone")
             gui.refresh_text()
-            assert gui.resume.visible is False    # a phone streams: the demo is not to be resumed
+            assert gui.resume.disabled is True   # a phone streams: the demo is not to be resumed
             ph.send_lines(lines[200:])
         st = wait_for(lambda: (lambda x: x if x["source"] == "phone-disconnected"
                                and x["counts"]["buffered"] == 0 and x["counts"]["queued"] == 0
@@ -333,10 +333,11 @@ def test_demo_source_and_phone_takeover(tmp_path):
         t_last = st["t"]
         assert api.get("/api/state").json()["t"] == t_last
         assert srv_gui_text(s).find("disconnected") >= 0
-        assert gui.resume.visible is True         # paused by the phone: the button offers it
+        assert gui.resume.disabled is False      # paused by the phone: the button offers it
+        assert gui.resume.visible is True         # always there: nothing moves when it is offered
         api.post("/api/source/resume")
         wait_for(lambda: api.get("/api/state").json()["source"] == "demo", what="demo resumed")
-        wait_for(lambda: (gui.refresh_text(), not gui.resume.visible)[1], what="the button hidden again")
+        wait_for(lambda: (gui.refresh_text(), gui.resume.disabled)[1], what="the button greyed again")
 
 
 def srv_gui_text(s) -> str:
@@ -368,12 +369,12 @@ def test_resume_offers_a_replay_started_from_the_page_and_nothing_without_one(tm
         gui = s.app.state.gui
         play(s, api, lines)
         gui.refresh_text()
-        assert gui.resume.visible is False        # no demo, no replay: nothing to resume
+        assert gui.resume.disabled is True       # no demo, no replay: nothing to resume
         api.post("/api/replay", json={"name": "lesson"}).raise_for_status()
         wait_for(lambda: api.get("/api/state").json()["source"] == "replay", what="the replay")
         play(s, api, lines)
         gui.refresh_text()
-        assert gui.resume.visible is True         # the replay waits behind the phone that left
+        assert gui.resume.disabled is False      # the replay waits behind the phone that left
         api.post("/api/source/resume")
         wait_for(lambda: api.get("/api/state").json()["source"] == "replay", what="the replay again")
 

@@ -98,9 +98,12 @@ class Gui:
             reset = gui.add_button("Reset filters", hint="Forget the orientation and align again "
                                                          "from the next samples.")
             reset.on_click(lambda ev: self._submit({"reset": True}, ev))
-            # shown only after a phone has left and the demo (or log replay) stays paused
-            self.resume = gui.add_button("Resume demo", visible=False,
-                                         hint="Restart the demo / log replay after a phone has left.")
+            # enabled only after a phone has left and the demo (or log replay) stays paused;
+            # always there, greyed otherwise: appearing, it would push the tabs below it down
+            # under the pointer just as the phone leaves
+            self.resume = gui.add_button("Resume demo", disabled=True,
+                                         hint="Restart the demo / log replay after a phone has "
+                                              "left (greyed while a phone streams or nothing waits).")
             self.resume.on_click(lambda ev: engine.resume_background())
         # The plots are drawn by the landing page (static/plots.js, fed by WS /ws/plots:
         # only the new points, 20 times a second): a panel beside this viewer, so the 3D
@@ -415,8 +418,8 @@ class Gui:
         # phone streams now
         waiting = (self.background() and self.engine.background_paused
                    and self.engine.core.source_kind() != "phone")
-        if self.resume.visible != waiting:
-            self.resume.visible = waiting
+        if self.resume.disabled == waiting:
+            self.resume.disabled = not waiting
         self.indicators.content = _indicators_html(ind)
         self.scene.set_indicators(ind)
         if not readouts:
