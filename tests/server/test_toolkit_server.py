@@ -170,6 +170,7 @@ def test_magnet_injected_into_a_real_stream_primary_rides_it_out(tmp_path, still
             r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 50, "direction": "east",
                                               "seconds": 5})
             assert r.status_code == 200, r.text
+            assert r.json()["text"].startswith("magnet 50 µT along [1,0,0]")   # the page's words
             _send(phone, lines[k:])
             _processed(api, len(lines) - 300, "the rest")
         summary = api.post("/api/recordings/stop").json()
