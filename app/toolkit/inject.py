@@ -86,17 +86,17 @@ class Disturbance:
     def tag(self) -> str:
         return "MAG" if self.kind == "magnet" else "ACC"
 
-    def unit(self, ascii: bool = False) -> str:
+    def unit(self, ascii_units: bool = False) -> str:
         if self.kind == "magnet":
-            return "uT" if ascii else "µT"
-        return "m/s2" if ascii else "m/s²"
+            return "uT" if ascii_units else "µT"
+        return "m/s2" if ascii_units else "m/s²"
 
-    def describe(self, ascii: bool = False) -> str:
+    def describe(self, ascii_units: bool = False) -> str:
         """'magnet 50 µT along [1,0,0] (world frame) for 5 s', as the page and the API say it;
-        ``ascii``: with 'uT' and 'm/s2', as a mark in a recorded log (the apps' logs are ASCII)."""
+        ``ascii_units``: with 'uT' and 'm/s2', as a mark in a recorded log (the apps' logs are ASCII)."""
         d = ",".join(f"{v:.3g}" for v in self.direction)
         extra = f" {self.frequency_hz:g} Hz" if self.kind == "shake" else ""
-        return (f"{self.kind} {self.magnitude:g} {self.unit(ascii)}{extra} along [{d}] ({self.frame} "
+        return (f"{self.kind} {self.magnitude:g} {self.unit(ascii_units)}{extra} along [{d}] ({self.frame} "
                 f"frame) for {self.seconds:g} s")
 
     def as_dict(self) -> dict[str, Any]:
@@ -365,7 +365,7 @@ class Injector:
         return out, marks
 
     def _mark(self, a: Active, event: str, time_ms: int) -> dict[str, Any]:
-        text = f"{a.d.describe(ascii=True)} {event} (id {a.id})"
+        text = f"{a.d.describe(ascii_units=True)} {event} (id {a.id})"
         return {"event": event, "id": a.id, "kind": a.d.kind, "time_ms": time_ms,
                 "text": text, "sample": Sample(time_ms, "TXT", (f"orientlab: {text}",))}
 
