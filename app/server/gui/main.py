@@ -446,7 +446,7 @@ _TWO_LINES = ("display:-webkit-box;-webkit-box-orient:vertical;-webkit-line-clam
 
 def _status_html(src: str, t: str, primary: str, error: str) -> str:
     """The status block, always four lines: the source (two), the stream time and primary,
-    the error (``error``: already HTML, "–" when there is nothing to compare with)."""
+    the error. Each argument is HTML already (:func:`_error_text` for ``error``)."""
     return (f"<div style='font-size:0.92em;line-height:1.35'>"
             f"<div title='{src}' style='{_TWO_LINES}'><b>Source:</b> {src}</div>"
             f"<div style='{_ONE_LINE}'><b>Stream time:</b> {t} &nbsp; <b>Primary:</b> {primary}</div>"

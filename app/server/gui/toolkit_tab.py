@@ -221,7 +221,7 @@ class ToolkitTab:
             nr = gui.add_button("Add the primary without rejection",
                                 hint="a variant of the primary with every gate off, beside it")
             nr.on_click(lambda ev: self._add_variant(ev, "no-rejection"))
-            self.inject_status = gui.add_html(injections_html([], 0))
+            self.inject_status = gui.add_html(injections_html([], self.tk.injection.max_active))
             self.monitor_follow = gui.add_checkbox(
                 "Live heading plot", False,
                 hint="Keep the heading plot below following the stream. Without it the plot "
