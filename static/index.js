@@ -4,8 +4,23 @@
 let presenter = false;
 const $ = (id) => document.getElementById(id);
 
+// Whose page this is (presenter or watcher) and where the viewer is. A classroom Wi-Fi drops
+// requests: asked again until it answers, the badge saying so meanwhile (until then the
+// page shows neither the presenter's part nor the watcher's note).
+async function whoami() {
+  for (let wait = 500; ; wait = Math.min(2 * wait, 5000)) {
+    try {
+      const r = await fetch("/api/info");
+      if (r.ok) return await r.json();
+    } catch (e) { /* dropped: ask again */ }
+    $("source").textContent = "server not reachable";
+    $("source").className = "badge warn";
+    await new Promise((done) => setTimeout(done, wait));
+  }
+}
+
 async function init() {
-  const info = await (await fetch("/api/info")).json();
+  const info = await whoami();
   presenter = info.presenter;
   let url = `${location.protocol}//${location.hostname}:${info.viewer_port}/`;
   if (info.viewer_token) {  // the presenter: the viewer's WebSocket carries the token
