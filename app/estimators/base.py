@@ -49,7 +49,9 @@ class Reason(IntEnum):
                     # and the low-passed gravity, rad)
     NEW_FIELD = 14  # mag: a new homogeneous field became the reference (value: its strength, µT)
     RECOVER = 15    # the estimate was judged lost and re-aligned (mag: heading far from a
-                    # trusted field for long; value: the heading error corrected, rad)
+                    # trusted field for long; value: the heading error corrected, rad; acc:
+                    # the low-passed gravity below the horizon, the tilt more than 90° off;
+                    # value: that angle, rad)
     BIAS_RESET = 16 # gyr: the bias estimate was implausible (above bias_max) and was reset
     TURN = 17       # mag: the field (world frame) changed faster than the phone's turn explains:
                     # a magnet moving in (value: the unexplained change rate, rad/s)

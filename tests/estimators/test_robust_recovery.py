@@ -196,3 +196,60 @@ def test_a_shake_flags_acc_with_reason_and_value():
     assert np.all(a[(t > 2.0) & (t < 5.0)] != Reason.ACCEL)
     assert is_rejected(Reason.ACCEL) and is_rejected(int(Reason.ACCEL))
     assert np.nanmax(res.flags[shake & (a == Reason.ACCEL), F_ACC_VAL]) > np.radians(20.0)
+
+
+def _tilted_still_phone(n=6000, fs=100.0, seed=0):
+    """A phone lying still, tilted 20° about x and turned 30° about the vertical, with sensor
+    noise: (t, gyr, acc, mag, the truth)."""
+    from app.quaternion import quat_from_rotvec, rotate_inv_many
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    q = quat_mul(quat_from_rotvec(np.array([0.0, 0.0, np.radians(30.0)])),
+                 quat_from_rotvec(np.array([np.radians(20.0), 0.0, 0.0])))
+    Q = np.tile(q, (n, 1))
+    acc = rotate_inv_many(Q, np.tile([0.0, 0.0, 9.81], (n, 1))) + rng.normal(0.0, 0.05, (n, 3))
+    mag = rotate_inv_many(Q, np.tile([0.0, 20.0, -40.0], (n, 1))) + rng.normal(0.0, 0.5, (n, 3))
+    gyr = rng.normal(0.0, 0.005, (n, 3))
+    return t, gyr, acc, mag, Q
+
+
+def _first_rows_negated(acc, t, seconds):
+    a = acc.copy()
+    a[t < seconds] *= -1.0
+    return a
+
+
+def test_a_start_upside_down_is_realigned():
+    """The first 0.4 s of the accelerometer with the wrong sign (a Sensor Logger iPhone before its
+    sign convention is detected) aligned robust upside down, and it stayed there for good: the
+    tilt update's innovation, the low-passed gravity's horizontal part, vanishes upside down as
+    upright, and the accelerometer said "used" all along. Now gravity below the horizon re-aligns
+    the filter (acc flag RECOVER, with the angle), and a normal start never does."""
+    t, gyr, acc, mag, truth = _tilted_still_phone()
+    res = make_estimator("robust").run(t, gyr, _first_rows_negated(acc, t, 0.4), mag)
+    total = error_angles(res.q, truth)[0] * DEG
+    assert np.max(total[t > 5.0]) < 2.0
+    a = res.flags[:, F_ACC].astype(int)
+    rec = np.flatnonzero(a == Reason.RECOVER)
+    assert len(rec) == 1 and t[rec[0]] < 2.0
+    assert res.flags[rec[0], F_ACC_VAL] > np.radians(90.0)
+    clean = make_estimator("robust").run(t, gyr, acc, mag)
+    assert np.max(error_angles(clean.q, truth)[0][t > 5.0] * DEG) < 2.0
+    assert not np.any(clean.flags[:, F_ACC].astype(int) == Reason.RECOVER)
+
+
+def test_a_real_trial_started_upside_down_is_realigned(shared_dir):
+    """The same on a real phone in a back pocket (phones-tyrex): the first 0.4 s negated left
+    robust 177-180° off for the whole minute; now it is back to the clean start's error within
+    2 s, and the bias learned meanwhile is kept."""
+    tr = _trial(shared_dir, "iPhone4S_Guillaume_NoDist_backpocket")
+    n = int(np.searchsorted(tr["t"], 60.0))
+    t, gyr, acc, mag, ref = (tr[k][:n] for k in ("t", "gyr", "acc", "mag", "ref"))
+    ok = np.all(np.isfinite(ref), axis=1)
+    clean = make_estimator("robust").run(t, gyr, acc, mag)
+    flipped = make_estimator("robust").run(t, gyr, _first_rows_negated(acc, t, 0.4), mag)
+    e_clean = error_angles(clean.q[ok], ref[ok])[2] * DEG
+    e_flip = error_angles(flipped.q[ok], ref[ok])[2] * DEG
+    late = t[ok] > 3.0
+    assert np.sqrt(np.mean(e_flip[late] ** 2)) < np.sqrt(np.mean(e_clean[late] ** 2)) + 2.0
+    assert np.sum(flipped.flags[:, F_ACC].astype(int) == Reason.RECOVER) == 1

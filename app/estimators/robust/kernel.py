@@ -32,9 +32,9 @@ from __future__ import annotations
 import numpy as np
 
 from app import quaternion as qm
-from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, F_ACC, F_GYR, F_MAG, F_REST, F_TIME,
-                                 R_ABSENT, R_BIAS_RESET, R_GAP, R_LATE, R_USED, T_BACKWARD, T_GAP, T_OK,
-                                 align_step, row_prologue)
+from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
+                                 F_REST, F_TIME, R_ABSENT, R_BIAS_RESET, R_GAP, R_LATE, R_RECOVER, R_USED,
+                                 T_BACKWARD, T_GAP, T_OK, align_step, row_prologue)
 from app.estimators.robust.bias import rest_update
 from app.estimators.robust.hardiron import hard_iron_reset
 from app.estimators.robust.heading import mag_update
@@ -46,9 +46,15 @@ from app.jitcache import compiled
 
 @compiled
 def _align(s, P, p, t, acc, mag, use_mag):
+    """The alignment from the samples: at the start, or again when the tilt was lost
+    (``s[S.realign]``: then the bias learned so far, and its covariance, are kept)."""
+    keep = s[S.realign] != 0.0
+    Pbb = P[3:, 3:].copy()
+    s[S.realign] = 0.0
     s[S.q:S.q + 4] = qm.q_from_acc_mag(acc, mag, use_mag)
-    for i in range(3):
-        s[S.bias + i] = p[PRM.gyr_bias + i]
+    if not keep:
+        for i in range(3):
+            s[S.bias + i] = p[PRM.gyr_bias + i]
     s[S.acc_lp:S.acc_lp + 3] = qm.rotate(s[S.q:S.q + 4], acc)
     s[S.turn_lp:S.turn_lp + 2] = 0.0
     s[S.mb_ok] = 0.0
@@ -60,8 +66,11 @@ def _align(s, P, p, t, acc, mag, use_mag):
     P[0, 0] = tilt0 ** 2
     P[1, 1] = tilt0 ** 2
     P[2, 2] = head0 ** 2
-    for i in range(3, 6):
-        P[i, i] = max(p[PRM.bias_init], 1e-6) ** 2
+    if keep:
+        P[3:, 3:] = Pbb
+    else:
+        for i in range(3, 6):
+            P[i, i] = max(p[PRM.bias_init], 1e-6) ** 2
     s[S.aligned] = 1.0
     s[S.t0] = t
     s[S.wait_t] = np.nan
@@ -220,6 +229,17 @@ def robust_step(s, P, p, t, gyr, acc, mag, f):
     rest_update(s, P, p, t, gyr, acc, dt, gs == R_USED, as_ == R_USED, f)
     if as_ == R_USED:
         acc_update(s, P, p, t, acc, f)
+        if s[S.realign] != 0.0:
+            # the tilt was lost (tilt.acc_update): align again from the samples, as at the
+            # start, this one first (the flag keeps saying why)
+            angle = f[F_ACC_VAL]
+            s[S.aligned] = 0.0
+            s[S.wait_t] = np.nan
+            s[S.wait_acc:S.wait_acc + 3] = np.nan
+            _try_align(s, P, p, t, acc, mag, gs, as_, ms, f)
+            f[F_ACC] = R_RECOVER
+            f[F_ACC_VAL] = angle
+            return
     if ms == R_USED:
         # the turn rate (bias removed) that counts towards accepting a new field
         rate = 0.0

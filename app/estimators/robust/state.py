@@ -32,6 +32,7 @@ STATE = (
     ("quiet_time", 1, "s quiet so far (rest detection)"),
     ("t", 1, "time of the last row"),
     ("aligned", 1, "1 once aligned"),
+    ("realign", 1, "1 from a lost tilt to its re-alignment, which keeps the bias learned (tilt.acc_update)"),
     ("gyr_held", 3, "held gyroscope sample"),
     ("gyr_held_t", 1, "its time"),
     ("wait_t", 1, "time of the first sample, waiting for alignment (NaN: none yet)"),

@@ -26,6 +26,14 @@
   a constant tilt (3 rad/s × 5 ms is 0.9°). Each sample is turned forward by the gyroscope's
   rate × the lag before it enters the low-pass; the period is measured from the stream (a
   low-pass of the sample intervals), so the lag follows the phone's rate.
+- **A tilt more than 90° off is re-aligned.** Over ``acc_tau`` the phone's accelerations
+  average out and the low-pass holds gravity, up; no motion makes it point below the
+  horizon. When it does, the estimate's up is more than 90° off (it started from a sample
+  with the wrong sign, or drifted without an accelerometer), and the tilt update cannot
+  bring it back: its innovation, the low-pass's horizontal part, vanishes upside down as it
+  does upright, and its Jacobian, taken at the low-pass, makes upside down a second stable
+  point. So the filter is re-aligned from the samples, as at the start, keeping the bias it
+  has learned (flag RECOVER, value: the angle, rad).
 - **Specific force flagged.** An accelerometer sample far from the low-passed gravity
   (``acc_flag_angle``, ``acc_flag_rel``) is flagged ACCEL with the angle (it still
   enters the low-pass): a shake shows.
@@ -36,7 +44,8 @@ from __future__ import annotations
 import numpy as np
 
 from app import quaternion as qm
-from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_NORM, R_USED
+from app.estimators.base import (F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_NORM, R_RECOVER,
+                                 R_USED)
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
 from app.estimators.robust.params import GRAVITY, PRM
@@ -115,6 +124,16 @@ def acc_update(s, P, p, t, acc, f):
     for i in range(3):
         s[S.acc_lp + i] += k * (aw[i] - s[S.acc_lp + i])
     f[F_ACC] = R_USED  # in the low-pass; the correction below runs at most at update_rate_hz
+    # the low-passed specific force points below the horizon: the estimate's up is more than
+    # 90° off, which no correction brings back (module doc); robust_step re-aligns
+    lz = s[S.acc_lp_z]
+    if lz < 0.0:
+        ln = qm.norm3((s[S.acc_lp_x], s[S.acc_lp_y], lz))
+        if ln > 0.5 * GRAVITY:
+            s[S.realign] = 1.0
+            f[F_ACC] = R_RECOVER
+            f[F_ACC_VAL] = np.arccos(max(-1.0, lz / ln))
+            return
     # specific force: the sample is far from the low-passed gravity (angle) or from g
     # (norm): the phone accelerates. It still enters the low-pass (the accelerations
     # average out there) but is flagged, so a shake shows, with the angle as its value.
