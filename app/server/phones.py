@@ -107,7 +107,10 @@ class HttpPhones:
         ended = getattr(batch, "ended", None)
         if ended and st.session is not None and st.session.open:   # the old recording's tail
             self.engine.feed(st.session, ended, time.perf_counter())
-        self._deliver(st, batch.samples, batch.new_session)
+        # samples held by the decoder (Sensor Logger's first ones, while the sign is unknown)
+        # are this phone's data too: it takes the slot with them
+        waiting = bool(getattr(st.decoder, "waiting", False))
+        self._deliver(st, batch.samples, batch.new_session, waiting)
         return Reply(200, "")
 
     def _decoder(self, phone_app: str):
@@ -119,10 +122,12 @@ class HttpPhones:
             return d
         return PhyphoxPushStream()
 
-    def _deliver(self, st: Stream, samples: list, new_session: bool = False) -> None:
+    def _deliver(self, st: Stream, samples: list, new_session: bool = False,
+                 waiting: bool = False) -> None:
         """Samples of a stream to the engine: the slot is taken with the first valid
-        one; a new recording of the app starts a new stream."""
-        if not samples and st.session is None:
+        one (or one the decoder holds: ``waiting``); a new recording of the app starts a
+        new stream."""
+        if not samples and not waiting and st.session is None:
             return
         if not self.slot.holds(st.key):
             label = f"{st.key} ({PHONE_APPS[st.phone_app]})"
@@ -136,10 +141,11 @@ class HttpPhones:
             st.session = self.engine.open_session(
                 "phone", f"{st.key} ({PHONE_APPS[st.phone_app]})", phone_app=st.phone_app,
                 window_s=WINDOW_S[st.phone_app])
-        if samples:
+        if samples or waiting:
             self._details(st)
-            self.engine.feed(st.session, samples, time.perf_counter())
             self.slot.touch(st.key)
+        if samples:
+            self.engine.feed(st.session, samples, time.perf_counter())
 
     def _details(self, st: Stream) -> None:
         """What the decoder detected (platform, convention, device), on the session, for

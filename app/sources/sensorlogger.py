@@ -31,6 +31,9 @@ checked (:class:`OrientationCheck`).
 acceleration and gravity negated against Android, and the raw accelerometer in g. The
 convention is detected per session from the data (see :meth:`SensorLoggerStream.status`
 ``reasons``), or set by the presenter (:meth:`SensorLoggerStream.set_convention`).
+Until the evidence decides it, a session's first samples are held, for at most
+``START_HOLD_S`` of the phone's time (then the app's default goes): released with a
+guessed sign, they would align the filters upside down.
 
 *Messages.* ``messageId`` grows by one per message of a session. A message is released
 at once when it is the next one (or the first); one that arrives ahead of a missing one
@@ -60,6 +63,9 @@ __all__ = ["SensorLoggerError", "Batch", "SensorLoggerStream", "OrientationCheck
 
 G_STD = 9.80665           # the app's g (iOS raw accelerometer unit)
 G_REST = 9.81
+# A session's first samples wait at most this long (s, the phone's time) for the evidence of
+# the accelerometer's sign: a filter aligned on the wrong sign starts upside down
+START_HOLD_S = 2.0
 CONVENTIONS = ("auto", "android", "ios", "ios-standardised")
 _MAX_NS = 9_000_000_000_000_000_000     # below int64's limit; MAX_TIME_MS is larger
 _MAX_NS = min(_MAX_NS, int(MAX_TIME_MS * 1e6))
@@ -265,10 +271,12 @@ class SensorLoggerStream:
     ``now`` (given to :meth:`decode` and :meth:`due`) is the receiver's wall clock in
     seconds (``time.time()``): held messages wait ``hold_s`` of it, and the status's
     ``clock_offset_s`` is the phone's epoch minus it (about minus the batch period
-    when both clocks agree)."""
+    when both clocks agree). A session's first samples wait at most ``start_hold_s`` of
+    the phone's time for the evidence of the accelerometer's sign (0: they do not wait)."""
 
-    def __init__(self, hold_s: float = 1.5):
+    def __init__(self, hold_s: float = 1.5, start_hold_s: float = START_HOLD_S):
         self.hold_s = float(hold_s)
+        self.start_hold_s = float(start_hold_s)
         self._override: str | None = None
         self.rejected: Counter = Counter()     # whole messages refused, by reason
         self.sessions = 0
@@ -297,12 +305,19 @@ class SensorLoggerStream:
         self._conv_source = "assumed"
         self._conv_strong = False               # decided by decisive evidence
         self._dip = [0, 0]                      # rest samples agreeing / disagreeing
+        self._pending: list[dict] = []          # the first samples, while the sign is unknown
+        self._released = False                  # samples of this session went out
         self.reasons: list[str] = []
         self._last_gravity: tuple | None = None
         self._recent: dict[str, deque] = {}
         self._last_ms: float | None = None
         self._offsets: deque = deque(maxlen=21)
         self.ori = OrientationCheck()
+
+    @property
+    def waiting(self) -> bool:
+        """Samples of this session are held until the accelerometer's sign is known."""
+        return bool(self._pending)
 
     def _reason(self, text: str) -> None:
         if text not in self.reasons:
@@ -446,7 +461,7 @@ class SensorLoggerStream:
             self.gaps += first - self._next
             self._next = first
             out.extend(self._run())
-        return self._emit(out)
+        return self._emit(out, force=True)
 
     def _parse(self, payload: list, now: float) -> dict:
         rows: dict[str, tuple[list, list]] = {}
@@ -623,9 +638,9 @@ class SensorLoggerStream:
                 return src
         return cur
 
-    def _emit(self, msgs: list[_Message]) -> list[Sample]:
+    def _emit(self, msgs: list[_Message], force: bool = False) -> list[Sample]:
         if not msgs:
-            return []
+            return self._release({}, force)
         # all readings released together, per name, sorted by time, exact duplicates out
         by: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         for name in {n for m in msgs for n in m.groups}:
@@ -691,14 +706,47 @@ class SensorLoggerStream:
                 f_and = f_and * scale
             if self._override is None:
                 self._check_dip(t_f, f_and, mag[0], mag[1], gyr[0], gyr[1])
+            out["ACC"] = (t_f, f_and)        # Android's sign: the convention is applied at release
+        if "orientation" in by:
+            out["ORI"] = by["orientation"]   # the app's own: checked at release
+        return self._release(out, force)
+
+    def _release(self, out: dict, force: bool) -> list[Sample]:
+        """Apply the sign convention and release; or, while the sign is unknown, hold the
+        session's first samples (a filter aligned on samples of the wrong sign starts upside
+        down) until the evidence decides it, for at most ``start_hold_s`` of the phone's time
+        (then the app's default goes), or until ``force`` (the end of the stream)."""
+        if out:
+            self._pending.append(out)
+        if not self._pending:
+            return []
+        if self._override is None and self._conv_source == "assumed" and not force and not self._released:
+            times = [T for o in self._pending for T, _ in o.values() if len(T)]
+            if times and max(int(T[-1]) for T in times) - min(int(T[0]) for T in times) \
+                    < self.start_hold_s * 1e9:
+                return []
+        pending, self._pending = self._pending, []
+        self._released = True                 # the session's samples flow: no more waiting
+        out = {}
+        for tag in {tag for o in pending for tag in o}:
+            parts = [o[tag] for o in pending if tag in o]
+            if len(parts) == 1:
+                out[tag] = parts[0]
+                continue
+            T = np.concatenate([p[0] for p in parts])
+            V = np.concatenate([p[1] for p in parts])
+            o = np.argsort(T, kind="stable")
+            out[tag] = (T[o], V[o])
+        if "ACC" in out:
+            t_f, f_and = out["ACC"]
             f = -f_and if self.convention == "ios" else f_and
             bad = impossible_rows("ACC", f)
             if bad.any():
                 self.invalid["impossible"] += int(bad.sum())
                 t_f, f = t_f[~bad], f[~bad]
             out["ACC"] = (t_f, f)
-        if "orientation" in by:
-            t_o, q = by["orientation"]
+        if "ORI" in out:
+            t_o, q = out.pop("ORI")
             acc = out.get("ACC", (np.zeros(0, np.int64), np.zeros((0, 3))))
             gyr = out.get("GYR", (np.zeros(0, np.int64), np.zeros((0, 3))))
             mag = out.get("MAG", (np.zeros(0, np.int64), np.zeros((0, 3))))
@@ -757,6 +805,8 @@ class SensorLoggerStream:
         out = list(self.reasons)
         if self._override is not None:
             out.append(f"set by the presenter: {self._override}")
+        elif self._conv_source == "assumed" and self._pending and not self._released:
+            out.append(f"no sign evidence yet: the first samples wait for it (at most {self.start_hold_s:g} s)")
         elif self._conv_source == "assumed":
             out.append("no sign evidence yet: iOS with Standardise off assumed (the app's default)")
         return out

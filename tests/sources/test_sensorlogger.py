@@ -60,6 +60,12 @@ def rd(name, t_ns, accuracy=None, **values):
     return r
 
 
+def stream(**kw) -> SensorLoggerStream:
+    """A stream that releases at once: what these tests check does not depend on the wait
+    for the accelerometer's sign at a session's start (its own tests say start_hold)."""
+    return SensorLoggerStream(start_hold_s=kw.pop("start_hold_s", 0.0), **kw)
+
+
 def by_tag(samples, tag):
     return [s for s in samples if s.tag == tag]
 
@@ -82,7 +88,7 @@ def face_up_ios(n, t_start=T0, standardised=False, dt_ns=10_000_000, raw_g=None)
 # ---------------------------------------------------------------- parsing
 
 def test_android_example_from_the_note():
-    st = SensorLoggerStream()
+    st = stream()
     b = st.decode(ANDROID_EXAMPLE, now=100.0)
     assert isinstance(b, Batch) and b.new_session
     tags = [s.tag for s in b.samples]
@@ -106,7 +112,7 @@ def test_android_example_from_the_note():
 
 
 def test_ios_example_from_the_note_is_negated_by_default():
-    st = SensorLoggerStream()
+    st = stream()
     b = st.decode(IOS_EXAMPLE, now=5.0)
     acc = by_tag(b.samples, "ACC")[0]
     # Standardise off (the app's default): f = -(accelerometer + gravity), +9.81 face up
@@ -121,7 +127,7 @@ def test_ios_example_from_the_note_is_negated_by_default():
 
 
 def test_empty_payload_is_a_message():
-    st = SensorLoggerStream()
+    st = stream()
     b = st.decode(body([]), now=0.0)
     assert b.samples == [] and b.new_session
     assert st.status()["messages"] == 1
@@ -130,13 +136,13 @@ def test_empty_payload_is_a_message():
 def test_userid_accuracy_absent_or_present_give_the_same_values():
     with_acc = [rd("gyroscope", T0, accuracy=3, x=0.1, y=0.2, z=0.3)]
     without = [rd("gyroscope", T0, x=0.1, y=0.2, z=0.3)]
-    a = SensorLoggerStream().decode(body(with_acc, userId="study-7"), 0.0).samples
-    b = SensorLoggerStream().decode(body(without), 0.0).samples
+    a = stream().decode(body(with_acc, userId="study-7"), 0.0).samples
+    b = stream().decode(body(without), 0.0).samples
     assert a == b == [Sample(T0 / 1e6, "GYR", (0.1, 0.2, 0.3))]
 
 
 def test_bad_readings_are_counted_and_the_rest_kept():
-    st = SensorLoggerStream()
+    st = stream()
     payload = [
         {"name": "test", "time": T0, "values": {"x": 1}},           # the app's test push
         rd("barometer", T0, pressure=1013.2, relativeAltitude=0.1),  # unknown here
@@ -161,7 +167,7 @@ def test_bad_readings_are_counted_and_the_rest_kept():
 
 
 def test_nan_inf_and_absurd_values_are_counted_and_skipped():
-    st = SensorLoggerStream()
+    st = stream()
     text = ('{"messageId": 1, "sessionId": "s", "deviceId": "d", "payload": ['
             f'{{"name": "gyroscope", "time": {T0}, "values": {{"x": NaN, "y": 0, "z": 0}}}},'
             f'{{"name": "gyroscope", "time": {T0 + 1000}, "values": {{"x": Infinity, "y": 0, "z": 0}}}},'
@@ -193,7 +199,7 @@ def test_nan_inf_and_absurd_values_are_counted_and_skipped():
     (b'{"payload": [' + b"x" * 100_000 + b"]}", "bad_json"),
 ])
 def test_malformed_messages_raise_with_a_reason(raw, reason):
-    st = SensorLoggerStream()
+    st = stream()
     with pytest.raises(SensorLoggerError) as e:
         st.decode(raw, 0.0)
     assert e.value.reason == reason
@@ -205,7 +211,7 @@ def test_malformed_messages_raise_with_a_reason(raw, reason):
 
 
 def test_nineteen_digit_times_keep_sub_ms_precision():
-    st = SensorLoggerStream()
+    st = stream()
     payload = [rd("gyroscope", T0 + 12_345_600 + k * 1000, x=float(k), y=0.0, z=0.0)
                for k in (2, 0, 1, 1)]      # unsorted, with an exact duplicate time
     b = st.decode(body(payload), 0.0)
@@ -227,7 +233,7 @@ def gyro_msg(mid, k, session="s-1", device="d-1"):
 
 
 def test_in_order_messages_are_released_at_once():
-    st = SensorLoggerStream()
+    st = stream()
     for mid in (4, 5, 6):
         out = st.decode(gyro_msg(mid, mid), now=float(mid)).samples
         assert [s.values[0] for s in out] == [mid, mid + 0.5]
@@ -235,7 +241,7 @@ def test_in_order_messages_are_released_at_once():
 
 
 def test_message_ahead_of_a_missing_one_is_held_then_merged_in_time_order():
-    st = SensorLoggerStream()
+    st = stream()
     st.decode(gyro_msg(4, 4), now=0.0)
     assert st.decode(gyro_msg(6, 6), now=0.1).samples == []          # 5 missing: held
     assert st.status()["held"] == 1
@@ -246,7 +252,7 @@ def test_message_ahead_of_a_missing_one_is_held_then_merged_in_time_order():
 
 
 def test_first_message_then_an_older_one_is_late_not_lost():
-    st = SensorLoggerStream()
+    st = stream()
     assert len(st.decode(gyro_msg(6, 6), now=0.0).samples) == 2
     out = st.decode(gyro_msg(5, 5), now=0.1).samples
     assert [s.values[0] for s in out] == [5, 5.5]
@@ -254,7 +260,7 @@ def test_first_message_then_an_older_one_is_late_not_lost():
 
 
 def test_duplicate_message_is_dropped_whole():
-    st = SensorLoggerStream()
+    st = stream()
     st.decode(gyro_msg(1, 1), now=0.0)
     assert st.decode(gyro_msg(1, 1), now=0.1).samples == []
     assert len(st.decode(gyro_msg(2, 2), now=0.2).samples) == 2
@@ -263,7 +269,7 @@ def test_duplicate_message_is_dropped_whole():
 
 
 def test_gap_is_counted_and_released_after_hold_s():
-    st = SensorLoggerStream(hold_s=1.5)
+    st = stream(hold_s=1.5)
     st.decode(gyro_msg(4, 4), now=10.0)
     assert st.decode(gyro_msg(7, 7), now=10.5).samples == []
     assert st.decode(gyro_msg(8, 8), now=11.0).samples == []
@@ -282,7 +288,7 @@ def test_gap_is_counted_and_released_after_hold_s():
 
 
 def test_flush_releases_everything_held():
-    st = SensorLoggerStream()
+    st = stream()
     st.decode(gyro_msg(1, 1), now=0.0)
     st.decode(gyro_msg(3, 3), now=0.0)
     assert [s.values[0] for s in st.flush()] == [3, 3.5]
@@ -290,7 +296,7 @@ def test_flush_releases_everything_held():
 
 
 def test_new_session_resets_state():
-    st = SensorLoggerStream()
+    st = stream()
     st.decode(gyro_msg(1, 1), now=0.0)
     st.decode(gyro_msg(3, 3), now=0.1)                               # held
     st.decode(gyro_msg(3, 3), now=0.2)                               # duplicate
@@ -312,7 +318,7 @@ def test_new_session_resets_state():
 # ---------------------------------------------------------------- signs
 
 def test_ios_standardise_off_detected_from_raw_accelerometer_in_g():
-    st = SensorLoggerStream()
+    st = stream()
     out = st.decode(body(face_up_ios(3, raw_g=-1.0)), 0.0).samples
     s = st.status()
     assert s["convention"] == "ios" and s["convention_source"] == "detected"
@@ -321,7 +327,7 @@ def test_ios_standardise_off_detected_from_raw_accelerometer_in_g():
 
 
 def test_ios_standardised_detected_from_raw_accelerometer_in_ms2():
-    st = SensorLoggerStream()
+    st = stream()
     out = st.decode(body(face_up_ios(3, standardised=True, raw_g=9.81)), 0.0).samples
     s = st.status()
     assert s["convention"] == "ios-standardised" and s["convention_source"] == "detected"
@@ -331,7 +337,7 @@ def test_ios_standardised_detected_from_raw_accelerometer_in_ms2():
 
 @pytest.mark.parametrize("standardised", [False, True])
 def test_ios_sign_detected_from_the_field_dip(standardised):
-    st = SensorLoggerStream()
+    st = stream()
     out = st.decode(body(face_up_ios(60, standardised=standardised)), 0.0).samples
     s = st.status()
     assert s["convention"] == ("ios-standardised" if standardised else "ios")
@@ -343,8 +349,48 @@ def test_ios_sign_detected_from_the_field_dip(standardised):
         assert a.values[2] == pytest.approx(9.82, abs=0.02)
 
 
-def test_android_is_never_negated():
+def test_ios_first_samples_wait_for_the_sign_then_all_go_out_right():
+    """An iPhone with Standardise on, pushing every 0.1 s: its first samples used to go out
+    with the default's sign (negated) until the dip had 50 samples of evidence, and the
+    filters aligned on them upside down. Now they wait for the evidence and go out together,
+    every one with the right sign; the status says they wait."""
     st = SensorLoggerStream()
+    first = st.decode(body(face_up_ios(10, standardised=True), mid=1), 0.0).samples
+    assert first == []
+    assert any("wait" in r for r in st.status()["reasons"])
+    released = [first] + [st.decode(body(face_up_ios(10, t_start=T0 + m * 100_000_000,
+                                                      standardised=True), mid=m + 1), float(m)).samples
+                          for m in range(1, 10)]
+    assert st.status()["convention"] == "ios-standardised"
+    acc = [a for out in released for a in by_tag(out, "ACC")]
+    assert len(acc) == 100                                # nothing lost
+    assert all(a.values[2] > 9.0 for a in acc)           # none with the wrong sign
+    k = next(i for i, out in enumerate(released) if out)
+    assert 1 <= k <= 6                                    # released once decided (50 samples)
+    times = [x.time_ms for out in released for x in out]
+    assert times == sorted(times)
+
+
+def test_ios_without_sign_evidence_waits_at_most_start_hold_s():
+    """No magnetometer, so no dip: the first samples wait start_hold_s (2 s of the phone's
+    time), then go out with the app's default (Standardise off: negated), none lost; flush
+    releases what still waits at the end."""
+    st = SensorLoggerStream()
+    released = []
+    for m in range(30):
+        rows = [r for r in face_up_ios(10, t_start=T0 + m * 100_000_000) if r["name"] != "magnetometer"]
+        released.append(st.decode(body(rows, mid=m + 1), float(m)).samples)
+    k = next(i for i, out in enumerate(released) if out)
+    assert k == 20                                        # 2.0 s of phone time spanned
+    acc = [a for out in released for a in by_tag(out, "ACC")]
+    assert len(acc) == 300 and all(a.values[2] > 9.0 for a in acc)
+    st2 = SensorLoggerStream()
+    assert st2.decode(body(face_up_ios(5), mid=1), 0.0).samples == []
+    assert len(by_tag(st2.flush(), "ACC")) == 5
+
+
+def test_android_is_never_negated():
+    st = stream()
     payload = [rd("totalacceleration", T0 + i * 5_000_000, accuracy=3, x=0.0, y=0.0, z=9.81)
                for i in range(10)]
     payload += [rd("magnetometer", T0 + i * 10_000_000, accuracy=3, x=0.0, y=-20.0, z=40.0)
@@ -355,7 +401,7 @@ def test_android_is_never_negated():
 
 
 def test_android_without_totalacceleration_pairs_nearest_gravity():
-    st = SensorLoggerStream()
+    st = stream()
     payload = [rd("accelerometer", T0 + 2_000_000 * i + 700_000, accuracy=3, x=0.1 * i, y=0.0, z=0.0)
                for i in range(5)]
     payload += [rd("gravity", T0 + 4_000_000 * i, accuracy=3, x=0.0, y=0.0, z=9.0 + i)
@@ -369,7 +415,7 @@ def test_android_without_totalacceleration_pairs_nearest_gravity():
 
 
 def test_android_evidence_wins_over_shared_time_stamps():
-    st = SensorLoggerStream()
+    st = stream()
     shared = [rd("gyroscope", T0, x=0.0, y=0.0, z=0.0),
               rd("gravity", T0, x=0.0, y=0.0, z=9.81),
               rd("accelerometer", T0, x=0.0, y=0.0, z=0.0)]
@@ -385,13 +431,13 @@ def test_android_evidence_wins_over_shared_time_stamps():
 
 
 def test_status_of_a_fresh_stream_is_json_safe():
-    s = SensorLoggerStream().status()
+    s = stream().status()
     json.dumps(s, allow_nan=False)
     assert s["platform"] == "unknown" and s["messages"] == 0 and s["clock_offset_s"] is None
 
 
 def test_clock_offset_is_phone_time_minus_now():
-    st = SensorLoggerStream()
+    st = stream()
     for i in range(5):
         st.decode(gyro_msg(i + 1, i), now=T0 / 1e9 + i + 1.7)   # 1.2 s after the newest
     assert st.status()["clock_offset_s"] == pytest.approx(-1.2, abs=1e-3)
@@ -400,7 +446,7 @@ def test_clock_offset_is_phone_time_minus_now():
 
 
 def test_presenter_override_wins_and_survives_sessions():
-    st = SensorLoggerStream()
+    st = stream()
     with pytest.raises(ValueError) as e:
         st.set_convention("iphone")
     for allowed in ("auto", "android", "ios", "ios-standardised"):
@@ -428,7 +474,7 @@ def trial(shared_dir, name) -> Path:
 
 
 def decode_all(bodies, hold_s=1.5):
-    st = SensorLoggerStream(hold_s=hold_s)
+    st = stream(hold_s=hold_s)
     out = tx.deliver(st, bodies)
     return st, out
 
@@ -556,7 +602,7 @@ def test_tyrex_messages_out_of_order_duplicated_and_missing(shared_dir):
 
 def test_presenter_override_on_a_real_iphone(shared_dir):
     path = trial(shared_dir, "iPhone5_Guillaume_NoDist_ar")
-    st = SensorLoggerStream()
+    st = stream()
     st.set_convention("ios-standardised")       # wrong on purpose: no negation
     out = tx.deliver(st, tx.messages_ios(path, seconds=10))
     acc = np.array([a.values for a in by_tag(out, "ACC")])
@@ -582,7 +628,7 @@ def test_one_second_of_a_400_hz_android_phone_decodes_fast():
             payload.append({"name": name, "time": t, "accuracy": 3, "values": v})
     rng.shuffle(payload)
     bodies = [body(payload, mid=i) for i in range(1, 12)]
-    st = SensorLoggerStream()
+    st = stream()
     times = []
     for i, b in enumerate(bodies):
         t = time.perf_counter()
@@ -620,7 +666,7 @@ def _random_reading(rng):
 def test_any_json_either_decodes_or_raises_a_sensorlogger_error():
     import random
     rng = random.Random(7)
-    st = SensorLoggerStream()
+    st = stream()
     for i in range(400):
         msg = {"messageId": rng.choice([i, i, i - 3, None, "7", 2.0, -1]),
                "sessionId": rng.choice(["s", "s", "s", "t"]), "deviceId": "d",
