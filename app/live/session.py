@@ -92,7 +92,7 @@ class Session:
         return {"lines": self.lines, "samples": self.samples,
                 "malformed": int(sum(c.malformed.values())),
                 "malformed_by_reason": dict(c.malformed), "late": c.late, "clamped": c.clamped,
-                "tags": dict(c.tags), "buffered": self.orderer.buffered}
+                "jumps": c.jumps, "tags": dict(c.tags), "buffered": self.orderer.buffered}
 
     def truth_at(self, t: float | None) -> np.ndarray | None:
         """The true orientation at stream time ``t`` (s), or None (no truth, no time)."""

@@ -57,7 +57,10 @@ back on the old clock: it is then dropped and counted (``malformed["time_jump"]`
 nothing else is touched. If ``jump_confirm`` (3) samples of a motion tag in a row agree
 on the new time, the clock really jumped: the buffer is released in order, the clock is
 **re-anchored** on the new time (nothing later counts as late) and ``counters.jumps``
-goes up; a non-motion tag that moves for good gets a new offset instead. Before, one
+goes up; a non-motion tag that moves for good gets a new offset instead. A clock that
+jumped *back* is moved on by the step (every tag's offset; summed in ``counters.back_ms``):
+the stream's time goes on 1 ms after the last sample released, as the filters, the plots
+and a recording need (a filter skips a row older than its last). Before, one
 sample 10 s ahead made the buffer drop seconds of good samples as late.
 
 Released samples are new :class:`~app.sources.sensorfusion.Sample` objects whose ``time_ms`` is on
@@ -91,12 +94,13 @@ class StreamCounters:
     late: int = 0          # dropped: too late to be put in order
     clamped: int = 0       # released with their time clamped (slightly late)
     jumps: int = 0         # clock jumps confirmed (re-anchored)
+    back_ms: int = 0       # how far clocks that jumped back were moved on (ms, in total)
     forced: int = 0        # released early: the buffer was full (a clock standing still)
 
     def as_dict(self) -> dict:
         return {"malformed": dict(self.malformed), "tags": dict(self.tags),
                 "late": self.late, "clamped": self.clamped, "jumps": self.jumps,
-                "forced": self.forced}
+                "back_ms": self.back_ms, "forced": self.forced}
 
 
 class SampleOrderer:
@@ -278,13 +282,23 @@ class SampleOrderer:
 
     def _reanchor(self, t_new: int) -> list[Sample]:
         """The stream's clock jumped to ``t_new``: release the buffer in order, start
-        the new clock, then place what was waiting aside (in arrival order)."""
+        the new clock, then place what was waiting aside (in arrival order). A clock that
+        went back is moved on by the step (every tag's offset), so the stream's time goes
+        on just after the last sample released: the filters, the plots and a recording
+        need a time that never goes back (the filters skip a row older than the last)."""
         self.counters.jumps += 1
         out: list[Sample] = []
         while self._heap:
             out.append(self._pop())
         held = sorted((x for aside in self._aside.values() for x in aside), key=lambda x: x[0])
         self._aside = {}
+        last = max(self._newest, self._released if self._released is not None else self._newest)
+        if t_new <= last:
+            step = last - t_new + 1
+            for tag in self._offsets_ms:
+                self._offsets_ms[tag] -= step
+            self.counters.back_ms += step
+            t_new += step
         self._newest = t_new
         self._released = None
         self._latest = {}

@@ -319,6 +319,27 @@ def test_a_bad_time_stamp_does_not_drop_the_samples_after_it(srv, api):
     assert st["t"] == pytest.approx(max(s[0] for s in sim.samples) / 1000.0)
 
 
+def test_a_clock_that_jumps_back_does_not_freeze_the_filters(srv, api):
+    """Attack: the phone's clock stepped back by 10 s mid-stream. The stream re-anchored, but
+    its time went back, and every filter skipped each row as late until the new clock passed
+    the old one: 10 s of frozen estimate. Now the time goes on, and so do the filters."""
+    sim, lines = _sim_lines()
+    k = len(lines) // 2
+    back = []
+    for line in lines[k:]:
+        t, rest = line.split("\t", 1)
+        back.append(f"{int(t) - 10_000}\t{rest}")
+    st = _play(srv, api, lines[:k] + back)
+    for name, per_sensor in st["counts"]["updates"].items():
+        for sensor, reasons in per_sensor.items():
+            assert reasons.get("late", 0) == 0, (name, sensor, reasons)
+    assert st["counts"]["samples"] == len(lines) and st["counts"]["late"] == 0
+    assert st["counts"]["jumps"] == 1
+    q_true = sim.truth_at_ms([sim.samples[-1][0]])[0]
+    err = math.degrees(2 * math.acos(min(1.0, abs(sum(a * b for a, b in zip(q_true, st["q"]))))))
+    assert err < 10.0
+
+
 # ---------------------------------------------------------------- the phone slot
 
 @pytest.fixture(scope="module")
