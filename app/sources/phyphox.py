@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 from urllib.parse import urlsplit
 
-from app.sources.samples import MAX_TIME_MS, Sample, impossible
+from app.sources.samples import MAX_TIME_MS, Sample, impossible, quaternion_reading
 
 # phyphox sensor type -> orientlab tag
 SENSOR_TAGS: dict[str, str] = {
@@ -70,8 +70,6 @@ COMPONENTS: dict[str, tuple[str, ...]] = {
     "ORI": ("abs", "x", "y", "z"),
 }
 
-# a quaternion whose squared norm is outside this is no attitude reading
-_QUAT_NORM2 = (0.5, 1.5)
 
 
 class PhyphoxError(ValueError):
@@ -218,7 +216,6 @@ def buffers_to_samples(tag: str, t: Sequence, comps: Sequence[Sequence],
     out: list[Sample] = []
     last_t: float | None = None
     quat = tag == "ORI"
-    k = len(comps)
     for i in range(n):
         tf = _num(t[i])
         if tf is None or not math.isfinite(tf) or abs(tf) * 1000.0 > MAX_TIME_MS:
@@ -240,15 +237,11 @@ def buffers_to_samples(tag: str, t: Sequence, comps: Sequence[Sequence],
             if any(math.isinf(v) for v in vals):
                 bad = "impossible"
             elif quat:
-                if k == 3:
-                    x, y, z = vals
-                    w2 = 1.0 - x * x - y * y - z * z
-                    vals = [math.sqrt(w2) if w2 > 0.0 else 0.0, x, y, z]
-                n2 = sum(v * v for v in vals)
-                if not (_QUAT_NORM2[0] < n2 < _QUAT_NORM2[1]):
+                qr = quaternion_reading(vals)
+                if qr is None:
                     bad = "impossible"
-                elif vals[0] < 0.0:
-                    vals = [-v for v in vals]
+                else:
+                    vals = [-v for v in qr] if qr[0] < 0.0 else list(qr)
             elif impossible(tag, vals):
                 bad = "impossible"
             elif tag == "MAG" and vals[0] == 0.0 and vals[1] == 0.0 and vals[2] == 0.0:

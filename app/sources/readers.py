@@ -40,7 +40,7 @@ from typing import Any, BinaryIO, Iterable, Iterator
 
 import numpy as np
 
-from app.sources.samples import MOTION_TAGS, VALUE_LIMITS, impossible_rows
+from app.sources.samples import MOTION_TAGS, QUAT_NORM2, VALUE_LIMITS, impossible_rows
 from app.sources.sensorfusion import TAG_ARITY, LineSplitter, MalformedLine, parse_line
 from app.sources.ordering import RATE_HISTORY, Rows, SampleOrderer, samples_to_rows
 
@@ -516,8 +516,14 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
         rows, vals, ts = rows[good], vals[good], ts[good]
         done[rows] = True
         name = tag.decode()
+        imp = None
         if name in VALUE_LIMITS:
             imp = impossible_rows(name, vals[:, :3])
+        elif name == "ORI":       # no unit quaternion (quaternion_reading's rule)
+            with np.errstate(invalid="ignore", over="ignore"):
+                n2 = np.einsum("ij,ij->i", vals, vals)
+            imp = ~((n2 > QUAT_NORM2[0]) & (n2 < QUAT_NORM2[1]))
+        if imp is not None:
             if imp.any():
                 reasons.setdefault("impossible", []).extend(rows[imp].tolist())
                 rows, vals, ts = rows[~imp], vals[~imp], ts[~imp]
@@ -577,7 +583,7 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
         span = (times[-1] - times[0]) / 1000.0 if len(times) > 1 else 0.0
         rates[_TAGS[i]] = (len(times) - 1) / span if span > 0.0 else math.nan
     counts = {"malformed": malformed, "tags": counts_tags, "late": 0, "clamped": 0, "jumps": 0,
-              "forced": 0,
+              "back_ms": 0, "forced": 0,
               "offsets_s": {_TAGS[i]: off / 1000.0 for i, off in offsets.items()},
               "rates_hz": rates, "lines": n_lines}
     if overflows:

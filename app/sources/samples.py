@@ -47,6 +47,27 @@ def impossible(tag: str, values) -> bool:
     return x * x + y * y + z * z > lim * lim
 
 
+# A quaternion whose squared norm is outside this is no attitude reading (a phone's is unit to
+# its rounding); the three-value form (x, y, z of a rotation vector) completed with
+# w = √(1 - x² - y² - z²), 0 when that is negative, is judged the same way.
+QUAT_NORM2 = (0.5, 1.5)
+
+
+def quaternion_reading(values) -> tuple[float, float, float, float] | None:
+    """A phone's attitude reading (w, x, y, z, or x, y, z with w completed) as four floats,
+    or None when it is no unit quaternion (:data:`QUAT_NORM2`)."""
+    if len(values) == 3:
+        x, y, z = values
+        w2 = 1.0 - x * x - y * y - z * z
+        q = (w2 ** 0.5 if w2 > 0.0 else 0.0, x, y, z)
+    else:
+        q = tuple(values[:4])
+    n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
+    if not (QUAT_NORM2[0] < n2 < QUAT_NORM2[1]):    # also NaN and inf
+        return None
+    return q
+
+
 def impossible_rows(tag: str, v):
     """Vectorised :func:`impossible` for an (N, 3) array (bool (N,)); NaN rows False."""
     import numpy as np

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from app.sources.samples import MAX_TIME_MS, VALUE_LIMITS, Sample, impossible
+from app.sources.samples import MAX_TIME_MS, VALUE_LIMITS, Sample, impossible, quaternion_reading
 
 # tag -> accepted value counts (numeric tags) ; None = free text fields
 TAG_ARITY: dict[str, tuple[int, ...] | None] = {
@@ -166,10 +166,11 @@ def parse_line(line: str | bytes) -> Sample:
         raise MalformedLine("not_numeric", f"{tag}: {' '.join(raw)[:60]}") from None
     if tag in VALUE_LIMITS and impossible(tag, vals):
         raise MalformedLine("impossible", f"{tag}: beyond {VALUE_LIMITS[tag]:g} (not a phone's reading)")
-    if tag == "ORI" and len(vals) == 3:
-        x, y, z = vals
-        w2 = 1.0 - x * x - y * y - z * z
-        vals = (math.sqrt(w2) if w2 > 0.0 else 0.0, x, y, z)
+    if tag == "ORI":
+        q = quaternion_reading(vals)
+        if q is None:
+            raise MalformedLine("impossible", "ORI: not a unit quaternion (not a phone's attitude)")
+        vals = q
     return Sample(time_ms, tag, vals)
 
 

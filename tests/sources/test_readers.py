@@ -36,8 +36,11 @@ def app_log_lines() -> tuple[list[str], dict]:
     lines.insert(40, f"{500_205}\tORI\t0.1\t0.2\t0.3")           # 3 values: w computed
     lines.insert(41, "1666000000000\tGPS\t58.4\t15.6\t80.0")     # Unix-epoch clock
     lines.insert(50, f"{500_300}\tPRX\t5.0")
+    lines.insert(52, f"{500_310}\tORI\t0.8\t0.8\t0.6")           # x²+y²+z² = 1.64: no attitude
+    lines.insert(54, f"{500_320}\tORI\t2\t0\t0\t0")             # |q| = 2: no attitude
     expect = dict(acc=n, gyr=n, mag=len(range(0, n, 3)), ori=1,
-                  malformed={"wrong_count": 2, "empty": 1, "not_numeric": 1, "unknown_tag": 1})
+                  malformed={"wrong_count": 2, "empty": 1, "not_numeric": 1, "unknown_tag": 1,
+                             "impossible": 2})
     return lines, expect
 
 
