@@ -1,7 +1,8 @@
 """Bounded resources for the HTTP side: what one client can cost the server.
 
 - :class:`BodyLimit` (ASGI middleware): a request body longer than
-  ``Settings.max_body_bytes`` (1 MB) is answered **413** before it is read: at once from
+  ``Settings.max_body_bytes`` (1 MB; a phone's push, ``max_push_bytes``: 16 MB) is
+  answered **413** before it is read: at once from
   ``Content-Length``, or as soon as a chunked body passes the limit.
 - :func:`install_error_handlers`: a 422 names the field and the reason, never echoes
   the input (FastAPI's default puts the whole body in ``input``); and every 4xx JSON
