@@ -242,6 +242,10 @@ def input_summary(counts: dict) -> list[str]:
     if bad:
         detail = ", ".join(f"{k}: {v}" for k, v in sorted(bad.items()))
         out.append(f"input: {sum(bad.values())} malformed lines skipped ({detail})")
+    if counts.get("impossible"):
+        n = counts["impossible"]
+        out.append(f"input: {n} impossible reading{'s' if n != 1 else ''} refused (flagged "
+                   f"invalid, their rows kept)")
     if counts.get("late"):
         out.append(f"input: {counts['late']} samples too late to order, skipped")
     if counts.get("clamped"):

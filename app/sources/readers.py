@@ -275,7 +275,7 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[LogData]:
                     col += width
                 else:
                     out[key] = None if key == "ori" else np.full((len(a), 3), np.nan)
-            _refuse_impossible(out, malformed)
+            _refuse_impossible(out, counts)
             counts["rows"] = n_rows
             if splitter.overflows:
                 malformed["too_long"] = splitter.overflows
@@ -306,17 +306,19 @@ def _csv_chunks(path: Path, rows: int) -> Iterator[LogData]:
             yield chunk(1.0)
 
 
-def _refuse_impossible(arrays: dict, malformed: dict) -> None:
-    """Physically impossible readings (:data:`app.sources.sensorfusion.VALUE_LIMITS`, the same limits
-    as the app-log parser's) become missing (NaN), counted as ``impossible``."""
+def _refuse_impossible(arrays: dict, counts: dict) -> None:
+    """A row's physically impossible reading (:data:`app.sources.samples.VALUE_LIMITS`, the
+    same limits as the app-log parser's) is refused, its row kept: made infinite, so an
+    estimator flags that sensor ``invalid`` in that row, as an infinite reading is; counted
+    in ``counts["impossible"]`` (readings, not lines: the row's other sensors are used)."""
     for key, tag in (("gyr", "GYR"), ("acc", "ACC"), ("mag", "MAG")):
         a = arrays.get(key)
         if a is None or not len(a):
             continue
         bad = impossible_rows(tag, a)
         if bad.any():
-            a[bad] = np.nan
-            malformed["impossible"] = malformed.get("impossible", 0) + int(bad.sum())
+            a[bad] = np.inf
+            counts["impossible"] = counts.get("impossible", 0) + int(bad.sum())
 
 
 # ---------------------------------------------------------------- npz
@@ -357,7 +359,7 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[LogData]:
         else:
             raise ReaderError(f"{path}: npz has neither 't' (s) nor 'fs' (Hz)")
     counts = {"malformed": {}, "rows": 0, "columns": sorted(k for k in arrays if arrays[k] is not None)}
-    _refuse_impossible(arrays, counts["malformed"])
+    _refuse_impossible(arrays, counts)
     start = 0
     while True:
         stop = min(n, start + rows)

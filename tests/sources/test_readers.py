@@ -115,6 +115,7 @@ def test_csv_with_empty_cells_nan_inf_and_malformed_rows(tmp_path):
             "0.00,0,0,9.81,0.1,0.2,0.3,a\r\n"
             "0.01,,,,0.1,0.2,0.3,b\r\n"          # acc missing
             "0.02,nan,0,9.81,inf,0,-inf,c\r\n"   # nan passes through; inf is impossible
+            "0.025,0,0,9.81,3000,0,0,f\r\n"     # a gyroscope of 3000 rad/s: impossible
             "0.03,0,0,9.81,0.1\r\n"              # wrong count: skipped
             "0.04,0,zero,9.81,0.1,0.2,0.3,d\r\n"  # text in a number cell: skipped
             "\r\n"
@@ -123,13 +124,21 @@ def test_csv_with_empty_cells_nan_inf_and_malformed_rows(tmp_path):
     path.write_text(text, newline="")
     rec = read_log_data(path)
     assert rec.kind == "csv"
-    np.testing.assert_array_equal(rec.t, [0.0, 0.01, 0.02, 0.05])
+    np.testing.assert_array_equal(rec.t, [0.0, 0.01, 0.02, 0.025, 0.05])
     assert np.isnan(rec.acc[1]).all()
-    assert np.isnan(rec.acc[2, 0]) and np.isnan(rec.gyr[2]).all()   # refused: missing
-    np.testing.assert_array_equal(rec.gyr[3], [4, 5, 6])
-    assert np.isnan(rec.mag).all() and rec.mag.shape == (4, 3)
+    # an impossible reading is refused, its row kept: infinite, so the estimator says "invalid"
+    # in that row (before: NaN, "absent", and counted as a skipped line that was not skipped)
+    assert np.isnan(rec.acc[2, 0]) and np.isinf(rec.gyr[2]).all() and np.isinf(rec.gyr[3]).all()
+    np.testing.assert_array_equal(rec.acc[3], [0, 0, 9.81])
+    np.testing.assert_array_equal(rec.gyr[4], [4, 5, 6])
+    assert np.isnan(rec.mag).all() and rec.mag.shape == (5, 3)
     assert rec.ori is None
-    assert rec.counts["malformed"] == {"wrong_count": 1, "not_numeric": 1, "impossible": 1}
+    assert rec.counts["malformed"] == {"wrong_count": 1, "not_numeric": 1}
+    assert rec.counts["impossible"] == 2
+    from app.estimators import Reason, make_estimator
+    from app.estimators.base import F_GYR
+    res = make_estimator("robust").run(rec.t, rec.gyr, rec.acc, rec.mag)
+    assert [int(x) for x in res.flags[2:4, F_GYR]] == [Reason.INVALID, Reason.INVALID]
 
 
 def test_csv_with_ori_and_columns_in_any_order(tmp_path):
