@@ -435,7 +435,7 @@ class CalibrationService:
 
     ``core``: the live core; ``files(name)``: a recording's files (ToolError if none)."""
 
-    def __init__(self, core, files: Callable[[str], dict]):
+    def __init__(self, core, files: Callable[..., dict]):
         self.core = core
         self.files = files
         self.capture: Capture | None = None
@@ -499,7 +499,7 @@ class CalibrationService:
                             to_s: float | None = None) -> dict[str, Any]:
         """The statistics of a stretch of a recording (seconds from its start)."""
         from app.sources.readers import read_log_data
-        rec = read_log_data(self.files(name)["log"])
+        rec = read_log_data(self.files(name, "recording")["log"])
         if not len(rec):
             raise ToolError("name", "the recording has no samples")
         t = rec.t - rec.t[0]

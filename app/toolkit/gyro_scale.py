@@ -302,7 +302,7 @@ class GyroScaleService:
 
     ``core``: the live core; ``files(name)``: a recording's files (ToolError if none)."""
 
-    def __init__(self, core, files: Callable[[str], dict]):
+    def __init__(self, core, files: Callable[..., dict]):
         self.core = core
         self.files = files
         self.last: dict[str, Any] | None = None
@@ -316,7 +316,7 @@ class GyroScaleService:
         from app.sources.readers import read_log_data
         recs = []
         for name in names:
-            rec = read_log_data(self.files(name)["log"])
+            rec = read_log_data(self.files(name, "recordings")["log"])
             recs.append(Recording(name, rec.t, rec.gyr, rec.acc))
         out = to_json(fit(recs))
         out["recordings"] = list(names)

@@ -601,7 +601,8 @@ def recording_files(folder: str | Path, name: str) -> dict[str, Path | None]:
             log = p
             break
     if log is None:
-        raise RecordingError(f"no recording named {name!r} in {folder}")
+        # the folder by its name only: a watcher may read this (never the presenter's paths)
+        raise RecordingError(f"no recording named {name!r} in the folder {folder.name or str(folder)!r}")
     ev = folder / (name + EVENTS_SUFFIX)
     return {"log": log, "estimates": estimates_file(folder, name),
             "events": ev if ev.is_file() else None}

@@ -170,9 +170,10 @@ class RecordingService:
     def recordings(self) -> list[dict[str, Any]]:
         return list_recordings(self.folder)
 
-    def files(self, name: str) -> dict[str, Path | None]:
-        """The files of recording ``name``; ToolError (404) if there is none."""
+    def files(self, name: str, field: str = "name") -> dict[str, Path | None]:
+        """The files of recording ``name``; ToolError (404, naming the request's ``field``)
+        if there is none."""
         try:
             return recording_files(self.folder, name)
         except RecordingError as e:
-            raise ToolError("name", str(e), 404) from None
+            raise ToolError(field, str(e), 404) from None

@@ -295,3 +295,8 @@ def test_watchers_see_names_sizes_and_times_but_no_paths(tmp_path):
         assert r["bytes"] > 0 and r["modified"] > 0                # names, sizes, times
         p = pres.get("/api/recordings").json()                      # the presenter sees paths
         assert any(str(rec) in x["path"] for x in p["recordings"])
+        # nor does a refusal: an unknown recording names the folder by its name only
+        for url in ("/api/recordings/nope/log", "/api/recordings/nope/estimates"):
+            r = watcher.get(url)
+            msg = r.json()["detail"][0]["msg"]
+            assert r.status_code == 404 and "/" not in msg and "'rec'" in msg, msg
