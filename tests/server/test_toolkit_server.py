@@ -231,6 +231,11 @@ def test_replay_a_recording_with_pause_speed_and_seek(tmp_path, still_log):
         time.sleep(0.5)
         assert api.get("/api/replay").json()["position_s"] == pos
         assert _state(api)["counts"]["samples"] <= n + 50          # the reorder tail at most
+        # the Lab tab's controls show the replay as it is (they kept a previous replay's
+        # values, and typing the value shown again changed nothing): speed, loop, playhead
+        tab = s.app.state.toolkit_tab
+        wait_for(lambda: tab.rp_speed.value == 4.0 and tab.rp_loop.value is False
+                 and abs(tab.rp_seek.value - pos) < 0.5, 10, what="the replay's controls")
         r = api.post("/api/replay", json={"seek_s": 10.0, "paused": False})
         assert r.status_code == 200
         wait_for(lambda: "from 10.0 s" in _state(api)["status"] or

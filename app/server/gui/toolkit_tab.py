@@ -22,6 +22,7 @@ import asyncio
 import html
 import logging
 import math
+import time
 from typing import Any, Callable
 
 import numpy as np
@@ -301,14 +302,14 @@ class ToolkitTab:
                 ev, {"speed": float(self.rp_speed.value)}))
             self.rp_seek = gui.add_slider("Seek [s]", 0.0, 1.0, 0.1, 0.0,
                                           hint="every estimator restarts cleanly at a seek")
-            self.rp_seek.on_update(lambda ev: ev.client is not None and self._replay(
-                ev, {"seek_s": float(self.rp_seek.value)}))
+            self.rp_seek.on_update(lambda ev: ev.client is not None and self._seek(ev))
             self.rp_loop = gui.add_checkbox("Loop", True)
             self.rp_loop.on_update(lambda ev: ev.client is not None and self._replay(
                 ev, {"loop": bool(self.rp_loop.value)}))
             db = gui.add_button("Back to the demo")
             db.on_click(lambda ev: self._replay(ev, {"stop": True}))
             self.rp_md = gui.add_markdown("")
+            self._seek_moved = 0.0                  # when a viewer last moved the seek slider
         with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
             self.wi_name = gui.add_dropdown("Recording ", ("(none)",))
             # estimator, parameter and value from lists, the value in the unit shown
@@ -393,6 +394,10 @@ class ToolkitTab:
             self._notify(ev, title, str(text), color="green")
             self.refresh()
         self._call(run)
+
+    def _seek(self, ev) -> None:
+        self._seek_moved = time.monotonic()     # the refresh leaves the slider to the user a while
+        self._replay(ev, {"seek_s": float(self.rp_seek.value)})
 
     def _replay(self, ev, body: dict) -> None:
         rs = self.tk.replay
@@ -788,6 +793,16 @@ class ToolkitTab:
             dur = max(0.1, round(rs["duration_s"], 1))
             if self.rp_seek.max != dur:     # a replay started by the API or --source too
                 self.rp_seek.max = dur
+            # the controls show the replay as it is (a new replay starts at 1x; the API may
+            # change it): a value left from before would be taken for the state, and typing
+            # it again changes nothing. Seek follows the playhead, unless just moved.
+            if self.rp_speed.value != rs["speed"]:
+                self.rp_speed.value = rs["speed"]
+            if self.rp_loop.value != rs["loop"]:
+                self.rp_loop.value = rs["loop"]
+            pos = min(dur, round(rs["position_s"], 1))
+            if abs(self.rp_seek.value - pos) >= 0.5 and time.monotonic() - self._seek_moved > 2.0:
+                self.rp_seek.value = pos
             self.rp_md.content = (f"`{rs['name']}` {rs['position_s']:.1f} / {rs['duration_s']:.1f} s, "
                                   f"{rs['speed']:g}x" + (", **paused**" if rs["paused"] else "")
                                   + (", loop" if rs["loop"] else ""))
