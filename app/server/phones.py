@@ -88,8 +88,7 @@ class HttpPhones:
         why = self.slot.refusal(phone_app, client)
         if why is not None:
             c.refused += 1
-            self.slot.refused += 1
-            self.slot.last_refusal = why
+            self.slot.count_refusal(why)
             self.engine.core.totals.count_refused()
             return Reply(499 if phone_app == "sensorlogger" else 409, why)
         st = self.streams.get((phone_app, client))

@@ -179,8 +179,11 @@ class SensorFusionServer:
         while getattr(eng, "queued", 0) > MAX_BACKLOG // 2 and session is eng.core.session:
             await asyncio.sleep(0.002)
 
-    def _refuse(self, writer, label: str, why: str) -> None:
+    def _refuse(self, writer, label: str, why: str, counted: bool = False) -> None:
+        """Turn a phone away; the slot counts it for the Connect tab (``take`` already has)."""
         self.engine.core.totals.count_refused()
+        if not counted:
+            self.slot.count_refusal(why)
         log.warning("refused phone %s: %s", label, why)
         writer.close()
 
@@ -218,7 +221,7 @@ class SensorFusionServer:
         why = self.slot.take(PHONE_APP, label, f"{label} (Sensor Fusion app)", on_release)
         if why is not None:   # another phone got in meanwhile
             self._writers.discard(writer)
-            return self._refuse(writer, label, why)
+            return self._refuse(writer, label, why, counted=True)
         eng.pause_background()
         session = eng.open_session("phone", label, phone_app=PHONE_APP)
         conn["session"] = session

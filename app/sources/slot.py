@@ -84,14 +84,19 @@ class PhoneSlot:
         return None
 
     # ------------------------------------------------------------------ changes
+    def count_refusal(self, why: str) -> None:
+        """A phone was turned away with ``why`` (by whichever receiver): the slot's status
+        counts it and shows the last reason (the Connect tab's "refused N×")."""
+        self.refused += 1
+        self.last_refusal = why
+
     def take(self, phone_app: str, key: str, label: str,
              on_release: Callable[[str], None] | None = None) -> str | None:
         """Take the slot (a silent holder is released first, taken over). Returns the
         refusal (nothing changed) or None. Taking it again as the holder only refreshes."""
         why = self.refusal(phone_app, key)
         if why is not None:
-            self.refused += 1
-            self.last_refusal = why
+            self.count_refusal(why)
             return why
         now = self.clock()
         if self.holds(key):

@@ -118,12 +118,17 @@ def test_disconnect_mid_line_then_reconnect(srv, api):
 def test_second_phone_is_refused_while_one_streams(srv, api):
     n0 = sessions(api)
     refused0 = state(api)["counts"]["total_refused"]
+    slot0 = srv.app.state.slot.status()["refused"]
     with Phone(srv.phone_port) as first:
         first.send_lines(LINES[:100])
         wait_for(lambda: sessions(api) > n0, what="first session")
         with Phone(srv.phone_port) as second:
             assert second.closed_by_server()            # refused at once
             assert state(api)["counts"]["total_refused"] == refused0 + 1
+            # and the slot's status says so (the Connect tab's "refused N×"): it did not for
+            # a Sensor Fusion phone, only for the push apps
+            slot = srv.app.state.slot.status()
+            assert slot["refused"] == slot0 + 1 and "another phone" in slot["last_refusal"]
         first.send_lines(LINES[100:300])                  # the first one streams on
         wait_for(lambda: state(api)["counts"]["samples"] >= 250, what="first streams on")
         assert state(api)["source"] == "phone"
