@@ -388,8 +388,8 @@ class Recorder:
         if len(self._rate) >= 2 and self._rate[-1][0] > self._rate[0][0]:
             (t0, b0), (t1, b1) = self._rate[0], self._rate[-1]
             return (b1 - b0) / (t1 - t0)
-        el = self.elapsed_s
-        return self.bytes / el if el > 0 else 0.0
+        el = self.elapsed_s     # the file's header over the first milliseconds is no rate
+        return self.bytes / el if el >= 0.5 else 0.0
 
     def _low_space(self) -> str | None:
         floor = self.limits.min_free_bytes

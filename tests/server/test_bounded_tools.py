@@ -105,13 +105,26 @@ def _status(api):
     return api.get("/api/recordings").json()["status"]
 
 
+def _find(x, key):
+    """Every value of ``key`` anywhere in a JSON value."""
+    if isinstance(x, dict):
+        return [v for k, v in x.items() if k == key] + [w for v in x.values() for w in _find(v, key)]
+    if isinstance(x, list):
+        return [w for v in x for w in _find(v, key)]
+    return []
+
+
 def test_a_recording_stops_cleanly_at_its_duration_cap(tmp_path):
     rec = tmp_path / "rec"
     with running_server(source="demo", recordings=rec, preset_dir=tmp_path,
                         recording_max_s=2.0) as s, \
             httpx.Client(base_url=s.url, timeout=30.0) as api:
         _wait_stream(api)
-        assert api.post("/api/recordings/start", json={"name": "capped"}).status_code == 200
+        r = api.post("/api/recordings/start", json={"name": "capped"})
+        assert r.status_code == 200
+        # no rate from the header written in the first milliseconds (it said 4.8 MB/s)
+        rates = _find(r.json(), "bytes_per_s")
+        assert rates and all(v < 1e6 for v in rates), r.text
         time.sleep(0.8)
         st = _status(api)
         assert st["recording"] and st["bytes"] > 0 and st["bytes_per_s"] > 0   # size, rate
