@@ -289,6 +289,7 @@ def make_configured(name: str | None, config_path: str | None, sets: list[str] |
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
+    import numpy as np
     err = sys.stderr
     est = make_configured(args.filter, args.config, args.set)
     if args.chunk < 1:
@@ -305,6 +306,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     n_rows, spent = 0, 0.0
     flags_total: dict = {}
     counts: dict = {}
+    has_ori = False
     try:
         fd, tmp = tempfile.mkstemp(prefix=".orientlab-", suffix=".csv",
                                    dir=str(out_path.parent) if str(out_path.parent) else ".")
@@ -320,6 +322,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 fh.write(format_rows(res.t, res.q, res.flags))
                 n_rows += len(chunk)
                 counts = chunk.counts
+                has_ori = has_ori or (chunk.ori is not None and bool(np.isfinite(chunk.ori).any()))
                 if len(chunk):
                     _merge_counts(flags_total, count_flags(res.flags))
                 progress.update(chunk.done, n_rows)
@@ -335,6 +338,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if not args.quiet:
         for line in input_summary(counts) + flag_summary(flags_total):
             print(f"{PROG}: {line}", file=err)
+    if est.name == "phone" and not has_ori and n_rows:
+        # said even with --quiet: every row is the identity, which is no estimate
+        print(f"{PROG}: the recording has no ORI (the phone's own orientation): 'phone' has "
+              f"nothing to show, every row is the identity", file=err)
     rate = n_rows / spent if spent > 0 else 0.0
     print(f"{n_rows} samples in {spent:.3f} s ({rate:.0f} samples/s)", file=err)
     return 0

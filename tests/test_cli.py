@@ -114,6 +114,8 @@ def test_estimate_csv_one_row_per_input_row_even_with_bad_rows(tmp_path, name):
     _, rows = read_output(out)
     np.testing.assert_allclose([float(r[0]) for r in rows], t, atol=1e-6)
     assert throughput(proc.stderr)[0] == len(t)
+    # 'phone' on a recording without the phone's own orientation says why it shows nothing
+    assert ("has no ORI" in proc.stderr) == (name == "phone")
 
 
 def test_estimate_follows_the_motion(tmp_path):
