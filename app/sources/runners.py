@@ -105,7 +105,7 @@ class ReplayControl:
         self.index = 0                  # next line to hand over
         self.position_s = 0.0           # playhead (s of the log)
         self.restart = False            # a seek happened: the runner opens a new stream
-        self.loops = 0
+        self.loops = 0                  # times the log played to its end and started again
         self._wall: float | None = None
 
     def set(self, paused=None, speed=None, seek_s=None, loop=None) -> None:
@@ -174,7 +174,6 @@ async def run_replay(engine, path: str | Path, pause_s: float = 1.0,
     lines = ctl.lines
     while True:
         await engine.background_allowed.wait()
-        ctl.loops += 1
         ctl.restart = False
         session = engine.open_session("replay", f"{ctl.label} (from {ctl.position_s:.1f} s)")
         reason = "a phone took over"
@@ -192,5 +191,6 @@ async def run_replay(engine, path: str | Path, pause_s: float = 1.0,
             await asyncio.sleep(TICK_S)
         engine.close_session(session, reason)
         if reason == "end of log":
+            ctl.loops += 1
             await asyncio.sleep(pause_s)
             ctl.seek(0.0)
