@@ -35,6 +35,7 @@ import time
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.requests import ClientDisconnect
 
 log = logging.getLogger("orientlab.limits")
 
@@ -99,7 +100,13 @@ class BodyLimit:
                     return {"type": "http.disconnect"}   # the app stops reading
             return message
 
-        await self.app(scope, limited_receive, send_wrapper)
+        try:
+            await self.app(scope, limited_receive, send_wrapper)
+        except ClientDisconnect:
+            if not refused:
+                raise
+            # the 413 is sent; the app stopped reading at the disconnect it was handed:
+            # that is the refusal working, not an error to log with a traceback
 
 
 def _is_json(headers) -> bool:
