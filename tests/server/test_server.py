@@ -6,6 +6,8 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import time
+from dataclasses import fields
 from pathlib import Path
 
 import httpx
@@ -413,3 +415,21 @@ def test_scene_draws_a_rejected_sensor(srv):
     snap.mag_flags = StepFlags.from_row(1.0, new_flags())
     scene.draw(snap)
     assert scene.mag.colors.tolist() != [230, 30, 30]
+
+
+def test_the_whatif_goes_to_a_new_primary(srv, api):
+    """The Lab tab's what-if was pre-set to the primary at start-up: after a switch to lab its
+    re-run changed robust. It follows the primary now, unless a viewer picked another."""
+    tab = srv.app.state.toolkit_tab
+    assert tab.wi_est.value == "robust"
+    try:
+        api.patch("/api/params", json={"primary": "lab"})
+        wait_for(lambda: tab.wi_est.value == "lab", 10.0, what="the what-if on lab")
+        lab_params = {f.name for f in fields(srv.app.state.engine.core.ensemble.params_of("lab"))}
+        assert tab._wi_rows and all(r["name"] in lab_params for r in tab._wi_rows.values())
+        tab.wi_est.value = "complementary"                 # a viewer's own pick stays
+        api.patch("/api/params", json={"primary": "robust"})
+        time.sleep(1.5)
+        assert tab.wi_est.value == "complementary"
+    finally:
+        api.patch("/api/params", json={"primary": "robust"})

@@ -316,6 +316,7 @@ class ToolkitTab:
             # (the API takes the same change as JSON: POST /api/recordings/{name}/rerun)
             est0, par0, val0 = first_suggestion(self.tk.whatif.specs(), self.core.ensemble.primary)
             self.wi_est = gui.add_dropdown("Estimator", self._wi_estimators(), initial_value=est0)
+            self._wi_primary = self.core.ensemble.primary   # the primary it was last set to
             self._wi_rows: dict[str, dict[str, Any]] = {}
             labels = self._wi_param_labels(est0)
             self.wi_param = gui.add_dropdown(
@@ -820,6 +821,12 @@ class ToolkitTab:
             if picked not in self.wi_est.options:     # a variant removed: its parameters go
                 self.wi_est.value = self.wi_est.options[0]
                 self._wi_pick_estimator()
+        if b.primary != self._wi_primary:
+            # a new primary: the what-if goes to it too, unless a viewer picked another
+            if self.wi_est.value == self._wi_primary and b.primary in self.wi_est.options:
+                self.wi_est.value = b.primary
+                self._wi_pick_estimator()
+            self._wi_primary = b.primary
         # disturbances and the monitor
         act = tk.injection.injector.active
         cap = tk.injection.max_active
