@@ -33,7 +33,7 @@ async function init() {
   $("watch-note").hidden = presenter;
   $("presenter-connect").hidden = !presenter;
   tabs(".tabs [role=tab]", (b) => { tabPicked = true; showPanel(b); });
-  tabs(".apps [role=tab]", (b) => { for (const a of document.querySelectorAll(".app")) a.hidden = a.id !== "app-" + b.dataset.app; });
+  tabs(".apps [role=tab]", (b) => { appPicked = true; showApp(b); });
   if (presenter) {
     for (const img of document.querySelectorAll("img.qr")) img.src = `/api/connect/qr/${img.dataset.qr}.svg`;
     $("release").onclick = () => post("/api/phone", { release: true });
@@ -51,6 +51,14 @@ let tabPicked = false;
 function showPanel(b) {
   for (const o of document.querySelectorAll(".tabs [role=tab]")) o.setAttribute("aria-selected", String(o === b));
   for (const p of document.querySelectorAll("aside > section")) p.hidden = p.id !== b.dataset.panel;
+}
+
+// The Connect tab's app: the streaming phone's, until the presenter picks one
+let appPicked = false, appShownFor = null;
+const APP_TAB = { sensorlogger: "sensorlogger", phyphox: "phyphox", "phyphox-poll": "phyphox", sensorfusion: "sensorfusion" };
+function showApp(b) {
+  for (const o of document.querySelectorAll(".apps [role=tab]")) o.setAttribute("aria-selected", String(o === b));
+  for (const a of document.querySelectorAll(".app")) a.hidden = a.id !== "app-" + b.dataset.app;
 }
 
 function tabs(selector, show) {
@@ -130,6 +138,12 @@ async function connect() {
     $("lock").textContent = v.slot.locked ? "Unlock slot" : "Lock slot";
     $("lock").dataset.locked = String(v.slot.locked);
     $("release").disabled = !v.slot.holder;
+    const app = v.slot.holder ? APP_TAB[v.slot.holder.app] : null;
+    if (app && !appPicked && app !== appShownFor) {
+      const b = document.querySelector(`.apps [data-app="${app}"]`);
+      if (b) showApp(b);
+      appShownFor = app;
+    }
     const sl = v.http.streams.find((x) => x.app === "sensorlogger");
     $("sl-detected").textContent = sl ? `detected: ${sl.platform}, ${sl.convention} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
     if (document.activeElement !== $("sl-convention")) $("sl-convention").value = v.http.sensorlogger_convention;

@@ -234,6 +234,17 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
             assert page2.locator("#presenter-connect").is_hidden()
             assert want["sensorfusion"]["host"] not in page2.locator("aside").inner_text()
             assert page2.locator("img.qr[src]").count() == 0
+            # a presenter's page opened while a Sensor Fusion phone streams shows that app's
+            # steps (it showed Sensor Logger's whatever streamed), until the presenter picks
+            with Phone(srv.phone_port) as ph:
+                ph.send_lines([f"{1000 + 10 * k}\tACC\t0\t0\t9.81" for k in range(50)])
+                wait_for(lambda: srv.app.state.slot.holder is not None, 10.0, what="the phone")
+                page3 = page.context.new_page()
+                page3.goto(f"{srv.url}/?token={TOKEN}")
+                page3.locator('.apps [data-app="sensorfusion"][aria-selected="true"]').wait_for(
+                    state="attached", timeout=30_000)
+                assert page3.locator("#app-sensorlogger").is_hidden()
+                page3.close()
 
 
 @pytest.mark.shared
