@@ -194,7 +194,37 @@ def calibrate(t, gyr=None, acc=None, mag=None,
     if g is not None:
         out.gyr_bias = g.mean.copy()
     out.warnings = _stationarity_warnings(out, limits)
+    # a short movement in a long still recording hides in the whole recording's spread (a
+    # phone slid across the table for 2 s of 60), but not in the spread of its own second
+    for name, x, lim, unit, what in (("acc", acc, limits.acc_std, "m/s²", "accelerometer"),
+                                     ("gyr", gyr, limits.gyr_std, "rad/s", "gyroscope")):
+        if x is None or name not in sensors or np.max(sensors[name].std) > lim:
+            continue        # none, or the whole recording's spread already says it
+        worst = _worst_second(t, np.asarray(x, dtype=float).reshape(n, 3))
+        if worst is not None and worst[1] > lim:
+            out.warnings.append(f"{what} spread {worst[1]:.3g} {unit} > {lim:g} in the second from "
+                                f"{worst[0]:.0f} s of the recording: the phone moved")
     return out
+
+
+def _worst_second(t: np.ndarray, x: np.ndarray, window: float = 1.0):
+    """``(start, spread)`` of the window of ``window`` s (end to end from the first sample;
+    ``start`` in s from it) whose largest per-axis standard deviation is largest; None with
+    too few samples."""
+    ok = np.all(np.isfinite(x), axis=1) & np.isfinite(t)
+    t, x = t[ok], x[ok]
+    if t.size < 8:
+        return None
+    k = np.floor((t - t[0]) / window).astype(np.int64)
+    worst = None
+    for b in np.unique(k):
+        sel = x[k == b]
+        if sel.shape[0] < 8:
+            continue
+        sd = float(np.max(sel.std(axis=0, ddof=1)))
+        if worst is None or sd > worst[1]:
+            worst = (float(b * window), sd)
+    return worst
 
 
 def _stationarity_warnings(st: CalibrationStats, lim: StationaryLimits) -> list[str]:

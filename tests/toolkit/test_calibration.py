@@ -118,6 +118,21 @@ def test_moving_recording_is_flagged():
     assert any("only 10 samples" in w for w in short.warnings)
 
 
+def test_a_short_movement_in_a_long_still_recording_is_flagged():
+    """A phone slid across the table for one second of thirty: the whole recording's spread
+    stayed under the limit (0.2 m/s² against 0.5), so it passed as stationary and its mean
+    went into the preset. Each second's own spread says it; a still recording stays clean."""
+    t, gyr, acc, mag = stationary(TILTED)
+    assert calibrate(t, gyr, acc, mag).stationary
+    moved = acc.copy()
+    second = (t >= 12.0) & (t < 13.0)
+    moved[second, 0] += 1.0 * np.sin(2 * np.pi * 2.0 * t[second])     # a slide, ±1 m/s²
+    st = calibrate(t, gyr, moved, mag)
+    assert np.max(st.sensors["acc"].std) < StationaryLimits().acc_std
+    assert not st.stationary
+    assert any("in the second from 12 s" in w for w in st.warnings), st.warnings
+
+
 def test_report_and_preset_load_with_load_config(tmp_path):
     t, gyr, acc, mag = stationary(TILTED)
     st = calibrate(t, gyr, acc, mag)
