@@ -91,7 +91,8 @@ class State(BaseModel):
                                         "the estimator has no such thing")
     rates_hz: dict[str, float | None]
     counts: dict[str, Any] = Field(description="lines, samples, malformed (+ by reason), late, "
-                                   "clamped, jumps (the clock re-anchored), tags, updates per estimator and sensor, totals")
+                                   "clamped, jumps (the clock re-anchored), tags, updates per "
+                                   "estimator and sensor, totals")
     clock_offsets_s: dict[str, float]
     estimators: dict[str, EstimatorState]
 

@@ -55,7 +55,7 @@ QUAT_NORM2 = (0.5, 1.5)
 
 def quaternion_reading(values) -> tuple[float, float, float, float] | None:
     """A phone's attitude reading (w, x, y, z, or x, y, z with w completed) as four floats,
-    or None when it is no unit quaternion (:data:`QUAT_NORM2`)."""
+    or None when it is no unit quaternion (:data:`QUAT_NORM2`); NaN passes (missing)."""
     if len(values) == 3:
         x, y, z = values
         w2 = 1.0 - x * x - y * y - z * z
@@ -63,7 +63,9 @@ def quaternion_reading(values) -> tuple[float, float, float, float] | None:
     else:
         q = tuple(values[:4])
     n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-    if not (QUAT_NORM2[0] < n2 < QUAT_NORM2[1]):    # also NaN and inf
+    if n2 != n2:        # NaN: a missing value, not an impossible one (as for the sensors)
+        return q
+    if not (QUAT_NORM2[0] < n2 < QUAT_NORM2[1]):    # also inf
         return None
     return q
 

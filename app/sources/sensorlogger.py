@@ -720,7 +720,8 @@ class SensorLoggerStream:
             self._pending.append(out)
         if not self._pending:
             return []
-        if self._override is None and self._conv_source == "assumed" and not force and not self._released:
+        unknown = self._override is None and self._conv_source == "assumed"
+        if unknown and not force and not self._released:
             times = [T for o in self._pending for T, _ in o.values() if len(T)]
             if times and max(int(T[-1]) for T in times) - min(int(T[0]) for T in times) \
                     < self.start_hold_s * 1e9:
@@ -806,7 +807,8 @@ class SensorLoggerStream:
         if self._override is not None:
             out.append(f"set by the presenter: {self._override}")
         elif self._conv_source == "assumed" and self._pending and not self._released:
-            out.append(f"no sign evidence yet: the first samples wait for it (at most {self.start_hold_s:g} s)")
+            out.append("no sign evidence yet: the first samples wait for it "
+                       f"(at most {self.start_hold_s:g} s)")
         elif self._conv_source == "assumed":
             out.append("no sign evidence yet: iOS with Standardise off assumed (the app's default)")
         return out
