@@ -94,9 +94,9 @@ def main() -> int:
             done = threading.Event()
 
             def show():
-                toolkit_tab._rerun_result = res
-                toolkit_tab.wi_est.value = "robust"
-                toolkit_tab._draw_rerun()
+                toolkit_tab.whatif.result = res
+                toolkit_tab.whatif.est.value = "robust"
+                toolkit_tab.whatif.draw()
                 done.set()
             loop.call_soon_threadsafe(show)
             done.wait(10)

@@ -59,7 +59,7 @@ def test_whatif_from_lists_and_its_table_fits_at_1600x900(tmp_path):
         page.wait_for_timeout(500)
         click(page, frame.get_by_role("button", name="Re-run before/after"))
         tab = srv.app.state.toolkit_tab
-        out = wait_for(lambda: tab._rerun_result, 120.0, what="the re-run's result")
+        out = wait_for(lambda: tab.whatif.result, 120.0, what="the re-run's result")
         got = out["estimators"]["robust"]["patch"]
         assert set(got) == {"gyr_noise"} and got["gyr_noise"] == pytest.approx(
             2.9 / (180 / math.pi), rel=1e-3)

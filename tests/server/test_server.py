@@ -421,15 +421,15 @@ def test_the_whatif_goes_to_a_new_primary(srv, api):
     """The Lab tab's what-if was pre-set to the primary at start-up: after a switch to lab its
     re-run changed robust. It follows the primary now, unless a viewer picked another."""
     tab = srv.app.state.toolkit_tab
-    assert tab.wi_est.value == "robust"
+    assert tab.whatif.est.value == "robust"
     try:
         api.patch("/api/params", json={"primary": "lab"})
-        wait_for(lambda: tab.wi_est.value == "lab", 10.0, what="the what-if on lab")
+        wait_for(lambda: tab.whatif.est.value == "lab", 10.0, what="the what-if on lab")
         lab_params = {f.name for f in fields(srv.app.state.engine.core.ensemble.params_of("lab"))}
-        assert tab._wi_rows and all(r["name"] in lab_params for r in tab._wi_rows.values())
-        tab.wi_est.value = "complementary"                 # a viewer's own pick stays
+        assert tab.whatif.rows and all(r["name"] in lab_params for r in tab.whatif.rows.values())
+        tab.whatif.est.value = "complementary"                 # a viewer's own pick stays
         api.patch("/api/params", json={"primary": "robust"})
         time.sleep(1.5)
-        assert tab.wi_est.value == "complementary"
+        assert tab.whatif.est.value == "complementary"
     finally:
         api.patch("/api/params", json={"primary": "robust"})

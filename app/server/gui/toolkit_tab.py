@@ -1,6 +1,6 @@
-"""The page's "Lab" tab: record, calibrate, magnetometer calibration, replay, what-if,
-variants and disturbances (the same operations as the API, on the toolkit's services:
-:class:`app.server.toolkit.Toolkit`).
+"""The page's "Lab" tab: record, calibrate, magnetometer calibration, replay, what-if
+(its own panel, :mod:`app.server.gui.whatif_panel`), variants and disturbances (the same
+operations as the API, on the toolkit's services: :class:`app.server.toolkit.Toolkit`).
 
 The heading plot (every estimator's heading over the last 30 s, the injected disturbance
 beside it) is what a viewer would pay most for: viser resends a chart whole, and the
@@ -31,10 +31,10 @@ from app.quaternion import not_estimated, q2euler_many
 from app.live.changes import Change, PatchError, Variant
 from app.server.gui.plots import send_data, unwrap_deg
 from app.server.gui.scene import set_wxyz
+from app.server.gui.whatif_panel import WhatIfPanel
 from app.server.toolkit import Toolkit
 from app.toolkit.errors import ToolError
 from app.toolkit.inject import InjectionService
-from app.toolkit.whatif import first_suggestion
 
 log = logging.getLogger("orientlab.toolkit_tab")
 
@@ -184,7 +184,6 @@ class ToolkitTab:
         self.loop = loop
         self.monitor = Monitor(self.core, tk.injection)
         self.ghosts = VariantGhosts(server, tk) if server is not None else None
-        self._rerun_result: dict[str, Any] | None = None
         self._cal_shown = None
         self._scale_shown: dict[str, Any] | None = None   # the gyroscope-scale fit on the page
         self._known_recordings: tuple = ()
@@ -311,32 +310,7 @@ class ToolkitTab:
             self.rp_md = gui.add_markdown("")
             self._seek_moved = 0.0                  # when a viewer last moved the seek slider
         with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
-            self.wi_name = gui.add_dropdown("Recording ", ("(none)",))
-            # estimator, parameter and value from lists, the value in the unit shown
-            # (the API takes the same change as JSON: POST /api/recordings/{name}/rerun)
-            est0, par0, val0 = first_suggestion(self.tk.whatif.specs(), self.core.ensemble.primary)
-            self.wi_est = gui.add_dropdown("Estimator", self._wi_estimators(), initial_value=est0)
-            self._wi_primary = self.core.ensemble.primary   # the primary it was last set to
-            self._wi_rows: dict[str, dict[str, Any]] = {}
-            labels = self._wi_param_labels(est0)
-            self.wi_param = gui.add_dropdown(
-                "Parameter", labels, initial_value=next(
-                    (lab for lab, r in self._wi_rows.items() if r["name"] == par0), labels[0]))
-            self.wi_value = gui.add_number("Value", 0.0, step=0.001,
-                                           hint="the new value, in the unit of the parameter's name")
-            self.wi_choice = gui.add_dropdown("Value ", ("off", "on"), initial_value="off",
-                                              hint="the new setting")
-            self.wi_now_md = gui.add_markdown("")
-            self._wi_show_value(suggested=val0)
-            self.wi_est.on_update(lambda ev: ev.client is not None and self._call(self._wi_pick_estimator))
-            self.wi_param.on_update(lambda ev: ev.client is not None and self._call(self._wi_show_value))
-            wb = gui.add_button("Re-run before/after",
-                                hint="POST /api/recordings/{name}/rerun {patch: {estimator: {param: value}}}")
-            wb.on_click(self._rerun)
-            self.wi_md = gui.add_markdown("")
-            self.p_wi_err = self._plot("error [deg] before (solid) vs after (dashed)",
-                                       ["before", "after"], height=170)
-            self.p_wi_yaw = self._plot("yaw [deg] before vs after", ["before", "after"], height=170)
+            self.whatif = WhatIfPanel(gui, self.tk, self._call, self._notify, self._plot)
         with gui.add_folder("Variants", expand_by_default=False):
             v1 = gui.add_button("Add lab-approx (2k beside 2j)",
                                 hint="exercise 9: the approximate time update beside the exact one")
@@ -516,161 +490,6 @@ class ToolkitTab:
             self._notify(ev, "Not applied", str(e))
         return None
 
-    # ----------------------------------------------------------------- what-if
-    def _wi_estimators(self) -> tuple[str, ...]:
-        """The estimators a change can go to (the phone's own estimate is the reference)."""
-        b = self.core.ensemble
-        return tuple(n for n in b.names if b.base_of(n) != "phone") or tuple(b.names)
-
-    def _wi_param_labels(self, est: str) -> tuple[str, ...]:
-        """``est``'s tunable parameters with a single value (a switch, a choice, a number)
-        as ``name [unit shown]``; fills ``_wi_rows`` (label -> its row of ``describe``)."""
-        from app.params import describe
-        p = self.core.ensemble.params_of(est)
-        self._wi_rows = {}
-        for row in describe(type(p)):
-            v = getattr(p, row["name"])
-            if not row["tunable"] or v is None or isinstance(v, (tuple, list)):
-                continue
-            unit = row["user_unit"] or ""
-            plain = isinstance(v, bool) or row["choices"] or not unit
-            self._wi_rows[row["name"] if plain else f"{row['name']} [{unit}]"] = {**row, "now": v}
-        return tuple(self._wi_rows) or ("(none)",)
-
-    def _wi_pick_estimator(self) -> None:
-        name = self.wi_param.value.split(" [")[0]
-        labels = self._wi_param_labels(self.wi_est.value)
-        self.wi_param.options = labels
-        self.wi_param.value = next((lab for lab, r in self._wi_rows.items() if r["name"] == name),
-                                   labels[0])
-        self._wi_show_value()
-
-    def _wi_show_value(self, suggested: Any = None) -> None:
-        """The value controls for the picked parameter: its current value (or the
-        suggestion), in the unit shown; a switch or a choice as a dropdown."""
-        from app.server.gui.controls import fmt, precision_for
-        row = self._wi_rows.get(self.wi_param.value)
-        if row is None:
-            self.wi_value.visible = self.wi_choice.visible = False
-            self.wi_now_md.content = ""
-            return
-        try:    # the value in force now (the Tuning tab or the API may have changed it)
-            row["now"] = getattr(self.core.ensemble.params_of(self.wi_est.value), row["name"])
-        except (KeyError, AttributeError):
-            pass
-        now = row["now"]
-        new = now if suggested is None else suggested
-        unit = row["user_unit"] or ""
-        if isinstance(now, bool) or row["choices"]:
-            opts = ("off", "on") if isinstance(now, bool) else tuple(str(c) for c in row["choices"])
-            show = (lambda v: ("on" if v else "off")) if isinstance(now, bool) else str
-            self.wi_choice.options = opts
-            self.wi_choice.value = show(new)
-            self.wi_choice.visible, self.wi_value.visible = True, False
-            txt = f"now: **{show(now)}**"
-        else:
-            scale = float(row["user_scale"] or 1.0)
-            v = float(new) * scale
-            p = 0 if row["integer"] else precision_for(v)
-            self.wi_value.precision = p
-            self.wi_value.step = 10.0 ** -p
-            self.wi_value.value = v
-            self.wi_value.visible, self.wi_choice.visible = True, False
-            txt = f"now: **{fmt(float(now) * scale)} {unit}**".rstrip()
-        if suggested is not None:
-            txt += " -- suggested first try: switch the magnetometer off (heading from the " \
-                   "gyroscope alone)" if row["name"] == "use_mag" else " -- suggested first try"
-        self.wi_now_md.content = txt
-
-    def _wi_change(self) -> dict[str, Any]:
-        """The change the controls show, as the API's patch of one estimator (SI)."""
-        row = self._wi_rows.get(self.wi_param.value)
-        if row is None:
-            raise ToolError("param", "pick a parameter")
-        now = row["now"]
-        if isinstance(now, bool):
-            return {row["name"]: self.wi_choice.value == "on"}
-        if row["choices"]:
-            choices = tuple(row["choices"])
-            return {row["name"]: choices[[str(c) for c in choices].index(self.wi_choice.value)]}
-        v = float(self.wi_value.value) / float(row["user_scale"] or 1.0)
-        return {row["name"]: int(round(v)) if row["integer"] else v}
-
-    def _rerun(self, ev) -> None:
-        async def run():
-            try:
-                changes = self._wi_change()
-            except ToolError as e:
-                self._notify(ev, "What-if", e.reason)
-                return
-            self.wi_md.content = "re-running..."
-            try:
-                out = await self.tk.whatif.rerun(self.wi_name.value, {self.wi_est.value: changes})
-            except ToolError as e:
-                self.wi_md.content = ""
-                self._notify(ev, "What-if", f"{e.field}: {e.reason}")
-                return
-            self._rerun_result = out
-            self._draw_rerun()
-        self._call(run)
-
-    # ----------------------------------------------------------------- drawing
-    def _draw_rerun(self) -> None:
-        """The what-if's table: one short row per estimator (units in the header, numbers
-        rounded to 0.1°), what the numbers are and why the re-run and the live filter
-        differ, in words below it."""
-        out = self._rerun_result
-        if out is None:
-            return
-        ref = out["reference"]
-        key = {"truth": "error_to_truth_deg", "phone": "error_to_phone_deg"}.get(ref or "")
-        ests = out["estimators"]
-        live = key is not None and any((e.get("live") or {}).get(key) for e in ests.values())
-
-        def deg(x):
-            return "-" if x is None else (f"{x:.0f}" if abs(x) >= 100 else f"{x:.1f}")
-
-        def rms(run, k=key):
-            return None if run is None or k is None or run.get(k) is None else run[k].get("rms")
-        what = {"truth": "to truth", "phone": "to phone's own"}.get(ref or "", "")
-        rows = [f"**{out['name']}**: {out['duration_s']:.0f} s re-run in {out['estimate_s']:.1f} s", ""]
-        if key is None:
-            rows += ["| estimator | change [°] |", "|---|---|"]
-            rows += [f"| {n} | {deg((e.get('change_deg') or {}).get('rms'))} |"
-                     for n, e in ests.items() if not e.get("reference")]
-        else:
-            rows[0] += f"; RMS error {what} [°]:"
-            rows += ["| estimator |" + (" live |" if live else "") + " before | after |",
-                     "|---|" + ("---|" if live else "") + "---|---|"]
-            for n, e in ests.items():
-                cells = [n] + ([deg(rms(e.get("live")))] if live else []) + \
-                    [deg(rms(e["before"])), deg(rms(e["after"]))]
-                rows.append("| " + " | ".join(cells) + " |")
-        sel = ests.get(self.wi_est.value)
-        if sel is not None and sel.get("before") and sel["before"]["rejected"]["mag"] is not None:
-            b = 100 * sel["before"]["rejected"]["mag"]
-            a = sel["after"]["rejected"]["mag"] if sel.get("after") else None
-            rows += ["", f"{self.wi_est.value}: magnetometer refused {b:.0f} %"
-                     + ("" if a is None else f" before, {100 * a:.0f} % after")]
-        words = [f"*{x}.*" for x in out.get("notes", [])]
-        words += [f"*{n}: {e['note']}.*" for n, e in ests.items() if e.get("note")]
-        self.wi_md.content = "\n\n".join(["\n".join(rows)] + words)
-        e = out["estimators"].get(self.wi_est.value)
-        t = np.array(out["t"], dtype=float)
-        if e is None or e["before"] is None:
-            return
-        after = e["after"] or e["before"]
-
-        def arr(x):
-            return np.array([np.nan if v is None else v for v in (x or [])], dtype=float) \
-                if x is not None else np.full(len(t), np.nan)
-        for plot, key in ((self.p_wi_err, "error_deg"), (self.p_wi_yaw, "yaw_deg")):
-            a, b2 = arr(e["before"]["series"][key]), arr(after["series"][key])
-            ok = np.isfinite(a) & np.isfinite(b2)   # uPlot's autoscale fails on NaN: drop them
-            if key == "yaw_deg" and ok.any():
-                a[ok], b2[ok] = unwrap_deg(np.column_stack((a[ok], b2[ok])), align=True).T
-            plot.data = (t[ok], a[ok], b2[ok]) if ok.any() else (np.zeros(2),) * 3
-
     def _draw_calibration(self, force: bool = False) -> None:
         res = self.tk.calibration.last
         if res is None or (res is self._cal_shown and not force):
@@ -747,11 +566,12 @@ class ToolkitTab:
         names = tuple(r["name"] for r in tk.recording.recordings()) or ("(none)",)
         if names != self._known_recordings:
             self._known_recordings = names
-            for dd in (self.rp_name, self.wi_name, self.gs_name):
+            for dd in (self.rp_name, self.gs_name):
                 v = dd.value
                 dd.options = names
                 if v in names:
                     dd.value = v
+        self.whatif.refresh(names)
         # calibration countdown
         cap = tk.calibration.capture
         if cap is not None and cap.result is None and cap.error is None:
@@ -815,18 +635,6 @@ class ToolkitTab:
         if tuple(self.var_remove.options) != variants:
             self.var_remove.options = variants
         self.var_md.content = self._readouts()
-        if tuple(self.wi_est.options) != self._wi_estimators():
-            picked = self.wi_est.value
-            self.wi_est.options = self._wi_estimators()
-            if picked not in self.wi_est.options:     # a variant removed: its parameters go
-                self.wi_est.value = self.wi_est.options[0]
-                self._wi_pick_estimator()
-        if b.primary != self._wi_primary:
-            # a new primary: the what-if goes to it too, unless a viewer picked another
-            if self.wi_est.value == self._wi_primary and b.primary in self.wi_est.options:
-                self.wi_est.value = b.primary
-                self._wi_pick_estimator()
-            self._wi_primary = b.primary
         # disturbances and the monitor
         act = tk.injection.injector.active
         cap = tk.injection.max_active
