@@ -108,8 +108,7 @@ class HttpPhones:
             self.engine.feed(st.session, ended, time.perf_counter())
         # samples held by the decoder (Sensor Logger's first ones, while the sign is unknown)
         # are this phone's data too: it takes the slot with them
-        waiting = bool(getattr(st.decoder, "waiting", False))
-        self._deliver(st, batch.samples, batch.new_session, waiting)
+        self._deliver(st, batch.samples, batch.new_session, st.decoder.waiting)
         return Reply(200, "")
 
     def _decoder(self, phone_app: str):

@@ -324,6 +324,9 @@ class PhyphoxPushStream:
         self._new_pending = False
         self._reset()
 
+    # a push decoder's interface (app.server.phones): phyphox's samples are never held back
+    waiting = False
+
     def _reset(self) -> None:
         self._last: dict[str, float] = {}            # newest released time per tag (s)
         self._seen: dict[str, set[float]] = {}        # recent released times per tag

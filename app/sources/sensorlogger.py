@@ -117,6 +117,18 @@ class Batch:
     ended: list[Sample] = field(default_factory=list)
 
 
+def _by_time(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Parts ``(times, values)`` of one sensor as one, sorted by time (stable: equal times
+    keep their order)."""
+    if len(parts) == 1:
+        T, V = parts[0]
+    else:
+        T = np.concatenate([p[0] for p in parts])
+        V = np.concatenate([p[1] for p in parts])
+    o = np.argsort(T, kind="stable")
+    return T[o], V[o]
+
+
 def _nearest(tq: np.ndarray, tr: np.ndarray, max_dt) -> tuple[np.ndarray, np.ndarray]:
     """For each time in ``tq``, the index of the nearest time in the sorted ``tr`` and
     whether it lies within ``max_dt``."""
@@ -644,11 +656,7 @@ class SensorLoggerStream:
         # all readings released together, per name, sorted by time, exact duplicates out
         by: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         for name in {n for m in msgs for n in m.groups}:
-            parts = [m.groups[name] for m in msgs if name in m.groups]
-            T = np.concatenate([p[0] for p in parts]) if len(parts) > 1 else parts[0][0]
-            V = np.concatenate([p[1] for p in parts]) if len(parts) > 1 else parts[0][1]
-            o = np.argsort(T, kind="stable")
-            T, V = T[o], V[o]
+            T, V = _by_time([m.groups[name] for m in msgs if name in m.groups])
             if len(T) > 1:
                 keep = np.empty(len(T), dtype=bool)
                 keep[0] = True
@@ -728,16 +736,8 @@ class SensorLoggerStream:
                 return []
         pending, self._pending = self._pending, []
         self._released = True                 # the session's samples flow: no more waiting
-        out = {}
-        for tag in {tag for o in pending for tag in o}:
-            parts = [o[tag] for o in pending if tag in o]
-            if len(parts) == 1:
-                out[tag] = parts[0]
-                continue
-            T = np.concatenate([p[0] for p in parts])
-            V = np.concatenate([p[1] for p in parts])
-            o = np.argsort(T, kind="stable")
-            out[tag] = (T[o], V[o])
+        out = {tag: _by_time([o[tag] for o in pending if tag in o])
+               for tag in {tag for o in pending for tag in o}}
         if "ACC" in out:
             t_f, f_and = out["ACC"]
             f = -f_and if self.convention == "ios" else f_and
