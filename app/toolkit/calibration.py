@@ -215,16 +215,19 @@ def _worst_second(t: np.ndarray, x: np.ndarray, window: float = 1.0):
     t, x = t[ok], x[ok]
     if t.size < 8:
         return None
+    o = np.argsort(t, kind="stable")
+    t, x = t[o], x[o]
     k = np.floor((t - t[0]) / window).astype(np.int64)
-    worst = None
-    for b in np.unique(k):
-        sel = x[k == b]
-        if sel.shape[0] < 8:
-            continue
-        sd = float(np.max(sel.std(axis=0, ddof=1)))
-        if worst is None or sd > worst[1]:
-            worst = (float(b * window), sd)
-    return worst
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])     # each window's first row
+    n = np.diff(np.r_[starts, t.size])[:, None]
+    s1 = np.add.reduceat(x, starts, axis=0)
+    s2 = np.add.reduceat(x * x, starts, axis=0)
+    sd = np.sqrt(np.maximum(s2 - s1 * s1 / n, 0.0) / np.maximum(n - 1, 1)).max(axis=1)
+    sd[n[:, 0] < 8] = -1.0                                     # too few samples to judge
+    i = int(np.argmax(sd))
+    if sd[i] < 0.0:
+        return None
+    return float(k[starts[i]] * window), float(sd[i])
 
 
 def _stationarity_warnings(st: CalibrationStats, lim: StationaryLimits) -> list[str]:
