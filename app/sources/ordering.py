@@ -292,9 +292,8 @@ class SampleOrderer:
             out.append(self._pop())
         held = sorted((x for aside in self._aside.values() for x in aside), key=lambda x: x[0])
         self._aside = {}
-        last = max(self._newest, self._released if self._released is not None else self._newest)
-        if t_new <= last:
-            step = last - t_new + 1
+        if t_new <= self._newest:       # the newest time placed: nothing released is later
+            step = self._newest - t_new + 1
             for tag in self._offsets_ms:
                 self._offsets_ms[tag] -= step
             self.counters.back_ms += step
