@@ -336,7 +336,10 @@ class PhyphoxPushStream:
 
     # ---------------------------------------------------------------- parsing
     @staticmethod
-    def _parse(body: bytes) -> dict:
+    def read(body: bytes) -> dict:
+        """A POST body's JSON object (touches no state: it may run on a worker thread;
+        :meth:`take` applies it). Raises :class:`PhyphoxError`, not yet counted
+        (:meth:`count_rejected`)."""
         try:
             obj = json.loads(body)
         except (UnicodeDecodeError, ValueError, RecursionError):
@@ -358,13 +361,26 @@ class PhyphoxPushStream:
         raise PhyphoxError("bad_buffer", f"buffer {name[:40]!r} is a "
                                          f"{type(v).__name__}, not an array")
 
+    def count_rejected(self, e: PhyphoxError) -> None:
+        """Count a POST refused whole (``rejected_<reason>`` in ``counts``)."""
+        self.counts[f"rejected_{e.reason}"] += 1
+
     def decode(self, body: bytes, now: float) -> Batch:
-        """Samples of one POST body (``now``: PC wall time of its arrival, s);
-        ``new_session`` is True on the first batch with samples of each session (the
-        first of the stream too): the consumer resets its state then. Raises
-        :class:`PhyphoxError` for a body that is not a JSON object of arrays (answer
-        400); everything else is counted, never raised."""
-        obj = self._parse(body)
+        """Samples of one POST body (``now``: PC wall time of its arrival, s):
+        :meth:`read`, then :meth:`take`. Raises :class:`PhyphoxError` for a body that is
+        not a JSON object of arrays (answer 400; counted); everything else is counted,
+        never raised."""
+        try:
+            return self.take(self.read(body), now)
+        except PhyphoxError as e:
+            self.count_rejected(e)
+            raise
+
+    def take(self, obj: dict, now: float) -> Batch:
+        """Samples of one POST body's object (:meth:`read`); ``new_session`` is True on the
+        first batch with samples of each session (the first of the stream too): the
+        consumer resets its state then. Raises :class:`PhyphoxError` for buffers that are
+        no arrays, a timeinfo or model of the wrong type."""
         arrays: dict[str, tuple[list, list[list]]] = {}
         for tag, (tname, comps) in self.buffers.items():
             ta = self._array(obj, tname)

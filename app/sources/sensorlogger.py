@@ -5,6 +5,8 @@ One :class:`SensorLoggerStream` holds the state of one phone's push stream::
 
     stream = SensorLoggerStream()
     batch = stream.decode(body, now=time.monotonic())   # raises SensorLoggerError
+    # or in two steps, the first on any thread (it touches no state of the stream):
+    #   read = SensorLoggerStream.read(body); batch = stream.take(read, now)
     if batch.new_session: ...                           # start a fresh stream
     samples = batch.samples                             # -> SampleOrderer
     samples += stream.due(time.monotonic())             # now and then
@@ -277,6 +279,116 @@ def _short(s: str | None) -> str | None:
     return s if len(s) <= 8 else s[:8] + "…"
 
 
+@dataclass
+class _Read:
+    """One message as :meth:`SensorLoggerStream.read` read it, before the stream applies it."""
+    key: tuple[str, str]                 # (deviceId, sessionId)
+    mid: int | None                      # messageId (None: none, or not an integer)
+    bad_mid: bool                        # a messageId that is no integer
+    groups: dict = field(default_factory=dict)     # name -> (times ns, values)
+    latest: int | None = None            # the newest reading's time (ns)
+    accuracy: Counter = field(default_factory=Counter)   # readings with "accuracy", by name
+    ignored: Counter = field(default_factory=Counter)
+    invalid: Counter = field(default_factory=Counter)
+
+
+def _parse(payload: list, out: _Read) -> None:
+    """The readings of a payload into ``out``: per name, times (ns) and values as arrays;
+    what was wrong counted in ``out``'s counters."""
+    rows: dict[str, tuple[list, list]] = {}
+    accuracy, ignored, invalid = out.accuracy, out.ignored, out.invalid
+    for r in payload:
+        if type(r) is not dict:
+            invalid["bad_reading"] += 1
+            continue
+        name = r.get("name")
+        if type(name) is not str:
+            invalid["no_name"] += 1
+            continue
+        keys = _KEYS.get(name)
+        if keys is None:
+            name = name.strip().lower()
+            keys = _KEYS.get(name)
+            if keys is None:
+                if name in ignored or len(ignored) < _MAX_IGNORED_NAMES:
+                    ignored[name[:40]] += 1
+                else:
+                    ignored["(other)"] += 1
+                continue
+        t = r.get("time")
+        if type(t) is not int:
+            if t is None:
+                invalid["no_time"] += 1
+                continue
+            if type(t) is float and math.isfinite(t):
+                t = int(t)
+            else:
+                invalid["bad_time"] += 1
+                continue
+        if t <= 0 or t > _MAX_NS:
+            invalid["bad_time"] += 1
+            continue
+        v = r.get("values")
+        if type(v) is not dict:
+            invalid["no_values"] += 1
+            continue
+        try:
+            if len(keys) == 3:
+                row = (v[keys[0]], v[keys[1]], v[keys[2]])
+            else:
+                row = (v[keys[0]], v[keys[1]], v[keys[2]], v[keys[3]])
+        except KeyError:
+            invalid["missing_axis"] += 1
+            continue
+        if not (type(row[0]) in _NUM and type(row[1]) in _NUM and type(row[2]) in _NUM
+                and (len(row) == 3 or type(row[3]) in _NUM)):
+            invalid["not_numeric"] += 1
+            continue
+        g = rows.get(name)
+        if g is None:
+            g = rows[name] = ([], [])
+        g[0].append(t)
+        g[1].append(row)
+        if "accuracy" in r:
+            accuracy[name] += 1
+    groups = {}
+    latest = None
+    for name, (ts, vs) in rows.items():
+        try:
+            V = np.array(vs, dtype=float)
+        except OverflowError:      # a JSON integer beyond any float
+            fits = [not any(type(a) is int and abs(a) > 1e300 for a in row) for row in vs]
+            invalid["impossible"] += fits.count(False)
+            ts = [t for t, f in zip(ts, fits) if f]
+            vs = [row for row, f in zip(vs, fits) if f]
+            if not vs:
+                continue
+            V = np.array(vs, dtype=float)
+        T = np.array(ts, dtype=np.int64)
+        bad = ~np.isfinite(V).all(axis=1)
+        if bad.any():
+            invalid["not_finite"] += int(bad.sum())
+        lim = _LIMIT_TAG.get(name)
+        if lim is not None:
+            imp = ~bad & impossible_rows(lim, np.where(bad[:, None], 0.0, V))
+        else:   # a quaternion: norm near 1
+            with np.errstate(invalid="ignore"):
+                nq = np.linalg.norm(np.where(bad[:, None], 1.0, V), axis=1)
+            imp = ~bad & ((nq < 0.9) | (nq > 1.1))
+            V = V / np.where(bad | imp, 1.0, nq)[:, None]
+        if imp.any():
+            invalid["impossible"] += int(imp.sum())
+        keep = ~(bad | imp)
+        if not keep.all():
+            T, V = T[keep], V[keep]
+        if len(T):
+            groups[name] = (T, V)
+            mx = int(T.max())
+            latest = mx if latest is None else max(latest, mx)
+    out.groups, out.latest = groups, latest
+
+
+
 class SensorLoggerStream:
     """The state of one phone's push stream (see the module's doc).
 
@@ -378,22 +490,51 @@ class SensorLoggerStream:
             self._set_conv("android", "Android: no sign change", strong=True)
 
     # ------------------------------------------------------------ decoding
-    def decode(self, body: bytes, now: float) -> Batch:
-        """One pushed message -> the samples it (and what it unblocks) releases."""
+    @staticmethod
+    def read(body: bytes) -> "_Read":
+        """One pushed message off the wire: its JSON and readings as arrays, with what was
+        wrong in them counted. Touches no state of the stream, so a large message can be
+        read on a worker thread while the server goes on; :meth:`take` then applies it.
+        Raises :class:`SensorLoggerError` (not yet counted: :meth:`count_rejected`)."""
         try:
             msg = json.loads(body)
         except (ValueError, UnicodeDecodeError, RecursionError) as e:
-            self.rejected["bad_json"] += 1
             raise SensorLoggerError("bad_json", f"not JSON ({type(e).__name__}: {e})") from None
         if not isinstance(msg, dict):
-            self.rejected["bad_shape"] += 1
             raise SensorLoggerError("bad_shape", f"not a JSON object (a {type(msg).__name__})")
         payload = msg.get("payload")
         if not isinstance(payload, list):
-            self.rejected["bad_shape"] += 1
             what = "no payload" if payload is None else f"payload is a {type(payload).__name__}, not a list"
             raise SensorLoggerError("bad_shape", what)
-        key = (str(msg.get("deviceId")), str(msg.get("sessionId")))
+        mid, bad_mid = msg.get("messageId"), False
+        if type(mid) is not int:
+            if isinstance(mid, float) and mid.is_integer():
+                mid = int(mid)
+            else:
+                bad_mid = mid is not None
+                mid = None
+        r = _Read((str(msg.get("deviceId")), str(msg.get("sessionId"))), mid, bad_mid)
+        _parse(payload, r)
+        return r
+
+    def count_rejected(self, e: SensorLoggerError) -> None:
+        """Count a message :meth:`read` refused."""
+        self.rejected[e.reason] += 1
+
+    def decode(self, body: bytes, now: float) -> Batch:
+        """One pushed message -> the samples it (and what it unblocks) releases
+        (:meth:`read`, then :meth:`take`)."""
+        try:
+            r = self.read(body)
+        except SensorLoggerError as e:
+            self.count_rejected(e)
+            raise
+        return self.take(r, now)
+
+    def take(self, r: "_Read", now: float) -> Batch:
+        """A message :meth:`read` read, applied to the stream: the samples it (and what it
+        unblocks) releases."""
+        key = r.key
         new_session = False
         ended: list[Sample] = []
         if key != self._key:
@@ -407,19 +548,23 @@ class SensorLoggerStream:
             self.sessions += 1
             self._reset_session()
             new_session = True
-        mid = msg.get("messageId")
-        if type(mid) is not int:
-            if isinstance(mid, float) and mid.is_integer():
-                mid = int(mid)
-            else:
-                if mid is not None:
-                    self.invalid["bad_message_id"] += 1
-                mid = None
+        mid = r.mid
+        if r.bad_mid:
+            self.invalid["bad_message_id"] += 1
         if mid is not None and mid in self._seen:
             self.duplicates += 1
             return Batch(self.due(now), new_session, ended)
         self.messages += 1
-        m = _Message(mid, self._parse(payload, now), now)
+        self.invalid.update(r.invalid)
+        for name, n in r.ignored.items():
+            if name in self.ignored or len(self.ignored) < _MAX_IGNORED_NAMES:
+                self.ignored[name] += n
+            else:
+                self.ignored["(other)"] += n
+        if r.latest is not None:
+            self._offsets.append(r.latest / 1e9 - now)
+        self._detect_platform(r.groups, r.accuracy)
+        m = _Message(mid, r.groups, now)
         release: list[_Message] = []
         if mid is None:
             release.append(m)
@@ -474,103 +619,6 @@ class SensorLoggerStream:
             self._next = first
             out.extend(self._run())
         return self._emit(out, force=True)
-
-    def _parse(self, payload: list, now: float) -> dict:
-        rows: dict[str, tuple[list, list]] = {}
-        accuracy: Counter = Counter()
-        ignored, invalid = self.ignored, self.invalid
-        for r in payload:
-            if type(r) is not dict:
-                invalid["bad_reading"] += 1
-                continue
-            name = r.get("name")
-            if type(name) is not str:
-                invalid["no_name"] += 1
-                continue
-            keys = _KEYS.get(name)
-            if keys is None:
-                name = name.strip().lower()
-                keys = _KEYS.get(name)
-                if keys is None:
-                    if name in ignored or len(ignored) < _MAX_IGNORED_NAMES:
-                        ignored[name[:40]] += 1
-                    else:
-                        ignored["(other)"] += 1
-                    continue
-            t = r.get("time")
-            if type(t) is not int:
-                if t is None:
-                    invalid["no_time"] += 1
-                    continue
-                if type(t) is float and math.isfinite(t):
-                    t = int(t)
-                else:
-                    invalid["bad_time"] += 1
-                    continue
-            if t <= 0 or t > _MAX_NS:
-                invalid["bad_time"] += 1
-                continue
-            v = r.get("values")
-            if type(v) is not dict:
-                invalid["no_values"] += 1
-                continue
-            try:
-                if len(keys) == 3:
-                    row = (v[keys[0]], v[keys[1]], v[keys[2]])
-                else:
-                    row = (v[keys[0]], v[keys[1]], v[keys[2]], v[keys[3]])
-            except KeyError:
-                invalid["missing_axis"] += 1
-                continue
-            if not (type(row[0]) in _NUM and type(row[1]) in _NUM and type(row[2]) in _NUM
-                    and (len(row) == 3 or type(row[3]) in _NUM)):
-                invalid["not_numeric"] += 1
-                continue
-            g = rows.get(name)
-            if g is None:
-                g = rows[name] = ([], [])
-            g[0].append(t)
-            g[1].append(row)
-            if "accuracy" in r:
-                accuracy[name] += 1
-        groups = {}
-        latest = None
-        for name, (ts, vs) in rows.items():
-            try:
-                V = np.array(vs, dtype=float)
-            except OverflowError:      # a JSON integer beyond any float
-                fits = [not any(type(a) is int and abs(a) > 1e300 for a in row) for row in vs]
-                invalid["impossible"] += fits.count(False)
-                ts = [t for t, f in zip(ts, fits) if f]
-                vs = [row for row, f in zip(vs, fits) if f]
-                if not vs:
-                    continue
-                V = np.array(vs, dtype=float)
-            T = np.array(ts, dtype=np.int64)
-            bad = ~np.isfinite(V).all(axis=1)
-            if bad.any():
-                invalid["not_finite"] += int(bad.sum())
-            lim = _LIMIT_TAG.get(name)
-            if lim is not None:
-                imp = ~bad & impossible_rows(lim, np.where(bad[:, None], 0.0, V))
-            else:   # a quaternion: norm near 1
-                with np.errstate(invalid="ignore"):
-                    nq = np.linalg.norm(np.where(bad[:, None], 1.0, V), axis=1)
-                imp = ~bad & ((nq < 0.9) | (nq > 1.1))
-                V = V / np.where(bad | imp, 1.0, nq)[:, None]
-            if imp.any():
-                invalid["impossible"] += int(imp.sum())
-            keep = ~(bad | imp)
-            if not keep.all():
-                T, V = T[keep], V[keep]
-            if len(T):
-                groups[name] = (T, V)
-                mx = int(T.max())
-                latest = mx if latest is None else max(latest, mx)
-        if latest is not None:
-            self._offsets.append(latest / 1e9 - now)
-        self._detect_platform(groups, accuracy)
-        return groups
 
     # ------------------------------------------------------------ detection
     def _detect_platform(self, groups: dict, accuracy: Counter) -> None:

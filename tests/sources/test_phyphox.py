@@ -164,10 +164,25 @@ def test_push_keys_missing_empty_unequal_and_nulls():
     (b'{"timeinfo": [1]}', "bad_timeinfo"), (b'{"model": 7}', "bad_model"),
 ])
 def test_push_malformed_bodies_raise(body, reason):
+    stream = PhyphoxPushStream()
     with pytest.raises(PhyphoxError) as ei:
-        PhyphoxPushStream().decode(body, now=0.0)
+        stream.decode(body, now=0.0)
     assert ei.value.reason == reason
     assert isinstance(ei.value, ValueError)
+    assert stream.counts[f"rejected_{reason}"] == 1 and stream.counts["posts"] == 0
+
+
+def test_push_read_apart_from_the_stream_then_taken_as_decode_would():
+    """read() (run on a worker thread by the server) touches no state; take() of what it
+    read gives what decode() gives."""
+    whole, apart = PhyphoxPushStream(), PhyphoxPushStream()
+    obj = PhyphoxPushStream.read(NOTE_BODY)
+    assert apart.counts == {} and apart.model is None
+    a, b = whole.decode(NOTE_BODY, now=1760000123.5), apart.take(obj, now=1760000123.5)
+    assert [(s.tag, s.time_ms, s.values) for s in a.samples] == \
+           [(s.tag, s.time_ms, s.values) for s in b.samples]
+    assert a.new_session and b.new_session
+    assert whole.status() == apart.status()
 
 
 def test_push_error_message_does_not_echo_input():

@@ -166,6 +166,40 @@ def test_bad_readings_are_counted_and_the_rest_kept():
                             "missing_axis": 1, "bad_reading": 1, "no_name": 1}
 
 
+def test_a_message_is_read_apart_from_the_stream_then_taken_as_decode_would():
+    """read() (the part the server runs on a worker thread) touches no state of the
+    stream; take() of what it read gives what decode() gives, counters included; a
+    duplicate's bad readings are not counted twice."""
+    payload = [rd("gyroscope", T0 + k * 10_000_000, x=0.1 * k, y=0.0, z=0.0) for k in range(5)]
+    payload += [rd("barometer", T0, pressure=1013.2), rd("gyroscope", "soon", x=0.0, y=0.0, z=0.0),
+                rd("gyroscope", T0 + 99, x=float("nan"), y=0.0, z=0.0)]
+    raw = body(payload, mid=7)
+    whole, apart = stream(), stream()
+    before = json.dumps(apart.status(), sort_keys=True)
+    read = SensorLoggerStream.read(raw)
+    read_again = apart.read(raw)
+    assert json.dumps(apart.status(), sort_keys=True) == before    # nothing seen yet
+    assert read.key == ("d-1", "s-1") and read.mid == 7
+    a = whole.decode(raw, 5.0)
+    b = apart.take(read, 5.0)
+    assert [(s.tag, s.time_ms, s.values) for s in a.samples] == \
+           [(s.tag, s.time_ms, s.values) for s in b.samples]
+    assert len(b.samples) == 5
+    assert whole.status() == apart.status()
+    assert apart.status()["invalid"] == {"bad_time": 1, "not_finite": 1}
+    assert apart.status()["ignored"] == {"barometer": 1}
+    # the same message again is a duplicate: dropped whole, its bad readings not counted
+    assert apart.take(read_again, 5.1).samples == []
+    assert apart.status()["duplicates"] == 1
+    assert apart.status()["invalid"] == {"bad_time": 1, "not_finite": 1}
+    # what read refuses is counted by the stream only when told
+    with pytest.raises(SensorLoggerError) as e:
+        SensorLoggerStream.read(b"[1, 2]")
+    assert apart.status()["rejected"] == {}
+    apart.count_rejected(e.value)
+    assert apart.status()["rejected"] == {"bad_shape": 1}
+
+
 def test_nan_inf_and_absurd_values_are_counted_and_skipped():
     st = stream()
     text = ('{"messageId": 1, "sessionId": "s", "deviceId": "d", "payload": ['
