@@ -12,9 +12,15 @@ What it prints:
   percentile; the handler only parses, enqueues and answers;
 - the engine's latency (arrival -> the primary's pose queued on viser, every sample, from
   ``/api/stats``) and the server's CPU (% of one core), to compare with
-  ``dashboard_load.py``'s figures for the TCP phone.
+  ``dashboard_load.py``'s figures for the TCP phone;
+- then **one long batch** (``--long`` seconds of the same phone in one message, near the
+  16 MB push cap; a phone that was cut off and sends what it kept): its handler latency,
+  and ``GET /api/health`` asked back to back meanwhile: how long the server was held up
+  (the slowest health answer) while it read the batch.
 
-Run: ``.venv/bin/python benchmarks/push_latency.py [--seconds 20]``. Loopback only.
+Run: ``.venv/bin/python benchmarks/push_latency.py [--seconds 20] [--long 50]``. Loopback
+only. For a before/after figure, run the script from another checkout (it serves the tree
+it sits in).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -64,13 +71,50 @@ def batch(sim: Simulation, k: int, msg_id: int) -> bytes:
                        "payload": payload}).encode()
 
 
+def long_batch(sim: Simulation, k0: int, seconds: int, msg_id: int) -> bytes:
+    """Seconds ``k0`` .. ``k0 + seconds`` of the simulated phone as one message."""
+    payload = []
+    for k in range(k0, k0 + seconds):
+        payload += json.loads(batch(sim, k, 0))["payload"]
+    return json.dumps({"messageId": msg_id, "sessionId": "bench", "deviceId": "bench",
+                       "payload": payload}).encode()
+
+
+def held_up(http, body: bytes) -> tuple[float, list[float]]:
+    """POST ``body`` while another client asks /api/health back to back: the POST's
+    latency (ms) and each health answer's (ms) while it ran."""
+    done = threading.Event()
+    health: list[float] = []
+
+    def poll():
+        with httpx.Client(base_url=http.base_url, timeout=30.0) as h:
+            while not done.is_set():
+                s = time.perf_counter()
+                h.get("/api/health")
+                health.append((time.perf_counter() - s) * 1000.0)
+                time.sleep(0.005)
+
+    th = threading.Thread(target=poll)
+    th.start()
+    time.sleep(0.3)
+    s = time.perf_counter()
+    r = http.post("/sensorlogger", content=body, headers={"Content-Type": "application/json"})
+    took = (time.perf_counter() - s) * 1000.0
+    done.set()
+    th.join()
+    assert r.status_code == 200, r.text
+    return took, health
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=int, default=20)
     ap.add_argument("--variants", type=int, default=2)
+    ap.add_argument("--long", type=int, default=50, help="seconds in the long batch (0: none)")
     args = ap.parse_args()
     sim = Simulation(SimConfig())
     bodies = [batch(sim, k, k + 1) for k in range(args.seconds + 3)]
+    long_body = long_batch(sim, len(bodies), args.long, len(bodies) + 1) if args.long else b""
     port, vport, pport = free_port(), free_port(), free_port()
     proc = start_server(port, vport, pport, args.variants)
     try:
@@ -106,6 +150,14 @@ def main() -> int:
             print(f"  engine (arrival -> pose on viser): p50 {e['median']:.2f} ms, "
                   f"p99 {e['p99']:.2f} ms over {e['n']} samples")
             print(f"  server CPU: {cpu:.1f} % of one core (with {args.variants} variants)")
+            if long_body:
+                took, health = held_up(http, long_body)
+                h = np.array(health)
+                print(f"one long batch: {args.long} s of the same phone in one message "
+                      f"({len(long_body) / 1e6:.1f} MB):")
+                print(f"  latency (request sent -> 200): {took:.0f} ms")
+                print(f"  /api/health meanwhile: {len(h)} answers, slowest {h.max():.0f} ms, "
+                      f"median {np.median(h):.0f} ms (the longest the server was held up)")
     finally:
         proc.send_signal(2)
         proc.wait(10)

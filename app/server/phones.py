@@ -9,7 +9,8 @@ shared phone slot (:class:`~app.sources.slot.PhoneSlot`, the same the TCP receiv
   Logger gets a 499 with the reason, which the app shows; phyphox an error status, which
   it shows as a network error);
 - a phone takes the slot with its first valid sample; its samples go to the engine as
-  every source's do (``engine.feed``); the handler parses, enqueues and answers, it never
+  every source's do (``engine.feed``); the handler reads the body (JSON, readings to
+  arrays) on a worker thread, then decodes, enqueues and answers on the loop; it never
   filters on the request path;
 - a push stream that has sent nothing for ``push_end_s`` seconds has ended (the app
   stopped recording): its held messages are released and its stream is closed;
@@ -78,30 +79,34 @@ class HttpPhones:
         self.poller: PhyphoxPoller | None = None
         self.poll_task: asyncio.Task | None = None
         self.conventions: dict[str, str] = {}     # Sensor Logger: the presenter's choice
+        self._reading = asyncio.Lock()
 
     # ------------------------------------------------------------------ pushes
-    def push(self, phone_app: str, body: bytes, client: str) -> Reply:
-        """One POST of a push app (``sensorlogger`` or ``phyphox``) from ``client``."""
+    async def push(self, phone_app: str, body: bytes, client: str) -> Reply:
+        """One POST of a push app (``sensorlogger`` or ``phyphox``) from ``client``. The
+        body is read (JSON, readings to arrays) on a worker thread, so a long batch does not
+        hold the server up while it is read; the stream's state sees it on the event loop."""
         c = self.counts[phone_app]
         c.requests += 1
         now = time.time()
-        why = self.slot.refusal(phone_app, client)
-        if why is not None:
-            c.refused += 1
-            self.slot.count_refusal(why)
-            self.engine.core.totals.count_refused()
-            return Reply(499 if phone_app == "sensorlogger" else 409, why)
-        st = self.streams.get((phone_app, client))
-        if st is None:
-            st = Stream(phone_app, client, self._decoder(phone_app))
-            self.streams[(phone_app, client)] = st
+        refused = self._refused(phone_app, client)
+        if refused is not None:
+            return refused
+        decoder = self._stream(phone_app, client).decoder
         try:
-            batch = st.decoder.decode(body, now)
+            async with self._reading:    # one body at a time: parallel reads are no faster
+                read = await asyncio.to_thread(decoder.read, body)     # (the GIL), only larger
         except (SensorLoggerError, PhyphoxError) as e:
-            c.bad[e.reason] += 1
-            if st.session is not None:
-                st.session.count_malformed(e.reason)
-            return Reply(400, str(e)[:200])
+            return self._malformed(self._stream(phone_app, client), e)
+        # while it was read, another phone may have taken the slot, or this stream ended
+        refused = self._refused(phone_app, client)
+        if refused is not None:
+            return refused
+        st = self._stream(phone_app, client)
+        try:
+            batch = st.decoder.take(read, now)
+        except (SensorLoggerError, PhyphoxError) as e:
+            return self._malformed(st, e)
         st.last_rx = time.monotonic()
         ended = getattr(batch, "ended", None)
         if ended and st.session is not None and st.session.open:   # the old recording's tail
@@ -110,6 +115,31 @@ class HttpPhones:
         # are this phone's data too: it takes the slot with them
         self._deliver(st, batch.samples, batch.new_session, st.decoder.waiting)
         return Reply(200, "")
+
+    def _refused(self, phone_app: str, client: str) -> Reply | None:
+        """The answer to a phone the slot turns away (counted), or None."""
+        why = self.slot.refusal(phone_app, client)
+        if why is None:
+            return None
+        self.counts[phone_app].refused += 1
+        self.slot.count_refusal(why)
+        self.engine.core.totals.count_refused()
+        return Reply(499 if phone_app == "sensorlogger" else 409, why)
+
+    def _stream(self, phone_app: str, client: str) -> Stream:
+        st = self.streams.get((phone_app, client))
+        if st is None:
+            st = Stream(phone_app, client, self._decoder(phone_app))
+            self.streams[(phone_app, client)] = st
+        return st
+
+    def _malformed(self, st: Stream, e: SensorLoggerError | PhyphoxError) -> Reply:
+        """A body that cannot be used: counted, answered 400 with the reason."""
+        st.decoder.count_rejected(e)
+        self.counts[st.phone_app].bad[e.reason] += 1
+        if st.session is not None:
+            st.session.count_malformed(e.reason)
+        return Reply(400, str(e)[:200])
 
     def _decoder(self, phone_app: str):
         if phone_app == "sensorlogger":

@@ -6,7 +6,7 @@ none; the phone slot decides who streams).
 - ``GET /phyphox/orientlab.phyphox``: that experiment, with this PC's LAN address baked
   in (phyphox loads it from the QR code on the Connect tab).
 
-Each answers at once: parse, enqueue, reply (200; 400 with the reason for a malformed
+Each answers at once: read the body (on a worker thread), enqueue, reply (200; 400 with the reason for a malformed
 body; 413 over the body cap; Sensor Logger 499 with the reason, which the app shows,
 when another phone holds the slot; phyphox 409, which it shows as a network error).
 """
@@ -25,7 +25,7 @@ router = APIRouter(tags=["phones"], dependencies=[Depends(phone_push)])
 async def _push(request: Request, phone_app: str) -> PlainTextResponse:
     body = await request.body()
     client = request.client.host if request.client else "?"
-    reply = request.app.state.http_phones.push(phone_app, body, client)
+    reply = await request.app.state.http_phones.push(phone_app, body, client)
     return PlainTextResponse(reply.text, status_code=reply.status)
 
 
