@@ -34,7 +34,7 @@ class Reason(IntEnum):
     USED = 0        # the update was made
     ABSENT = 1      # no sample of this sensor in the row
     DISABLED = 2    # switched off by use_gyr / use_acc / use_mag
-    INVALID = 3     # NaN, infinite or all-zero vector (bad input)
+    INVALID = 3     # NaN, infinite, or an all-zero accelerometer or magnetometer (bad input)
     NORM = 4        # |a| or |m| outside its band (value: the norm, m/s² or µT)
     NIS = 5         # innovation (Mahalanobis) gate (value: NIS)
     DIP = 6         # magnetic dip angle off the learned reference (value: deviation, rad)
@@ -67,7 +67,7 @@ REASON_TEXT = {
     Reason.USED: "used",
     Reason.ABSENT: "no sample",
     Reason.DISABLED: "switched off",
-    Reason.INVALID: "invalid value (NaN, inf or zero)",
+    Reason.INVALID: "invalid value (NaN, inf, or an all-zero acc or mag)",
     Reason.NORM: "norm outside its band",
     Reason.NIS: "innovation gate (NIS) exceeded",
     Reason.DIP: "dip angle off the reference",
@@ -143,9 +143,11 @@ def new_flags():
 
 
 @compiled
-def vector_state(v, enabled):
+def vector_state(v, enabled, zero_ok):
     """Reason for a sensor sample before any gate: ABSENT (all NaN), DISABLED,
-    INVALID (some NaN, inf, or all zero) or USED (fit to try)."""
+    INVALID (some NaN, inf, or all zero unless ``zero_ok``) or USED (fit to try). An
+    all-zero accelerometer or magnetometer reading is an app's placeholder (no phone at
+    rest reads it); a gyroscope at rest does read 0, 0, 0 once its output is quantised."""
     n_nan = 0
     n_zero = 0
     for i in range(3):
@@ -159,7 +161,7 @@ def vector_state(v, enabled):
         return R_ABSENT
     if not enabled:
         return R_DISABLED
-    if n_nan > 0 or n_zero == 3:
+    if n_nan > 0 or (n_zero == 3 and not zero_ok):
         return R_INVALID
     return R_USED
 
@@ -211,8 +213,8 @@ def row_prologue(t_prev, t, max_gap, seen, gyr, acc, mag, use_gyr, use_acc, use_
     dt, issue = time_step(t_prev, t, max_gap)
     if issue != T_BACKWARD:
         issue, seen = repeated_time(issue, seen, row_mask(gyr, acc, mag))
-    return (dt, issue, seen, vector_state(gyr, use_gyr), vector_state(acc, use_acc),
-            vector_state(mag, use_mag))
+    return (dt, issue, seen, vector_state(gyr, use_gyr, True), vector_state(acc, use_acc, False),
+            vector_state(mag, use_mag, False))
 
 
 # Slots of the row bookkeeping every estimator's state carries (the first five of a

@@ -200,8 +200,7 @@ def test_converges_after_an_unseen_jump(q_end):
 
 
 def test_time_constant_is_tau():
-    """A small unseen jump decays like exp(-t/tau): about e^-1 left after tau.
-    (Little noise, not none: an all-zero gyroscope sample is flagged invalid.)"""
+    """A small unseen jump decays like exp(-t/tau): about e^-1 left after tau."""
     tau = 1.0
     t, gyr, acc, mag, truth = synth(POSES[5], T=4.0, noise=0.1,
                                     q_jump=(1.0, qm.quat_mul(qaxis(0, 10 * DEG), POSES[5])))

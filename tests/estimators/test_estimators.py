@@ -459,6 +459,8 @@ def test_bad_input_is_flagged_never_fatal_never_nan(name):
     acc[101] = np.inf
     mag[102] = 0.0
     gyr[103] = [np.nan, 0.1, 0.2]
+    gyr[104] = 0.0              # a quantised gyroscope at rest: a reading, not a placeholder
+    acc[105] = 0.0              # an app's placeholder
     t = t.copy()
     t[200] = t[199]             # repeated timestamp
     t[300] = t[299] - 0.5       # backward
@@ -470,12 +472,15 @@ def test_bad_input_is_flagged_never_fatal_never_nan(name):
     assert res.flags[101, F_ACC] == Reason.INVALID
     assert res.flags[102, F_MAG] == Reason.INVALID
     assert res.flags[103, F_GYR] == Reason.INVALID
+    assert res.flags[104, F_GYR] == Reason.USED
+    assert res.flags[105, F_ACC] == Reason.INVALID
     assert res.flags[200, F_TIME] == TimeIssue.REPEATED
     assert res.flags[300, F_TIME] == TimeIssue.BACKWARD
     assert res.flags[300, F_ACC] == Reason.LATE
     assert res.flags[400, F_TIME] == TimeIssue.GAP
     counts = res.counts()
-    assert counts["acc"]["invalid"] == 2 and counts["time"]["backward"] == 1
+    assert counts["acc"]["invalid"] == 3 and counts["gyr"]["invalid"] == 1
+    assert counts["time"]["backward"] == 1
     # and it still ends where it should
     total, _, _ = qm.error_angles(res.q[-50:], np.tile(q_true, (50, 1)))
     assert np.max(total) * DEG < 5.0
