@@ -262,3 +262,30 @@ def test_error_messages_do_not_echo_long_input(srv, api):
     r = api.post("/api/inject", content=b'{"kind": "' + b"C" * 5000 + b'"',
                  headers={"Content-Type": "application/json"})
     assert r.status_code == 422 and "C" * 100 not in r.text and '"input"' not in r.text, r.text[:300]
+
+
+def test_a_storm_of_primary_changes_settles():
+    """Concurrent PATCHes of the primary (a presenter's script, a double click): the page's
+    menu is set after each, and viser calls its callback for that too. It posted the value
+    back, so two changes in flight swapped the primary for ever (thousands of parameter
+    events a second in every recording). After the storm nothing may change."""
+    import asyncio
+    with running_server() as s:
+        changes = []
+        s.engine.param_listeners.append(lambda: changes.append(time.monotonic()))
+
+        async def storm():
+            async with httpx.AsyncClient(base_url=s.url, timeout=30,
+                                         limits=httpx.Limits(max_connections=10)) as c:
+                await asyncio.gather(*([c.post("/api/reset") for _ in range(20)]
+                                       + [c.patch("/api/params", json={"primary": ("lab", "robust")[i % 2]})
+                                          for i in range(20)]))
+        asyncio.run(storm())
+        time.sleep(2.0)
+        n = len(changes)
+        time.sleep(2.0)
+        assert len(changes) == n, f"{len(changes) - n} parameter changes in 2 s after the storm"
+        assert n <= 45            # the 40 requests' own changes, not more
+        primary = httpx.get(s.url + "/api/params").json()["primary"]
+        time.sleep(0.5)
+        assert httpx.get(s.url + "/api/params").json()["primary"] == primary

@@ -94,7 +94,7 @@ class Gui:
                 "Primary estimator", engine.core.ensemble.names, initial_value=engine.core.ensemble.primary,
                 hint="The estimator drawn as the phone, plotted and shown in the read-outs; "
                      "every estimator runs on every sample.")
-            self.primary.on_update(lambda ev: self._submit({"primary": self.primary.value}, ev))
+            self.primary.on_update(self._on_primary)
             reset = gui.add_button("Reset filters", hint="Forget the orientation and align again "
                                                          "from the next samples.")
             reset.on_click(lambda ev: self._submit({"reset": True}, ev))
@@ -226,6 +226,14 @@ class Gui:
         d = np.degrees(bias)
         self._notify(ev, "Gyroscope bias set", f"{', '.join(names)}: gyr_bias = "
                      f"({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) deg/s", color="green")
+
+    def _on_primary(self, ev) -> None:
+        """A viewer picked a primary. Not when :meth:`sync` set the menu (viser calls the
+        callback for a value set from here too): posting that value back made two changes in
+        flight swap the primary for ever, a change per sample in every recording."""
+        if self._ignored() or ev.client is None or self.primary.value == self.engine.core.ensemble.primary:
+            return
+        self._submit({"primary": self.primary.value}, ev)
 
     def _ignored(self) -> bool:
         """True for callbacks fired by :meth:`sync` itself (same thread, during sync)."""
