@@ -73,6 +73,11 @@ class Session:
             self.orderer.counters.malformed[reason] += n
             self.lines += n
 
+    def count_late(self, n: int) -> None:
+        """Samples the source dropped as too late to be put in order (``counts.late``, as
+        the orderer counts its own)."""
+        self.orderer.counters.late += n
+
     def count_processed(self, n: int) -> None:
         self.samples += n
 

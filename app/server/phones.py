@@ -114,6 +114,9 @@ class HttpPhones:
         # samples held by the decoder (Sensor Logger's first ones, while the sign is unknown)
         # are this phone's data too: it takes the slot with them
         self._deliver(st, batch.samples, batch.new_session, st.decoder.waiting)
+        late = getattr(batch, "late", 0)
+        if late and st.session is not None:
+            st.session.count_late(late)
         return Reply(200, "")
 
     def _refused(self, phone_app: str, client: str) -> Reply | None:

@@ -40,7 +40,9 @@ guessed sign, they would align the filters upside down.
 *Messages.* ``messageId`` grows by one per message of a session. A message is released
 at once when it is the next one (or the first); one that arrives ahead of a missing one
 is held until the missing one comes or ``hold_s`` has passed (then the gap is counted);
-a late one (its place given up) is released at once; a duplicate is dropped whole.
+a late one (its place given up) is released at once, less its readings more than 2 s
+behind the newest released (``_STALE_NS``: dropped, counted ``late_readings``); a
+duplicate is dropped whole.
 What is released together is sorted per sensor (exact duplicate times dropped) and
 merged by time; the downstream SampleOrderer does the fine cross-sensor ordering.
 
@@ -93,6 +95,10 @@ _SOURCES = {
     "ORI": ("orientation",),
 }
 _MAX_IGNORED_NAMES = 50     # distinct unknown names kept in the counter
+# A late message's readings this far behind the newest released are dropped and counted
+# late: the downstream orderer would take a run of them for the phone's clock stepping back
+# (its jump_s, 2 s) and move the stream's clock on by seconds for good
+_STALE_NS = 2_000_000_000
 _PAIR_MAX_NS = 100_000_000  # accelerometer/gravity pairing: at most 0.1 s apart
 _RATE_HISTORY = 256
 _NUM = frozenset((int, float))    # JSON numbers (bool is not one)
@@ -117,6 +123,7 @@ class Batch:
     samples: list[Sample]
     new_session: bool
     ended: list[Sample] = field(default_factory=list)
+    late: int = 0          # readings of a late message dropped as too late (``_STALE_NS``)
 
 
 def _by_time(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -415,6 +422,7 @@ class SensorLoggerStream:
         self.out_of_order = 0
         self.duplicates = 0
         self.late = 0
+        self.late_readings = 0                 # of late messages, dropped (_STALE_NS)
         self.ignored: Counter = Counter()
         self.invalid: Counter = Counter()
         self.unused: Counter = Counter()       # readings of a source not chosen
@@ -555,6 +563,7 @@ class SensorLoggerStream:
             self.duplicates += 1
             return Batch(self.due(now), new_session, ended)
         self.messages += 1
+        dropped = 0
         self.invalid.update(r.invalid)
         for name, n in r.ignored.items():
             if name in self.ignored or len(self.ignored) < _MAX_IGNORED_NAMES:
@@ -580,6 +589,7 @@ class SensorLoggerStream:
             elif mid < self._next:         # its place was given up: late
                 self.late += 1
                 self.gaps = max(0, self.gaps - 1)
+                dropped = self._drop_stale(m)
                 release.append(m)
             else:
                 self._held[mid] = m
@@ -587,7 +597,25 @@ class SensorLoggerStream:
                 lo = self._next - 2048
                 self._seen = {i for i in self._seen if i >= lo}
         release = self._timed_out(now) + release
-        return Batch(self._emit(release), new_session, ended)
+        return Batch(self._emit(release), new_session, ended, dropped)
+
+    def _drop_stale(self, m: _Message) -> int:
+        """Drop a late message's readings more than ``_STALE_NS`` behind the newest
+        released (counted in ``late_readings``); how many went."""
+        if self._last_ms is None:
+            return 0
+        limit = int(self._last_ms * 1e6) - _STALE_NS
+        n = 0
+        for name, (T, V) in list(m.groups.items()):
+            keep = T >= limit
+            if not keep.all():
+                n += int((~keep).sum())
+                if keep.any():
+                    m.groups[name] = (T[keep], V[keep])
+                else:
+                    del m.groups[name]
+        self.late_readings += n
+        return n
 
     def _run(self) -> list[_Message]:
         out = []
@@ -880,7 +908,7 @@ class SensorLoggerStream:
             "messages": self.messages,
             "gaps": self.gaps,
             "out_of_order": self.out_of_order,
-            "late": self.late,
+            "late": self.late, "late_readings": self.late_readings,
             "duplicates": self.duplicates,
             "held": len(self._held),
             "rejected": dict(self.rejected),

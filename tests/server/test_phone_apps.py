@@ -69,6 +69,30 @@ def test_sensor_logger_pushes_become_the_stream_on_the_phones_clock(shared_dir, 
         assert httpx.get(srv.url + "/api/info").json()["lan_ip"] is None
 
 
+@pytest.mark.shared
+def test_a_sensor_logger_message_seconds_late_leaves_the_clock_alone(shared_dir):
+    """Message 8 arrives after 12 (Wi-Fi held it): its place was given up 1.5 s after 9
+    came. Its readings were released late, and the orderer took a run of readings 5 s
+    behind for the phone's clock stepping back: it moved the stream's time on by 5 s for
+    good (every tag's clock offset -5 s, counts.jumps 2, late 0). Now those readings are
+    dropped and counted late, and the clock stays the phone's."""
+    from tyrex_sensorlogger import messages_android
+    bodies = messages_android(_trial(shared_dir, NEXUS), 1.0, seconds=16)
+    order = list(range(8)) + list(range(9, 13)) + [8] + list(range(13, len(bodies)))
+    with running_server() as srv, _client(srv) as phone:
+        for i in order:
+            r = phone.post("/sensorlogger", content=bodies[i])
+            assert r.status_code == 200, r.text
+            time.sleep(0.5)
+        wait_for(lambda: _state(srv)["counts"]["late"] > 0, 10, what="late readings counted")
+        st = _state(srv)
+        assert st["counts"]["jumps"] == 0
+        assert all(abs(v) < 0.5 for v in st["clock_offsets_s"].values()), st["clock_offsets_s"]
+        v = httpx.get(srv.url + "/api/connect").json()
+        sl = next(s for s in v["http"]["streams"] if s["app"] == "sensorlogger")
+        assert sl["late"] == 1 and sl["late_readings"] == st["counts"]["late"]
+
+
 def test_bad_pushes_are_refused_with_the_reason_and_nothing_valid_is_lost():
     reading = {"name": "gyroscope", "time": 1760000000013001000,
                "values": {"x": 0.01, "y": 0.0, "z": 0.0}}

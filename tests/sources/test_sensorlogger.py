@@ -293,6 +293,27 @@ def test_first_message_then_an_older_one_is_late_not_lost():
     assert st.status()["out_of_order"] == 1 and st.status()["late"] == 1
 
 
+def test_a_message_seconds_late_keeps_only_what_is_not_seconds_behind():
+    """A message whose place was given up, arriving after seconds of newer ones: its
+    readings more than 2 s behind the newest released would make the orderer take the
+    phone's clock for stepped back (and move the stream's time on by seconds for good).
+    They are dropped and counted late; a reading less late still goes on."""
+    st = stream(hold_s=1.5)
+    for mid in range(1, 8):
+        st.decode(gyro_msg(mid, mid), now=float(mid))
+    for mid in range(9, 13):                         # 8 is missing: given up after 1.5 s
+        st.decode(gyro_msg(mid, mid), now=float(mid))
+    b = st.decode(gyro_msg(8, 8), now=13.0)          # newest released: second 12.5
+    assert b.samples == [] and b.late == 2
+    assert st.status()["late"] == 1 and st.status()["late_readings"] == 2
+    b = st.decode(gyro_msg(13, 13), now=14.0)
+    assert [s.values[0] for s in b.samples] == [13, 13.5] and b.late == 0
+    st.decode(gyro_msg(15, 15), now=15.0)            # 14 missing, given up at 16.5
+    st.decode(gyro_msg(16, 15.3), now=16.6)
+    b = st.decode(gyro_msg(14, 14), now=16.7)         # 1.8 s and 1.3 s behind 15.8: kept
+    assert [s.values[0] for s in b.samples] == [14, 14.5] and b.late == 0
+
+
 def test_duplicate_message_is_dropped_whole():
     st = stream()
     st.decode(gyro_msg(1, 1), now=0.0)
@@ -312,8 +333,9 @@ def test_gap_is_counted_and_released_after_hold_s():
     assert [s.values[0] for s in out] == [7, 7.5, 8, 8.5]
     s = st.status()
     assert s["gaps"] == 2 and s["held"] == 0
-    # 5 comes after all: late, released at once, no longer missing
-    assert len(st.decode(gyro_msg(5, 5), now=12.5).samples) == 2
+    # 5 comes after all: late, released at once, no longer missing (its readings less than
+    # 2 s behind the newest released; further behind, test_a_message_seconds_late_...)
+    assert len(st.decode(gyro_msg(5, 6.6), now=12.5).samples) == 2
     assert st.status()["gaps"] == 1 and st.status()["late"] == 1
     # decode also releases what timed out meanwhile
     st.decode(gyro_msg(10, 10), now=13.0)
