@@ -93,6 +93,23 @@ def test_a_sensor_logger_message_seconds_late_leaves_the_clock_alone(shared_dir)
         assert sl["late"] == 1 and sl["late_readings"] == st["counts"]["late"]
 
 
+def test_resume_demo_is_refused_while_a_phone_streams():
+    """The demo resumes after a phone has left, as the docs say: while one streams,
+    POST /api/source/resume took the stream from it (the Sensor Fusion app's connection
+    reset, the student had to start again). Now 409, and the phone goes on."""
+    with running_server(source="demo") as srv, Phone(srv.phone_port) as ph:
+        lines = [f"{t} ACC 0.0 0.0 9.81" for t in range(1000, 3000, 10)]
+        ph.send_lines(lines[:100])
+        wait_for(lambda: _state(srv)["source"] == "phone", 20, what="the phone streams")
+        r = httpx.post(srv.url + "/api/source/resume")
+        assert r.status_code == 409 and "phone is streaming" in r.json()["detail"]
+        ph.send_lines(lines[100:])
+        wait_for(lambda: _state(srv)["counts"]["lines"] == len(lines), 20, what="every line")
+        assert _state(srv)["source"] == "phone" and not ph.closed_by_server(0.5)
+    with running_server(source="demo") as srv:
+        assert httpx.post(srv.url + "/api/source/resume").json() == {"ok": True}
+
+
 def test_bad_pushes_are_refused_with_the_reason_and_nothing_valid_is_lost():
     reading = {"name": "gyroscope", "time": 1760000000013001000,
                "values": {"x": 0.01, "y": 0.0, "z": 0.0}}

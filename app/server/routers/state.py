@@ -3,7 +3,7 @@
 import asyncio
 import contextlib
 
-from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket, WebSocketDisconnect
 
 from app.server.access import require_presenter, websocket_origin_ok
 
@@ -32,7 +32,11 @@ async def stats(request: Request, reset: bool = False, engine: Engine = Depends(
 
 @router.post("/api/source/resume", dependencies=[Depends(require_presenter)])
 async def resume(engine: Engine = Depends(get_engine)) -> dict:
-    """Restart the demo (or log replay) after a phone has left."""
+    """Restart the demo (or log replay) after a phone has left; 409 while a phone streams
+    (the demo would take the stream from it)."""
+    s = engine.core.session
+    if s is not None and s.open and s.kind == "phone":
+        raise HTTPException(409, "a phone is streaming: the demo resumes after it has left")
     engine.resume_background()
     return {"ok": True}
 
