@@ -224,6 +224,14 @@ def test_replay_a_recording_with_pause_speed_and_seek(tmp_path, still_log):
         r = api.post("/api/replay", json={"name": "dropped", "speed": 4.0, "loop": False})
         assert r.status_code == 200, r.text
         wait_for(lambda: api.get("/api/replay").json()["position_s"] > 2.0, what="replay moving")
+        # while it plays, Seek is left to the viewer: the refresh wrote the playhead into
+        # it several times a second and overwrote what a student typed into its box
+        tab = s.app.state.toolkit_tab
+        seek0 = tab.rp_seek.value
+        import time
+        time.sleep(1.5)
+        assert api.get("/api/replay").json()["position_s"] > seek0 + 3.0
+        assert tab.rp_seek.value == seek0
         st = api.post("/api/replay", json={"paused": True}).json()
         pos = st["position_s"]
         n = _state(api)["counts"]["samples"]

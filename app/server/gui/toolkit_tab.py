@@ -309,6 +309,7 @@ class ToolkitTab:
             db.on_click(lambda ev: self._replay(ev, {"stop": True}))
             self.rp_md = gui.add_markdown("")
             self._seek_moved = 0.0                  # when a viewer last moved the seek slider
+            self._rp_key: tuple | None = None        # (replay, restarts) the slider last showed
         with gui.add_folder("What-if (re-run a recording)", expand_by_default=False):
             self.whatif = WhatIfPanel(gui, self.tk, self._call, self._notify, self._plot)
         with gui.add_folder("Variants", expand_by_default=False):
@@ -616,13 +617,19 @@ class ToolkitTab:
                 self.rp_seek.max = dur
             # the controls show the replay as it is (a new replay starts at 1x; the API may
             # change it): a value left from before would be taken for the state, and typing
-            # it again changes nothing. Seek follows the playhead, unless just moved.
+            # it again changes nothing. Seek shows the playhead of a new replay, of a restart
+            # at its end and of a paused one, unless just moved; not while it plays (the
+            # status line below shows the playhead): set from here several times a second,
+            # the box overwrote what a student was typing into it.
             if self.rp_speed.value != rs["speed"]:
                 self.rp_speed.value = rs["speed"]
             if self.rp_loop.value != rs["loop"]:
                 self.rp_loop.value = rs["loop"]
             pos = min(dur, round(rs["position_s"], 1))
-            if abs(self.rp_seek.value - pos) >= 0.5 and time.monotonic() - self._seek_moved > 2.0:
+            key = (rs["name"], rs["loops"])
+            follow = rs["paused"] or key != self._rp_key
+            self._rp_key = key
+            if follow and abs(self.rp_seek.value - pos) >= 0.05 and time.monotonic() - self._seek_moved > 2.0:
                 self.rp_seek.value = pos
             self.rp_md.content = (f"`{rs['name']}` {rs['position_s']:.1f} / {rs['duration_s']:.1f} s, "
                                   f"{rs['speed']:g}x" + (", **paused**" if rs["paused"] else "")
