@@ -110,6 +110,17 @@ def test_resume_demo_is_refused_while_a_phone_streams():
         assert httpx.post(srv.url + "/api/source/resume").json() == {"ok": True}
 
 
+def test_the_slot_takes_true_or_false_only():
+    """{"locked": "yes"} locked the slot (FastAPI read the text as true): a typo in a
+    presenter's script shut every phone out. JSON booleans only; the rest is refused."""
+    with running_server() as srv:
+        for body in ({"locked": "yes"}, {"locked": 1}, {"release": "true"}):
+            r = httpx.post(srv.url + "/api/phone", json=body)
+            assert r.status_code == 422 and list(body)[0] in r.text, (body, r.text)
+        assert httpx.get(srv.url + "/api/phone").json()["locked"] is False
+        assert httpx.post(srv.url + "/api/phone", json={"locked": True}).json()["locked"] is True
+
+
 def test_bad_pushes_are_refused_with_the_reason_and_nothing_valid_is_lost():
     reading = {"name": "gyroscope", "time": 1760000000013001000,
                "values": {"x": 0.01, "y": 0.0, "z": 0.0}}

@@ -2,6 +2,7 @@
 streams, the presenter's lock, the presenter's release)."""
 
 from fastapi import APIRouter, Body, Depends, HTTPException, Request
+from pydantic import StrictBool
 
 from app.server.access import require_presenter
 
@@ -30,11 +31,12 @@ async def phone_status(request: Request) -> dict:
 
 
 @router.post("/phone", dependencies=[Depends(require_presenter)])
-async def phone_control(request: Request, locked: bool | None = Body(None, embed=True),
-                        release: bool | None = Body(None, embed=True)) -> dict:
+async def phone_control(request: Request, locked: StrictBool | None = Body(None, embed=True),
+                        release: StrictBool | None = Body(None, embed=True)) -> dict:
     """``{"locked": true}`` locks the slot (no new phone; the phone streaming now goes
     on), ``{"locked": false}`` unlocks it; ``{"release": true}`` ends the stream of the
-    phone on show (of any app) and keeps that phone out for a while."""
+    phone on show (of any app) and keeps that phone out for a while. JSON true or false
+    only: ``"yes"`` or ``1`` is refused (422), not read as true."""
     if locked is None and not release:
         raise HTTPException(422, [{"loc": ["body"], "msg": "give locked (true/false) and/or "
                                    "release (true)", "type": "value_error"}])
