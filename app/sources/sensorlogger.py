@@ -687,13 +687,19 @@ class SensorLoggerStream:
 
     def _check_dip(self, t_acc, f_android, t_mag, m, t_gyr, w) -> None:
         """Sign of the field's dip against the measured up (f in Android sign, i.e. as
-        it would be *without* negation): negative in the northern hemisphere."""
+        it would be *without* negation): negative in the northern hemisphere. ``f`` is the
+        specific force, used where the phone is still (|f| = g, gyroscope below 0.15
+        rad/s); or the app's gravity (``t_gyr`` None), used moving or not: a recording that
+        starts in motion has no still sample within the session's first seconds."""
         if self._conv_strong or self.platform == "android" or not len(t_acc) or not len(t_mag):
             return
-        ok = np.abs(np.linalg.norm(f_android, axis=1) - G_REST) < 0.4
+        if t_gyr is None:
+            ok = np.linalg.norm(f_android, axis=1) > 0.5 * G_REST
+        else:
+            ok = np.abs(np.linalg.norm(f_android, axis=1) - G_REST) < 0.4
         im, okm = _nearest(t_acc, t_mag, 50_000_000)
         ok &= okm
-        if len(t_gyr):
+        if t_gyr is not None and len(t_gyr):
             ig, okg = _nearest(t_acc, t_gyr, 25_000_000)
             ok &= okg & (np.linalg.norm(w[ig], axis=1) < 0.15)
         if not ok.any():
@@ -789,7 +795,10 @@ class SensorLoggerStream:
                 scale = G_STD if self._looks_in_g(f_and) else 1.0
                 f_and = f_and * scale
             if self._override is None:
-                self._check_dip(t_f, f_and, mag[0], mag[1], gyr[0], gyr[1])
+                if "gravity" in by:     # the app's gravity: no motion in it, moving or not
+                    self._check_dip(by["gravity"][0], by["gravity"][1], mag[0], mag[1], None, None)
+                else:
+                    self._check_dip(t_f, f_and, mag[0], mag[1], gyr[0], gyr[1])
             out["ACC"] = (t_f, f_and)        # Android's sign: the convention is applied at release
         if "orientation" in by:
             out["ORI"] = by["orientation"]   # the app's own: checked at release

@@ -599,6 +599,22 @@ def test_tyrex_standardised_ios_found_from_the_dip(shared_dir):
     check_against_npz(path, out, "ios", tail=0.8)
 
 
+@pytest.mark.parametrize("name,skip", [("iPhone5_Guillaume_NoDist_swinging", 5),
+                                       ("iPhone5_Guillaume_NoDist_runninghand", 8)])
+def test_standardised_ios_found_when_the_recording_starts_in_motion(shared_dir, name, skip):
+    """An iPhone with Standardise on whose recording starts while it swings or runs: the
+    dip was read only from samples at rest (|f| = g, gyroscope still), none came within the
+    session's first 2 s, the app's default (Standardise off) went, and the whole stream was
+    upside down (178 deg off the truth, a reviewer's find). The pushed gravity has no motion
+    in it: its dip against the field decides while the phone moves."""
+    bodies = tx.messages_ios(trial(shared_dir, name), standardise=True, seconds=30)[skip:]
+    st = SensorLoggerStream()          # the real start: samples wait for the sign (2 s)
+    out = tx.deliver(st, bodies)
+    s = st.status()
+    assert s["convention"] == "ios-standardised" and s["convention_source"] == "detected", s
+    check_against_npz(trial(shared_dir, name), out, "ios", tail=1.0)   # every sample's sign
+
+
 def angle_deg(q1, q2):
     dot = np.abs(np.einsum("ij,ij->i", q1, q2))
     return np.degrees(2 * np.arccos(np.clip(dot, 0.0, 1.0)))
