@@ -6,9 +6,10 @@ none; the phone slot decides who streams).
 - ``GET /phyphox/orientlab.phyphox``: that experiment, with this PC's LAN address baked
   in (phyphox loads it from the QR code on the Connect tab).
 
-Each answers at once: read the body (on a worker thread), enqueue, reply (200; 400 with the reason for a malformed
-body; 413 over the body cap; Sensor Logger 499 with the reason, which the app shows,
-when another phone holds the slot; phyphox 409, which it shows as a network error).
+Each answers at once: read the body (on a worker thread), enqueue, reply (200; 400 with
+the reason for a malformed body; 413 over the body cap; Sensor Logger 499 with the
+reason, which the app shows, when another phone holds the slot; phyphox 409, which it
+shows as a network error).
 """
 
 from __future__ import annotations
