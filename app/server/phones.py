@@ -108,15 +108,13 @@ class HttpPhones:
         except (SensorLoggerError, PhyphoxError) as e:
             return self._malformed(st, e)
         st.last_rx = time.monotonic()
-        ended = getattr(batch, "ended", None)
-        if ended and st.session is not None and st.session.open:   # the old recording's tail
-            self.engine.feed(st.session, ended, time.perf_counter())
+        if batch.ended and st.session is not None and st.session.open:   # the old recording's tail
+            self.engine.feed(st.session, batch.ended, time.perf_counter())
         # samples held by the decoder (Sensor Logger's first ones, while the sign is unknown)
         # are this phone's data too: it takes the slot with them
         self._deliver(st, batch.samples, batch.new_session, st.decoder.waiting)
-        late = getattr(batch, "late", 0)
-        if late and st.session is not None:
-            st.session.count_late(late)
+        if batch.late and st.session is not None:
+            st.session.count_late(batch.late)
         return Reply(200, "")
 
     def _refused(self, phone_app: str, client: str) -> Reply | None:

@@ -87,6 +87,10 @@ class Batch:
     whether they start a new experiment session (the consumer resets its state)."""
     samples: list[Sample]
     new_session: bool
+    # a push decoder's batch (app.server.phones): phyphox releases no old session's tail
+    # with a new one, and drops and counts its stale samples itself (counts["stale"])
+    ended = ()
+    late = 0
 
 
 # ------------------------------------------------------------------ experiment file
