@@ -14,11 +14,8 @@ One :class:`SensorLoggerStream` holds the state of one phone's push stream::
 
 What it does
 ------------
-*Readings.* ``payload`` is a list of ``{name, time, values, accuracy?}``. Names are
-compared lower-cased. Unknown names (and ``test``) are counted in ``ignored`` and
-skipped; a reading without time or values, with a missing axis, non-numeric,
-non-finite (NaN, inf) or physically impossible values (:func:`~app.sources.samples.impossible`)
-is counted in ``invalid`` by reason and skipped; everything else of the message is kept.
+*Readings* are read off the wire by :mod:`app.sources.sensorlogger_wire` (what is
+counted in ``ignored`` and ``invalid``, and why); this module applies them to a stream.
 
 *Sources.* One source per tag and session, the best one seen: ACC from
 ``totalacceleration`` (Android's specific force, as is), else ``accelerometer`` +
@@ -52,7 +49,6 @@ from the integer so that sub-millisecond precision survives.
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -60,7 +56,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.quaternion import Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul_many
-from app.sources.samples import MAX_TIME_MS, Sample, impossible_rows
+from app.sources.samples import Sample, impossible_rows
+from app.sources.sensorlogger_wire import (MAX_IGNORED_NAMES, SensorLoggerError, WireMessage,
+                                           read_message)
 
 __all__ = ["SensorLoggerError", "Batch", "SensorLoggerStream", "OrientationCheck",
            "CONVENTIONS", "G_STD"]
@@ -71,22 +69,6 @@ G_REST = 9.81
 # the accelerometer's sign: a filter aligned on the wrong sign starts upside down
 START_HOLD_S = 2.0
 CONVENTIONS = ("auto", "android", "ios", "ios-standardised")
-_MAX_NS = 9_000_000_000_000_000_000     # below int64's limit; MAX_TIME_MS is larger
-_MAX_NS = min(_MAX_NS, int(MAX_TIME_MS * 1e6))
-
-_XYZ = ("x", "y", "z")
-_KEYS = {
-    "totalacceleration": _XYZ, "accelerometer": _XYZ, "gravity": _XYZ,
-    "accelerometeruncalibrated": _XYZ, "gyroscope": _XYZ, "gyroscopeuncalibrated": _XYZ,
-    "magnetometer": _XYZ, "magnetometeruncalibrated": _XYZ,
-    "orientation": ("qw", "qx", "qy", "qz"),
-}
-# the limit (samples.VALUE_LIMITS) each reading is checked against
-_LIMIT_TAG = {
-    "totalacceleration": "ACC", "accelerometer": "ACC", "gravity": "ACC",
-    "accelerometeruncalibrated": "ACC", "gyroscope": "GYR", "gyroscopeuncalibrated": "GYR",
-    "magnetometer": "MAG", "magnetometeruncalibrated": "MAG",
-}
 # per tag, the sources in order of preference
 _SOURCES = {
     "ACC": ("totalacceleration", "accelerometer+gravity", "accelerometeruncalibrated"),
@@ -94,24 +76,12 @@ _SOURCES = {
     "MAG": ("magnetometer", "magnetometeruncalibrated"),
     "ORI": ("orientation",),
 }
-_MAX_IGNORED_NAMES = 50     # distinct unknown names kept in the counter
 # A late message's readings this far behind the newest released are dropped and counted
 # late: the downstream orderer would take a run of them for the phone's clock stepping back
 # (its jump_s, 2 s) and move the stream's clock on by seconds for good
 _STALE_NS = 2_000_000_000
 _PAIR_MAX_NS = 100_000_000  # accelerometer/gravity pairing: at most 0.1 s apart
 _RATE_HISTORY = 256
-_NUM = frozenset((int, float))    # JSON numbers (bool is not one)
-
-
-class SensorLoggerError(ValueError):
-    """A message that cannot be used at all; ``reason`` is a short key for counting."""
-
-    def __init__(self, reason: str, detail: str = ""):
-        detail = detail if len(detail) <= 80 else detail[:77] + "..."
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
-        self.detail = detail
 
 
 @dataclass
@@ -286,116 +256,6 @@ def _short(s: str | None) -> str | None:
     return s if len(s) <= 8 else s[:8] + "…"
 
 
-@dataclass
-class _Read:
-    """One message as :meth:`SensorLoggerStream.read` read it, before the stream applies it."""
-    key: tuple[str, str]                 # (deviceId, sessionId)
-    mid: int | None                      # messageId (None: none, or not an integer)
-    bad_mid: bool                        # a messageId that is no integer
-    groups: dict = field(default_factory=dict)     # name -> (times ns, values)
-    latest: int | None = None            # the newest reading's time (ns)
-    accuracy: Counter = field(default_factory=Counter)   # readings with "accuracy", by name
-    ignored: Counter = field(default_factory=Counter)
-    invalid: Counter = field(default_factory=Counter)
-
-
-def _parse(payload: list, out: _Read) -> None:
-    """The readings of a payload into ``out``: per name, times (ns) and values as arrays;
-    what was wrong counted in ``out``'s counters."""
-    rows: dict[str, tuple[list, list]] = {}
-    accuracy, ignored, invalid = out.accuracy, out.ignored, out.invalid
-    for r in payload:
-        if type(r) is not dict:
-            invalid["bad_reading"] += 1
-            continue
-        name = r.get("name")
-        if type(name) is not str:
-            invalid["no_name"] += 1
-            continue
-        keys = _KEYS.get(name)
-        if keys is None:
-            name = name.strip().lower()
-            keys = _KEYS.get(name)
-            if keys is None:
-                if name in ignored or len(ignored) < _MAX_IGNORED_NAMES:
-                    ignored[name[:40]] += 1
-                else:
-                    ignored["(other)"] += 1
-                continue
-        t = r.get("time")
-        if type(t) is not int:
-            if t is None:
-                invalid["no_time"] += 1
-                continue
-            if type(t) is float and math.isfinite(t):
-                t = int(t)
-            else:
-                invalid["bad_time"] += 1
-                continue
-        if t <= 0 or t > _MAX_NS:
-            invalid["bad_time"] += 1
-            continue
-        v = r.get("values")
-        if type(v) is not dict:
-            invalid["no_values"] += 1
-            continue
-        try:
-            if len(keys) == 3:
-                row = (v[keys[0]], v[keys[1]], v[keys[2]])
-            else:
-                row = (v[keys[0]], v[keys[1]], v[keys[2]], v[keys[3]])
-        except KeyError:
-            invalid["missing_axis"] += 1
-            continue
-        if not (type(row[0]) in _NUM and type(row[1]) in _NUM and type(row[2]) in _NUM
-                and (len(row) == 3 or type(row[3]) in _NUM)):
-            invalid["not_numeric"] += 1
-            continue
-        g = rows.get(name)
-        if g is None:
-            g = rows[name] = ([], [])
-        g[0].append(t)
-        g[1].append(row)
-        if "accuracy" in r:
-            accuracy[name] += 1
-    groups = {}
-    latest = None
-    for name, (ts, vs) in rows.items():
-        try:
-            V = np.array(vs, dtype=float)
-        except OverflowError:      # a JSON integer beyond any float
-            fits = [not any(type(a) is int and abs(a) > 1e300 for a in row) for row in vs]
-            invalid["impossible"] += fits.count(False)
-            ts = [t for t, f in zip(ts, fits) if f]
-            vs = [row for row, f in zip(vs, fits) if f]
-            if not vs:
-                continue
-            V = np.array(vs, dtype=float)
-        T = np.array(ts, dtype=np.int64)
-        bad = ~np.isfinite(V).all(axis=1)
-        if bad.any():
-            invalid["not_finite"] += int(bad.sum())
-        lim = _LIMIT_TAG.get(name)
-        if lim is not None:
-            imp = ~bad & impossible_rows(lim, np.where(bad[:, None], 0.0, V))
-        else:   # a quaternion: norm near 1
-            with np.errstate(invalid="ignore"):
-                nq = np.linalg.norm(np.where(bad[:, None], 1.0, V), axis=1)
-            imp = ~bad & ((nq < 0.9) | (nq > 1.1))
-            V = V / np.where(bad | imp, 1.0, nq)[:, None]
-        if imp.any():
-            invalid["impossible"] += int(imp.sum())
-        keep = ~(bad | imp)
-        if not keep.all():
-            T, V = T[keep], V[keep]
-        if len(T):
-            groups[name] = (T, V)
-            mx = int(T.max())
-            latest = mx if latest is None else max(latest, mx)
-    out.groups, out.latest = groups, latest
-
-
-
 class SensorLoggerStream:
     """The state of one phone's push stream (see the module's doc).
 
@@ -498,32 +358,8 @@ class SensorLoggerStream:
             self._set_conv("android", "Android: no sign change", strong=True)
 
     # ------------------------------------------------------------ decoding
-    @staticmethod
-    def read(body: bytes) -> "_Read":
-        """One pushed message off the wire: its JSON and readings as arrays, with what was
-        wrong in them counted. Touches no state of the stream, so a large message can be
-        read on a worker thread while the server goes on; :meth:`take` then applies it.
-        Raises :class:`SensorLoggerError` (not yet counted: :meth:`count_rejected`)."""
-        try:
-            msg = json.loads(body)
-        except (ValueError, UnicodeDecodeError, RecursionError) as e:
-            raise SensorLoggerError("bad_json", f"not JSON ({type(e).__name__}: {e})") from None
-        if not isinstance(msg, dict):
-            raise SensorLoggerError("bad_shape", f"not a JSON object (a {type(msg).__name__})")
-        payload = msg.get("payload")
-        if not isinstance(payload, list):
-            what = "no payload" if payload is None else f"payload is a {type(payload).__name__}, not a list"
-            raise SensorLoggerError("bad_shape", what)
-        mid, bad_mid = msg.get("messageId"), False
-        if type(mid) is not int:
-            if isinstance(mid, float) and mid.is_integer():
-                mid = int(mid)
-            else:
-                bad_mid = mid is not None
-                mid = None
-        r = _Read((str(msg.get("deviceId")), str(msg.get("sessionId"))), mid, bad_mid)
-        _parse(payload, r)
-        return r
+    # one pushed message off the wire (touches no state of a stream: any thread may run it)
+    read = staticmethod(read_message)
 
     def count_rejected(self, e: SensorLoggerError) -> None:
         """Count a message :meth:`read` refused."""
@@ -539,7 +375,7 @@ class SensorLoggerStream:
             raise
         return self.take(r, now)
 
-    def take(self, r: "_Read", now: float) -> Batch:
+    def take(self, r: WireMessage, now: float) -> Batch:
         """A message :meth:`read` read, applied to the stream: the samples it (and what it
         unblocks) releases."""
         key = r.key
@@ -566,7 +402,7 @@ class SensorLoggerStream:
         dropped = 0
         self.invalid.update(r.invalid)
         for name, n in r.ignored.items():
-            if name in self.ignored or len(self.ignored) < _MAX_IGNORED_NAMES:
+            if name in self.ignored or len(self.ignored) < MAX_IGNORED_NAMES:
                 self.ignored[name] += n
             else:
                 self.ignored["(other)"] += n
