@@ -7,7 +7,7 @@ WS /ws/plots client (the page's live plots).
   the page's plots do arrive, with the gates of the primary;
 - once a variant runs beside the builtins, the heading plot follows the stream;
 - a viewer (the 3D view's WebSocket and the plots' together) costs at most 50 kB/s,
-  the plots sending new points 20 times a second.
+  the plots sending new points (each once, decimated) as the stream goes.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import httpx
 import numpy as np
 import websockets
 
+from app.server.gui.plots import POINTS_PER_S
 from harness import ViserClient, play_paced, running_server, wait_for
 
 
@@ -134,10 +135,29 @@ def test_a_viewer_costs_at_most_50_kB_per_second_with_live_plots(tmp_path):
         print(f"viewer: 3D view {v_rate / 1e3:.1f} kB/s + plots {p_rate / 1e3:.1f} kB/s "
               f"({msg_rate:.1f} messages/s)")
         assert v_rate + p_rate <= MAX_VIEWER_BYTES_PER_S
-        assert msg_rate >= 10.0            # the plots get new points 10+ times a second
+        # the plots stream (20 messages a second when the machine keeps up; a loaded CI
+        # machine may bunch them, so this asks only that they keep coming)
+        assert msg_rate >= 5.0
         with plots._lock:
-            deltas = [m for m in plots.msgs[1:] if m["k"] == "d"]
-        assert deltas and all(len((m["pose"] or [[]])[0]) <= 10 for m in deltas)   # new points only
+            msgs = list(plots.msgs)
+        # a delta holds new points only, however late it goes out: each x after the last
+        # one sent, and (decimated, no bin sent twice) at most one per 1/POINTS_PER_S s
+        last_x, n_delta, first_x = None, 0, None
+        for m in msgs:
+            xs = [x for x in (m["pose"] or [[]])[0] if x is not None]
+            if m["k"] == "s":
+                last_x = xs[-1] if xs else None
+                continue
+            if not xs:
+                continue
+            if last_x is not None:
+                assert xs[0] > last_x, f"a delta resent points: {xs[0]} after {last_x}"
+            assert all(b > a for a, b in zip(xs, xs[1:]))
+            first_x = xs[0] if first_x is None else first_x
+            n_delta += len(xs)
+            last_x = xs[-1]
+        assert n_delta > 50
+        assert n_delta <= POINTS_PER_S * (last_x - first_x) + 2
 
 
 def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
