@@ -111,7 +111,7 @@ function describe(v) {
   }
   if (s.kind === "phone" && s.rates_hz) {
     const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));
-    if (r.length) lines.push("rates: " + r.map(([k, x]) => `${k} ${fmt(x)}`).join(" · ") + " Hz");
+    if (r.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${k} <b>stopped</b>` : `${k} ${fmt(x)} Hz`).join(" · "));
   }
   if (s.kind === "phone") {
     const parts = [];

@@ -36,6 +36,8 @@ from app.live.history import History
 from app.live.session import Session, Totals
 from app.sources.slot import PHONE_APPS
 
+SILENT_S = 3.0     # a connected phone sending nothing this long is said to be silent (s)
+
 log = logging.getLogger("orientlab.live")
 
 RecordListener = Callable[[Session, Records], None]    # (session, what one chunk made)
@@ -222,6 +224,10 @@ class LiveCore:
         app = PHONE_APPS.get(s.phone_app, "")
         who = f"phone ({app})" if app else "phone"
         if s.open:
+            silent = s.silent_s
+            if silent >= SILENT_S:
+                return (f"{who} connected, but no samples for {silent:.0f} s: is the app "
+                        "still sending? (showing its last state)")
             return f"{who} streaming"
         return (f"{who} disconnected ({s.close_reason}): showing its last state; "
                 "waiting for a phone")

@@ -86,7 +86,17 @@ class Session:
         return self.orderer.buffered
 
     def rates(self) -> dict[str, float]:
+        """Per sensor tag, its rate (Hz; 0.0: it stopped while the others go on)."""
         return self.orderer.rates()
+
+    def stopped(self) -> frozenset[str]:
+        """The sensor tags that stopped while the stream goes on (a sensor switched off)."""
+        return self.orderer.stopped()
+
+    @property
+    def silent_s(self) -> float:
+        """Seconds (PC clock) since the last samples arrived."""
+        return time.monotonic() - self.last_rx
 
     @property
     def clock_offsets(self) -> dict[str, float]:

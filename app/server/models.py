@@ -89,7 +89,9 @@ class State(BaseModel):
                                         "base.Diagnostics), every field by name: references, "
                                         "gate bands and gates, learned state; null where "
                                         "the estimator has no such thing")
-    rates_hz: dict[str, float | None]
+    rates_hz: dict[str, float | None] = Field(description="per sensor tag (ACC, GYR, MAG, ORI): "
+                                              "its rate; 0: it stopped while the stream goes on; "
+                                              "null: not yet known")
     counts: dict[str, Any] = Field(description="lines, samples, malformed (+ by reason), late, "
                                    "clamped, jumps (the clock re-anchored), tags, updates per "
                                    "estimator and sensor, totals")

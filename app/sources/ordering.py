@@ -82,6 +82,9 @@ from app.sources.sensorfusion import MalformedLine, parse_line
 
 # how many recent timestamps of each tag the rate estimate uses
 RATE_HISTORY = 64
+# a sensor silent this long (stream time) while the others go on has stopped (a phone app
+# batches a sensor by up to a second: three is no batch)
+STOPPED_S = 3.0
 
 
 @dataclass
@@ -174,18 +177,40 @@ class SampleOrderer:
         """Time (s, reference clock) of the last released sample."""
         return None if self._released is None else self._released / 1000.0
 
-    def rates(self) -> dict[str, float]:
-        """Per tag, the sample rate (Hz) over its recent timestamps (NaN until two
-        samples with distinct times)."""
+    def _rates(self) -> dict[str, float]:
         out = {}
         for tag, times in self._recent.items():
             span = (times[-1] - times[0]) / 1000.0 if len(times) > 1 else 0.0
             out[tag] = (len(times) - 1) / span if span > 0.0 else math.nan
         return out
 
+    def rates(self) -> dict[str, float]:
+        """Per tag, the sample rate (Hz) over its recent timestamps (NaN until two
+        samples with distinct times; 0.0 once it has :meth:`stopped`)."""
+        gone = self.stopped()
+        return {tag: 0.0 if tag in gone else r for tag, r in self._rates().items()}
+
+    def stopped(self) -> frozenset[str]:
+        """The motion tags that stopped while the stream goes on (a sensor switched off in
+        the app): their newest time lags the stream's newest by more than
+        :data:`STOPPED_S` s, or 5 of their sample periods if that is longer. A whole
+        stream going quiet is not seen here (its time stands still): that is the arrival
+        clock's business (:attr:`app.live.session.Session.silent_s`)."""
+        if self._newest is None or not self._latest:
+            return frozenset()
+        rates = self._rates()
+        out = set()
+        for tag, t in self._latest.items():
+            r = rates.get(tag, math.nan)
+            limit = max(STOPPED_S, 5.0 / r if r > 0.0 else 0.0) * 1000.0
+            if self._newest - t > limit:
+                out.add(tag)
+        return frozenset(out)
+
     def summary(self) -> dict:
-        """Counters, offsets (s) and rates (Hz) in one plain dict."""
-        return {**self.counters.as_dict(), "offsets_s": self.offsets, "rates_hz": self.rates()}
+        """Counters, offsets (s) and rates (Hz: each sensor's last rate, stopped or not)
+        in one plain dict."""
+        return {**self.counters.as_dict(), "offsets_s": self.offsets, "rates_hz": self._rates()}
 
     # ------------------------------------------------------------ input
     def push_line(self, line: str | bytes) -> list[Sample]:

@@ -433,3 +433,40 @@ def test_the_whatif_goes_to_a_new_primary(srv, api):
         assert tab.whatif.est.value == "complementary"
     finally:
         api.patch("/api/params", json={"primary": "robust"})
+
+
+def test_a_sensor_switched_off_and_a_silent_phone_are_said_so(srv, api):
+    """The phone app stops its magnetometer and its orientation while the stream goes on:
+    their rates read 0 (stopped) and the field's last judgement is gone ("absent", not a
+    stale "disturbed"), the phone's own orientation too; then the app sends nothing, the
+    connection open: the status says so instead of "streaming"."""
+    sim = simulate(("still", "turn_z", "still"), seed=5)
+    lines = sim.lines()
+    t_end = max(s[0] for s in sim.samples)
+    cut = t_end - 6000                         # the last 6 s without MAG and ORI
+    kept = [ln for ln in lines
+            if not (ln.split("\t")[1] in ("MAG", "ORI") and int(ln.split("\t")[0]) > cut)]
+    n_before = api.get("/api/state").json()["counts"].get("total_sessions", 0)
+    with Phone(srv.phone_port) as ph:
+        ph.send_lines(kept)
+        st = wait_for(lambda: (lambda s: s if s["counts"].get("total_sessions", 0) > n_before
+                               and s["t"] is not None and s["t"] * 1000 >= t_end - 100
+                               and s["source"] == "phone" else None)(api.get("/api/state").json()),
+                      what="the stream processed")
+        assert st["rates_hz"]["MAG"] == 0.0 and st["rates_hz"]["ORI"] == 0.0
+        assert st["rates_hz"]["ACC"] == pytest.approx(100.0, rel=0.05)
+        assert st["mag"]["reason"] == "absent" and not st["mag_rejected"]
+        assert st["acc"]["reason"] != "absent"
+        assert st["phone_q"] is None and st["error_to_phone_deg"] is None
+        assert "streaming" in st["status"]
+        stream = api.get("/api/connect").json()["stream"]
+        assert stream["rates_hz"]["MAG"] == 0.0
+        # the page's read-outs say it, the field's indicator is off, no field arrow is drawn
+        gui = srv.app.state.gui
+        wait_for(lambda: "MAG stopped" in gui.readouts.content, 10.0, what="MAG stopped")
+        assert gui.indicators_now.mag is None
+        assert not np.asarray(gui.scene.mag.points).any()
+        # the app goes quiet, the connection stays open
+        st = wait_for(lambda: (lambda s: s if "no samples for" in s["status"] else None)(
+            api.get("/api/state").json()), 15.0, what="the silent status")
+        assert st["source"] == "phone" and "is the app still sending" in st["status"]

@@ -289,3 +289,40 @@ def test_a_frozen_clock_cannot_grow_the_buffer_without_bound():
     assert o.buffered <= 1000
     assert len(out) >= 9000 and o.counters.forced == len(out)
     assert [s.time_ms for s in out] == sorted(s.time_ms for s in out)
+
+
+def _tagged(tags_hz: dict[str, float], t0_s: float, t1_s: float) -> list[Sample]:
+    out = []
+    for tag, hz in tags_hz.items():
+        n = int(round((t1_s - t0_s) * hz))
+        out += [Sample(int(round((t0_s + i / hz) * 1000)), tag, (0.0, 0.0, 1.0)) for i in range(n)]
+    return sorted(out, key=lambda s: s.time_ms)
+
+
+def test_a_sensor_that_stops_while_the_others_go_on_is_stopped_and_its_rate_zero():
+    o = SampleOrderer()
+    for s in _tagged({"ACC": 100, "GYR": 100, "MAG": 50}, 0.0, 5.0):
+        o.push(s)
+    assert o.stopped() == frozenset()
+    for s in _tagged({"ACC": 100, "GYR": 100}, 5.0, 7.5):      # the field switched off
+        o.push(s)
+    assert o.stopped() == frozenset()                        # 2.5 s: could be a batch
+    for s in _tagged({"ACC": 100, "GYR": 100}, 7.5, 9.0):
+        o.push(s)
+    assert o.stopped() == {"MAG"}
+    r = o.rates()
+    assert r["MAG"] == 0.0 and r["ACC"] == pytest.approx(100.0, rel=0.02)
+    assert o.summary()["rates_hz"]["MAG"] == pytest.approx(50.0, rel=0.02)   # a log's own rate
+    for s in _tagged({"ACC": 100, "GYR": 100, "MAG": 50}, 9.0, 9.5):        # back on
+        o.push(s)
+    assert o.stopped() == frozenset() and o.rates()["MAG"] > 0
+
+
+def test_a_slow_sensor_is_stopped_only_after_five_of_its_periods():
+    o = SampleOrderer()
+    for s in _tagged({"ACC": 100, "ORI": 0.25}, 0.0, 12.0):      # ORI every 4 s
+        o.push(s)
+    assert o.stopped() == frozenset()        # ORI 4 s behind ACC: within 5 periods (20 s)
+    for s in _tagged({"ACC": 100}, 12.0, 30.0):
+        o.push(s)
+    assert o.stopped() == {"ORI"}

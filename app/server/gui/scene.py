@@ -368,6 +368,7 @@ class Scene:
         self._has = {"own": False, "truth": False}
         self._shown = {"own": False, "truth": False}
         self._bad = {"acc": False, "mag": False}
+        self._blank = {"acc": True, "mag": True}     # the measured arrow drawn empty
         self._expected: dict[str, np.ndarray] = {}
         self._cone_scale: list[tuple[float, ...]] = [()] * 3
         # the phone in the middle of the 3D view, the arrows beside it, the whole at a
@@ -442,12 +443,24 @@ class Scene:
         if s.acc is not None:
             set_prop(self.grav, "points", _arrow_points(np.clip(R @ s.acc / gn, -2, 2) * ARROW_LEN))
             self._color("acc", self.grav, s.acc_flags, C_ACC)
+            self._blank["acc"] = False
+        else:
+            self._clear("acc", self.grav)
         m0 = expected_field(s.diag)
         mn = float(np.linalg.norm(m0)) if m0 is not None else 50.0
         self._set_expected("mag", self.mag_expected, None if m0 is None else np.asarray(m0) / mn * ARROW_LEN)
         if s.mag is not None:
             set_prop(self.mag, "points", _arrow_points(np.clip(R @ s.mag / mn, -2, 2) * ARROW_LEN))
             self._color("mag", self.mag, s.mag_flags, C_MAG)
+            self._blank["mag"] = False
+        else:
+            self._clear("mag", self.mag)
+
+    def _clear(self, key: str, handle) -> None:
+        """No measured arrow (the sensor stopped, or has not started): once, not a frame."""
+        if not self._blank[key]:
+            set_prop(handle, "points", _arrow_points(None))
+            self._blank[key] = True
 
     def _set_expected(self, key: str, handle, vec) -> None:
         """Expected directions rarely change: send them only when they do."""
