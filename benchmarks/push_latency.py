@@ -8,6 +8,9 @@ totalacceleration and accelerometer 400 Hz, gravity and orientation 200 Hz,
 magnetometer 100 Hz: 1,700 readings, about 290 kB of JSON), for ``--seconds``.
 
 What it prints:
+- the decoder alone, in this process (no server): per 1 s message, the time
+  :meth:`SensorLoggerStream.read` (JSON to arrays, on a worker thread in the server) and
+  :meth:`SensorLoggerStream.take` (order and release, on the event loop) take;
 - the handler's latency, client side (request sent -> 200 received): median and 99th
   percentile; the handler only parses, enqueues and answers;
 - the engine's latency (arrival -> the primary's pose queued on viser, every sample, from
@@ -43,6 +46,7 @@ from dashboard_load import cpu_seconds, start_server  # noqa: E402
 from harness import free_port, wait_for  # noqa: E402
 from app.sources.simulate import SimConfig, Simulation  # noqa: E402
 from app.quaternion import rotate_inv_many  # noqa: E402
+from app.sources.sensorlogger import SensorLoggerStream  # noqa: E402
 
 EPOCH_NS = 1_760_000_000_000_000_000
 RATES = {"gyroscope": 400, "totalacceleration": 400, "accelerometer": 400, "gravity": 200,
@@ -80,6 +84,26 @@ def long_batch(sim: Simulation, k0: int, seconds: int, msg_id: int) -> bytes:
                        "payload": payload}).encode()
 
 
+def decoder_alone(bodies: list[bytes]) -> None:
+    """:meth:`SensorLoggerStream.read` and :meth:`~SensorLoggerStream.take` per message,
+    in this process (the first three messages warm up)."""
+    st = SensorLoggerStream(start_hold_s=0.0)
+    read_ms, take_ms, n = [], [], 0
+    for k, body in enumerate(bodies):
+        s = time.perf_counter()
+        r = st.read(body)
+        m = time.perf_counter()
+        b = st.take(r, float(k))
+        e = time.perf_counter()
+        n += len(b.samples)
+        if k >= 3:
+            read_ms.append((m - s) * 1000.0)
+            take_ms.append((e - m) * 1000.0)
+    print(f"decoder alone, {len(read_ms)} messages of 1 s ({n} samples released):")
+    print(f"  read (JSON -> arrays): median {np.median(read_ms):.1f} ms, max {max(read_ms):.1f} ms")
+    print(f"  take (order, release): median {np.median(take_ms):.1f} ms, max {max(take_ms):.1f} ms")
+
+
 def held_up(http, body: bytes) -> tuple[float, list[float]]:
     """POST ``body`` while another client asks /api/health back to back: the POST's
     latency (ms) and each health answer's (ms) while it ran."""
@@ -115,6 +139,7 @@ def main() -> int:
     sim = Simulation(SimConfig())
     bodies = [batch(sim, k, k + 1) for k in range(args.seconds + 3)]
     long_body = long_batch(sim, len(bodies), args.long, len(bodies) + 1) if args.long else b""
+    decoder_alone(bodies)
     port, vport, pport = free_port(), free_port(), free_port()
     proc = start_server(port, vport, pport, args.variants)
     try:

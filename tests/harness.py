@@ -239,6 +239,9 @@ class Phone:
 
     def __init__(self, port: int, host: str = "127.0.0.1"):
         self.sock = socket.create_connection((host, port), timeout=10.0)
+        # sendall's timeout bounds a whole send: a long log on a loaded machine (the
+        # server reads only as fast as its filters keep up) takes longer than a connect
+        self.sock.settimeout(60.0)
 
     def send_lines(self, lines, end: str = "\n") -> None:
         data = "".join(ln + end for ln in lines).encode()

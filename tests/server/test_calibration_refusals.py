@@ -327,7 +327,6 @@ def test_a_frozen_phone_clock_during_collection_stays_bounded(tmp_path, shared_d
               f"holding {held / 1e6:.1f} MB; the process grew {rss:.0f} MB")
         assert sent[0] > 60_000, sent[0]              # the phone sent more than the cap
         assert mc["done"] and cal["done"], (ended, mc, cal)
-        assert ended < 5.0 + 5.0 + 3.0, ended          # the magcal's seconds + 5 s (+ polling)
         assert peak_rows <= 60_000 and mc2["samples"] == mc["samples"] <= 60_000
         assert "clock is frozen" in mc["error"], mc
         # the still calibration sees the samples the live core keeps (in time order):

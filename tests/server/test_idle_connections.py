@@ -151,12 +151,13 @@ class Holder:
 
 def _poll_presenter(srv, seconds: float) -> dict:
     """The presenter's requests for ``seconds``: health on a keep-alive connection, the
-    page on a new connection each time."""
+    page on a new connection each time (each given 10 s: served or not is the question
+    here, how fast is benchmarks/health_latency.py's)."""
     ok = total = 0
     worst = 0.0
     failures: dict[str, int] = {}
     t_end = time.monotonic() + seconds
-    with httpx.Client(base_url=srv.url, timeout=3.0) as keep:
+    with httpx.Client(base_url=srv.url, timeout=10.0) as keep:
         while time.monotonic() < t_end:
             t0 = time.monotonic()
             for path, client in (("/api/health", keep), ("/", None)):
@@ -164,7 +165,7 @@ def _poll_presenter(srv, seconds: float) -> dict:
                 t1 = time.monotonic()
                 try:
                     if client is None:
-                        with httpx.Client(base_url=srv.url, timeout=3.0) as fresh:
+                        with httpx.Client(base_url=srv.url, timeout=10.0) as fresh:
                             r = fresh.get(path)
                     else:
                         r = client.get(path)
@@ -225,7 +226,8 @@ def test_a_silent_connection_is_closed_quickly(srv):
     with socket.create_connection(("127.0.0.1", srv.settings.port), timeout=10) as s:
         assert _closed(s, limit + 3.0)
     took = time.monotonic() - t0
-    assert limit - 0.5 <= took <= limit + 2.0, took
+    # not before its limit, and by it rather than by the (longer) header timeout
+    assert limit - 0.5 <= took < srv.settings.header_timeout_s, took
     with socket.create_connection(("127.0.0.1", srv.settings.port), timeout=10) as s:
         time.sleep(0.2)
         s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
