@@ -184,7 +184,10 @@ def _num(v: Any) -> float | None:
     if t is float:
         return v
     if t is int:
-        return float(v)
+        try:
+            return float(v)
+        except OverflowError:          # beyond any float: an impossible reading, counted
+            return math.inf if v > 0 else -math.inf
     if v is None:
         return math.nan
     if t is str and v.strip().lower() in ("nan", "-nan"):

@@ -201,6 +201,18 @@ def test_push_impossible_values_counted():
     assert s.counts["impossible"] == 3
 
 
+def test_an_integer_beyond_any_float_is_one_impossible_reading_not_a_lost_post():
+    """JSON integers have no size limit: one of 401 digits raised OverflowError out of the
+    decoder, the POST was answered 500 and its good readings lost."""
+    huge, s = "1" + "0" * 400, PhyphoxPushStream()
+    b = s.decode(('{"acc_t":[1,2],"accX":[%s,0.1],"accY":[0,0],"accZ":[9.8,9.8],'
+                  '"gyr_t":[1,2,%s],"gyrX":[0,0,0],"gyrY":[0,0,0],"gyrZ":[0.1,0.1,0.1]}'
+                  % (huge, huge)).encode(), now=0.0)
+    assert sorted((x.tag, x.time_ms) for x in b.samples) == [
+        ("ACC", 2000.0), ("GYR", 1000.0), ("GYR", 2000.0)]
+    assert s.counts["impossible"] == 1 and s.counts["bad_time"] == 1
+
+
 def _all(stream, bodies, now0=0.0):
     out, flags = [], []
     for i, body in enumerate(bodies):
