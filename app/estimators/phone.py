@@ -4,8 +4,10 @@ Android's rotation-vector sensor already fuses the phone's sensors; the Sensor F
 app streams it as ORI ``w x y z`` (scalar first, sensor->world ENU, our convention), or
 rarely as ``x y z`` only, with ``w = sqrt(1 - x² - y² - z²)``. This estimator shows it
 beside ours: each ORI sample is normalised (unit length, ``w >= 0``) and held until the
-next one. It uses no other sensor: their samples are flagged DISABLED (present but not
-used by this estimator) or ABSENT. Before the first ORI sample it is not initialised
+next one, for at most :data:`ORI_HOLD_S` of stream time: an app that stopped sending
+ORI while its other sensors go on has no estimate of its own any more. It uses no other
+sensor: their samples are flagged DISABLED (present but not used by this estimator) or
+ABSENT. Before the first ORI sample, and once the held one expired, it is not initialised
 and its estimate is the identity.
 """
 
@@ -20,6 +22,9 @@ from app.estimators.base import (B_N, B_SEEN, F_ACC, F_GYR, F_MAG, R_DISABLED, R
                    Diagnostics, Estimator, begin_row)
 
 P_INIT, P_ORI_T = B_N, B_N + 1      # state slots after the row bookkeeping
+# how long an ORI sample is held: as long as a sensor may pause in a phone app's batches
+# before it counts as stopped (app.sources.ordering.STOPPED_S)
+ORI_HOLD_S = 3.0
 
 
 def ori_quaternion(ori) -> np.ndarray | None:
@@ -73,6 +78,10 @@ def phone_run(s, q, use, max_gap, gyr_hold, T, G, A, M, O, Qout, Fout):
                 q[:] = qm.normalize(o)
                 s[P_INIT] = 1.0
                 s[P_ORI_T] = T[k]
+            elif s[P_INIT] > 0.5 and T[k] - s[P_ORI_T] > ORI_HOLD_S:
+                q[:] = 0.0                    # expired: no estimate (the identity)
+                q[0] = 1.0
+                s[P_INIT] = 0.0
         Qout[k, :] = q
 
 

@@ -105,7 +105,14 @@ class LiveCore:
             return None
         lk0 = self._primary_lk()
         rec = self.ensemble.step(samples)
+        # a sensor switched off while the stream goes on: its last decision and vector
+        # are no longer news (the phone's own estimate expires in its estimator)
+        gone = s.stopped()
+        self.ensemble.set_stopped(gone)
         self._record(rec, lk0)
+        for k, tag in ((1, "ACC"), (2, "MAG")):
+            if tag in gone:
+                self.last_vec[k] = None
         s.count_processed(rec.n_samples)
         self.totals.samples += rec.n_samples
         for cb in self.record_listeners:

@@ -50,6 +50,7 @@ from app.estimators import NAMES, REJECTIONS, Estimator, Reason, StepFlags, esti
 from app.estimators.base import (F_ACC, F_GYR, F_MAG, F_REST, NFLAGS, new_flags, split_rows,
                                tally_rows)
 from app.params import replace_params
+from app.quaternion import not_estimated
 from app.sources.samples import Sample
 
 log = logging.getLogger("orientlab.ensemble")
@@ -104,6 +105,9 @@ class Instance:
     # this instance's identity: a variant removed and added again under the same name is
     # another instance (a change validated against the first is not applied to it)
     uid: int = field(default_factory=lambda: next(_UIDS))
+    # the stream's sensor tags that stopped while it goes on (set by the ensemble): their
+    # last decision is no longer news
+    stopped: frozenset = frozenset()
 
     def clear(self) -> None:
         self.counts[:] = 0
@@ -111,8 +115,12 @@ class Instance:
         self.last_rejected[:] = np.nan
 
     def flags(self, sensor: str) -> StepFlags | None:
-        """The flag record of the last row that held a ``sensor`` sample."""
-        return _flags_of(self.last[SENSORS.index(sensor)])
+        """The flag record of the last row that held a ``sensor`` sample (None: none, or
+        the sensor has :attr:`stopped`)."""
+        k = SENSORS.index(sensor)
+        if TAG_OF_KIND[k] in self.stopped:
+            return None
+        return _flags_of(self.last[k])
 
     def rejected_flags(self, sensor: str) -> StepFlags | None:
         """The flag record of the last row whose ``sensor`` sample a gate refused."""
@@ -243,6 +251,7 @@ class Ensemble:
             raise RuntimeError("no estimator available")
         p = config.get("primary")
         self.primary = p if p in self.instances else next(iter(self.instances))
+        self.stopped: frozenset[str] = frozenset()
         self._version = 0
         self._publish()
 
@@ -299,7 +308,7 @@ class Ensemble:
         if estimator is not None and not isinstance(estimator, estimator_class(base)):
             raise EnsembleError("estimator", f"must be a {estimator_class(base).__name__}")
         inst = Instance(name, base, estimator if estimator is not None else estimator_class(base)(p),
-                        builtin=False)
+                        builtin=False, stopped=self.stopped)
         self.instances[name] = inst
         self._publish()
         return inst
@@ -325,12 +334,21 @@ class Ensemble:
         """Validate and apply (nothing applied on a ParamError)."""
         self.instances[name].estimator.set_params(**changes)
 
+    def set_stopped(self, tags: frozenset[str]) -> None:
+        """The stream's sensor tags that stopped while it goes on
+        (:meth:`app.live.session.Session.stopped`): their last decisions are not shown."""
+        if tags != self.stopped:
+            self.stopped = tags
+            for inst in self.instances.values():
+                inst.stopped = tags
+
     def reset(self) -> None:
         """Every instance forgets its orientation and its bookkeeping."""
         for inst in self.instances.values():
             inst.estimator.reset()
             inst.clear()
             inst._good, inst._good_at = None, -np.inf
+        self.set_stopped(frozenset())
 
     @property
     def phone_q(self) -> np.ndarray | None:
@@ -352,19 +370,14 @@ class Ensemble:
         O = np.empty((n, 4))
         split_rows(kind, values, G, A, M, O)
         phone = self.instances.get("phone")
-        phone_init = phone is not None and phone.estimator.initialized
         qs: dict[str, np.ndarray] = {}
         fls: dict[str, np.ndarray] = {}
         now = time.perf_counter()
         for name, inst in self.instances.items():
             qs[name], fls[name] = self._run(inst, now, t, G, A, M, O, kind, values)
-        if phone is not None and n and phone_init:     # the usual case: shown throughout
-            phone_q = qs["phone"]
-        elif phone is not None and n and (kind == 3).any():
-            sel = kind == 3
-            valid = sel & np.all(np.isfinite(O), axis=1) & np.any(O != 0.0, axis=1)
-            init = np.logical_or.accumulate(valid)
-            phone_q = np.where(init[:, None], qs["phone"], np.nan)
+        if phone is not None and n:     # none before the first good ORI, nor once it expired
+            pq = qs["phone"]
+            phone_q = np.where(not_estimated(pq)[:, None], np.nan, pq)
         else:
             phone_q = np.full((n, 4), np.nan)
         return Records(t=t, kind=kind, values=values, q=qs, flags=fls, primary=self.primary,

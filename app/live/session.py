@@ -53,7 +53,8 @@ class Session:
         """Samples of one received chunk (arrival order): counted, reordered; the samples
         released, in time order."""
         self.lines += len(samples)
-        self.last_rx = time.monotonic()
+        if samples:                 # a chunk of malformed lines only is no sign of life
+            self.last_rx = time.monotonic()
         released: list[Sample] = []
         push = self.orderer.push
         for smp in samples:

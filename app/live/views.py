@@ -98,14 +98,10 @@ def snapshot(core: CoreReadout) -> Snapshot:
     b = core.ensemble
     inst = b.instances[b.primary]
     est = inst.estimator
-    # a sensor that stopped while the stream goes on (switched off in the app) shows
-    # nothing: not its last vector, nor how its last sample was judged
-    gone = core.session.stopped() if core.session is not None else frozenset()
-    on = lambda tag, v: None if tag in gone else v        # noqa: E731
     return Snapshot(t=core.t_sent, primary=b.primary, q=est.q, initialized=est.initialized,
-                    phone_q=on("ORI", b.phone_q), truth_q=core.truth_q(), cov=est.attitude_cov(),
-                    acc=on("ACC", core.last_vec[1]), mag=on("MAG", core.last_vec[2]),
-                    acc_flags=on("ACC", inst.flags("acc")), mag_flags=on("MAG", inst.flags("mag")),
+                    phone_q=b.phone_q, truth_q=core.truth_q(), cov=est.attitude_cov(),
+                    acc=core.last_vec[1], mag=core.last_vec[2],
+                    acc_flags=inst.flags("acc"), mag_flags=inst.flags("mag"),
                     rest=inst.rest, diag=est.diagnostics())
 
 
@@ -116,10 +112,7 @@ def error_deg(qa, qb) -> float | None:
     return num(math.degrees(angle_between(qa, qb)))
 
 
-def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None,
-                    gone: frozenset[str] = frozenset()) -> dict[str, Any]:
-    """One estimator's part of GET /api/state; a sensor in ``gone`` (it stopped, see
-    :meth:`Session.stopped`) has no decision ("absent")."""
+def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None) -> dict[str, Any]:
     inst = core.ensemble.instances[name]
     est = inst.estimator
     q = est.q
@@ -127,8 +120,7 @@ def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None,
             "base": inst.base, "initialized": bool(est.initialized),
             "error_to_phone_deg": error_deg(phone_q, q),
             "error_to_truth_deg": error_deg(truth_q, q),
-            "acc": decision(None if "ACC" in gone else inst.flags("acc"), "acc"),
-            "mag": decision(None if "MAG" in gone else inst.flags("mag"), "mag"),
+            "acc": decision(inst.flags("acc"), "acc"), "mag": decision(inst.flags("mag"), "mag"),
             "gyr_bias": None if est.gyr_bias is None else qlist(est.gyr_bias),
             "step_errors": inst.step_errors, "restored": inst.restored}
 
@@ -136,16 +128,15 @@ def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None,
 def state(core: CoreReadout) -> dict[str, Any]:
     """GET /api/state."""
     b = core.ensemble
-    s = core.session
-    gone = s.stopped() if s is not None else frozenset()
-    phone_q = None if "ORI" in gone else b.phone_q
+    phone_q = b.phone_q
     truth_q = core.truth_q()
-    ests = {n: estimator_state(core, n, phone_q, truth_q, gone) for n in b.names}
+    ests = {n: estimator_state(core, n, phone_q, truth_q) for n in b.names}
     prim = ests[b.primary]
     inst = b.instances[b.primary]
     est = inst.estimator
     cov = est.attitude_cov()
     sigma = None if cov is None else [num(math.degrees(math.sqrt(max(c, 0.0)))) for c in np.diag(cov)]
+    s = core.session
     return {
         "t": core.t_sent, "source": core.source_kind(), "status": core.status_text(),
         "primary": b.primary, "q": prim["q"], "euler_deg": prim["euler_deg"],

@@ -193,16 +193,20 @@ class SampleOrderer:
     def stopped(self) -> frozenset[str]:
         """The motion tags that stopped while the stream goes on (a sensor switched off in
         the app): their newest time lags the stream's newest by more than
-        :data:`STOPPED_S` s, or 5 of their sample periods if that is longer. A whole
-        stream going quiet is not seen here (its time stands still): that is the arrival
-        clock's business (:attr:`app.live.session.Session.silent_s`)."""
+        :data:`STOPPED_S` s, or 5 of their sample periods if that is longer (a tag with
+        one sample so far has no period yet and is not judged: a slow sensor's first
+        sample is no stop). A whole stream going quiet is not seen here (its time stands
+        still): that is the arrival clock's business
+        (:attr:`app.live.session.Session.silent_s`)."""
         if self._newest is None or not self._latest:
             return frozenset()
         rates = self._rates()
         out = set()
         for tag, t in self._latest.items():
             r = rates.get(tag, math.nan)
-            limit = max(STOPPED_S, 5.0 / r if r > 0.0 else 0.0) * 1000.0
+            if not r > 0.0:
+                continue
+            limit = max(STOPPED_S, 5.0 / r) * 1000.0
             if self._newest - t > limit:
                 out.add(tag)
         return frozenset(out)

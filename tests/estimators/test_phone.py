@@ -114,3 +114,27 @@ def test_compiled_run_equals_the_reference_step():
         np.testing.assert_allclose(np.concatenate([p.q for p in parts]), ref.q, atol=1e-12)
         f = np.concatenate([p.flags for p in parts])
         np.testing.assert_array_equal(np.nan_to_num(f, nan=-7), np.nan_to_num(ref.flags, nan=-7))
+
+
+def test_a_held_ori_expires_when_the_app_stops_sending_it():
+    """An app that stops ORI while its other sensors go on: the last ORI is held for
+    ORI_HOLD_S of stream time, then there is no phone estimate (not initialised, the
+    identity) until ORI comes back; step by step as in a batch."""
+    from app.estimators.phone import ORI_HOLD_S
+    n = 1000
+    t = np.arange(n) * 0.01                           # 10 s
+    gyr = np.zeros((n, 3))
+    ori = np.full((n, 4), np.nan)
+    q0 = qm.normalize(np.array([0.9, 0.1, -0.2, 0.3]))
+    ori[:200] = q0                                    # ORI for 2 s
+    ori[800:] = q0                                    # back after 8 s
+    res = make_estimator("phone").run(t, gyr=gyr, ori=ori)
+    held = (t >= 2.0) & (t - 1.99 <= ORI_HOLD_S)
+    gone = (t - 1.99 > ORI_HOLD_S + 1e-9) & (t < 8.0)
+    np.testing.assert_allclose(res.q[held], np.tile(q0, (held.sum(), 1)), atol=1e-15)
+    assert qm.not_estimated(res.q[gone]).all() and gone.sum() > 250
+    np.testing.assert_allclose(res.q[800:], np.tile(q0, (200, 1)), atol=1e-15)
+    est = make_estimator("phone")
+    for k in range(600):
+        est.step(float(t[k]), gyr=gyr[k], ori=None if np.isnan(ori[k, 0]) else ori[k])
+    assert not est.initialized and est.q.tolist() == [1.0, 0.0, 0.0, 0.0]

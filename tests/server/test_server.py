@@ -20,6 +20,7 @@ from app.quaternion import angle_between_many
 from harness import Phone, free_port, log_lines, running_server, wait_for
 from app.sources.simulate import simulate
 from app.sources.ordering import SampleOrderer
+from app.estimators.phone import ORI_HOLD_S
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 REAL_LOGS = SHARED / "data" / "sensorfusion-app"
@@ -466,7 +467,24 @@ def test_a_sensor_switched_off_and_a_silent_phone_are_said_so(srv, api):
         wait_for(lambda: "MAG stopped" in gui.readouts.content, 10.0, what="MAG stopped")
         assert gui.indicators_now.mag is None
         assert not np.asarray(gui.scene.mag.points).any()
-        # the app goes quiet, the connection stays open
+        # the plots' history: the phone's own orientation until ORI_HOLD_S after its last
+        # sample, none after (no frozen pose drawn as live, nor errors against it)
+        core = srv.app.state.engine.core
+        w = core.history.pose.window(10.0, 100_000)
+        t_ori = max(x[0] for x in sim.samples if x[1] == "ORI" and x[0] <= cut) / 1000.0
+        has = np.isfinite(w["phone_q"]).all(axis=1)
+        assert has[w["t"] < t_ori].all() and not has[w["t"] > t_ori + ORI_HOLD_S + 0.05].any()
+        # the Lab tab's read-outs: no error to a frozen phone pose, no stale field decision
+        lab = srv.app.state.toolkit_tab._readouts()
+        for row in lab.splitlines()[2:]:
+            assert row.split("|")[3:5] == [" - ", " - "], row
+        # the app goes quiet, the connection stays open; lines it cannot parse are no
+        # sign of life either
         st = wait_for(lambda: (lambda s: s if "no samples for" in s["status"] else None)(
             api.get("/api/state").json()), 15.0, what="the silent status")
         assert st["source"] == "phone" and "is the app still sending" in st["status"]
+        for _ in range(4):
+            ph.send_lines(["not a line", "123\tACC\t1.0"])
+            time.sleep(0.5)
+        st = api.get("/api/state").json()
+        assert "no samples for" in st["status"] and st["counts"]["malformed"] >= 8

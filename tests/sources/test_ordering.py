@@ -326,3 +326,15 @@ def test_a_slow_sensor_is_stopped_only_after_five_of_its_periods():
     for s in _tagged({"ACC": 100}, 12.0, 30.0):
         o.push(s)
     assert o.stopped() == {"ORI"}
+
+
+def test_a_slow_sensors_first_sample_is_no_stop():
+    """A sensor set to 0.2 Hz (Sensor Logger allows it): with one sample it has no period
+    yet, so the others going on for 4.9 s do not make it 'stopped'."""
+    o = SampleOrderer()
+    for s in _tagged({"ACC": 100, "MAG": 0.2}, 0.0, 4.9):
+        o.push(s)
+    assert o.stopped() == frozenset()
+    for s in _tagged({"ACC": 100, "MAG": 0.2}, 5.0, 9.9):
+        o.push(s)
+    assert o.stopped() == frozenset() and o.rates()["MAG"] == pytest.approx(0.2)
