@@ -140,24 +140,28 @@ def test_a_viewer_costs_at_most_50_kB_per_second_with_live_plots(tmp_path):
         assert msg_rate >= 5.0
         with plots._lock:
             msgs = list(plots.msgs)
-        # a delta holds new points only, however late it goes out: each x after the last
-        # one sent, and (decimated, no bin sent twice) at most one per 1/POINTS_PER_S s
-        last_x, n_delta, first_x = None, 0, None
-        for m in msgs:
-            xs = [x for x in (m["pose"] or [[]])[0] if x is not None]
-            if m["k"] == "s":
-                last_x = xs[-1] if xs else None
-                continue
-            if not xs:
-                continue
-            if last_x is not None:
-                assert xs[0] > last_x, f"a delta resent points: {xs[0]} after {last_x}"
-            assert all(b > a for a, b in zip(xs, xs[1:]))
-            first_x = xs[0] if first_x is None else first_x
-            n_delta += len(xs)
-            last_x = xs[-1]
-        assert n_delta > 50
-        assert n_delta <= POINTS_PER_S * (last_x - first_x) + 2
+        # per plot, a delta holds new points only, however late it goes out: each x after
+        # the last one sent, and (decimated, no bin sent twice) at most one per
+        # 1/POINTS_PER_S s; and none lost: the demo fills every bin (all its sensors run
+        # at 50 Hz or more), so at least 80 % of that
+        for plot in ("pose", "acc", "mag"):
+            last_x, n_delta, first_x = None, 0, None
+            for m in msgs:
+                xs = [x for x in (m[plot] or [[]])[0] if x is not None]
+                if m["k"] == "s":
+                    last_x = xs[-1] if xs else None
+                    continue
+                if not xs:
+                    continue
+                if last_x is not None:
+                    assert xs[0] > last_x, f"{plot}: a delta resent points: {xs[0]} after {last_x}"
+                assert all(b > a for a, b in zip(xs, xs[1:]))
+                first_x = xs[0] if first_x is None else first_x
+                n_delta += len(xs)
+                last_x = xs[-1]
+            span = last_x - first_x
+            assert span > 5.0, (plot, span)
+            assert 0.8 * POINTS_PER_S * span <= n_delta <= POINTS_PER_S * span + 2, (plot, n_delta, span)
 
 
 def test_hidden_lab_heading_plot_sends_nothing_until_a_variant_runs(tmp_path):
