@@ -12,8 +12,10 @@ shared phone slot (:class:`~app.sources.slot.PhoneSlot`, the same the TCP receiv
   every source's do (``engine.feed``); the handler reads the body (JSON, readings to
   arrays) on a worker thread, then decodes, enqueues and answers on the loop; it never
   filters on the request path;
-- a push stream that has sent nothing for ``push_end_s`` seconds has ended (the app
-  stopped recording): its held messages are released and its stream is closed;
+- a push stream that has sent nothing for :data:`PUSH_END_S` seconds, or for 2.5 of its
+  batch periods if they are longer (the app's batch period is the user's setting), has
+  ended (the app stopped recording): its held messages are released and its stream is
+  closed;
 - a malformed request is answered 400 with the reason and counted per app.
 """
 
@@ -21,8 +23,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import statistics
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,7 +36,9 @@ from app.sources.slot import PHONE_APPS, PhoneSlot
 
 log = logging.getLogger("orientlab.phones")
 
-PUSH_END_S = 5.0        # a push stream silent this long has ended
+PUSH_END_S = 5.0        # a push stream silent this long has ended ...
+PUSH_END_PERIODS = 2.5  # ... or this many of its batch periods, if longer,
+MAX_PUSH_END_S = 60.0   # but never longer than this
 TICK_S = 0.2            # how often held messages and silent streams are looked at
 #: reorder windows (s): a push delivers in batches; phyphox's POSTs overlap and may swap
 WINDOW_S = {"sensorlogger": 0.05, "phyphox": 0.3, "phyphox-poll": 0.1}
@@ -46,8 +51,19 @@ class Stream:
     key: str
     decoder: Any
     session: Any = None
-    last_rx: float = 0.0
+    last_rx: float = field(default_factory=time.monotonic)   # a POST arrived (PC clock)
     details_at: float = -1e9
+    # the phone's time each recent batch spanned (s): its batch period, roughly
+    spans: deque = field(default_factory=lambda: deque(maxlen=5))
+
+    def end_s(self) -> float:
+        """How long it may be silent before it has ended: :data:`PUSH_END_S`, or
+        :data:`PUSH_END_PERIODS` of its batch periods (the median of the recent batches'
+        spans: one long catch-up batch does not count) if longer, at most
+        :data:`MAX_PUSH_END_S`."""
+        if not self.spans:
+            return PUSH_END_S
+        return min(MAX_PUSH_END_S, max(PUSH_END_S, PUSH_END_PERIODS * statistics.median(self.spans)))
 
 
 @dataclass
@@ -92,7 +108,9 @@ class HttpPhones:
         refused = self._refused(phone_app, client)
         if refused is not None:
             return refused
-        decoder = self._stream(phone_app, client).decoder
+        st = self._stream(phone_app, client)
+        st.last_rx = time.monotonic()        # a sign of life while its body is read
+        decoder = st.decoder
         try:
             async with self._reading:    # one body at a time: parallel reads are no faster
                 read = await asyncio.to_thread(decoder.read, body)     # (the GIL), only larger
@@ -108,6 +126,9 @@ class HttpPhones:
         except (SensorLoggerError, PhyphoxError) as e:
             return self._malformed(st, e)
         st.last_rx = time.monotonic()
+        if len(batch.samples) > 1:
+            times = [x.time_ms for x in batch.samples]
+            st.spans.append((max(times) - min(times)) / 1000.0)
         if batch.ended and st.session is not None and st.session.open:   # the old recording's tail
             self.engine.feed(st.session, batch.ended, time.perf_counter())
         # samples held by the decoder (Sensor Logger's first ones, while the sign is unknown)
@@ -214,8 +235,9 @@ class HttpPhones:
                 rest = due(now_wall)
                 if rest:
                     self.engine.feed(st.session, rest, time.perf_counter())
-            if now - st.last_rx > PUSH_END_S:
-                self._end(st, f"no data for {PUSH_END_S:g} s: the phone stopped streaming")
+            end_s = st.end_s()
+            if now - st.last_rx > end_s:
+                self._end(st, f"no data for {end_s:.0f} s: the phone stopped streaming")
 
     async def run(self) -> None:
         """The periodic :meth:`tick` (a task of the lifespan)."""

@@ -70,6 +70,31 @@ def test_sensor_logger_pushes_become_the_stream_on_the_phones_clock(shared_dir, 
 
 
 @pytest.mark.shared
+def test_a_longer_batch_period_is_one_stream_not_one_per_push(shared_dir, monkeypatch):
+    """Sensor Logger's batch period is the user's setting. Pushes further apart than the
+    silence that ends a push stream ended it before every push: a new session each time,
+    the filters started over. The stream now waits 2.5 of its batch periods (here the
+    silence limit is cut to 1 s and the phone pushes 2 s batches every 2 s)."""
+    from tyrex_sensorlogger import messages_android
+    from app.server import phones
+    monkeypatch.setattr(phones, "PUSH_END_S", 1.0)
+    bodies = messages_android(_trial(shared_dir, NEXUS), 2.0, seconds=8)
+    assert len(bodies) == 4
+    with running_server() as srv, _client(srv) as phone:
+        n0 = _state(srv)["counts"]["total_sessions"]
+        for i, b in enumerate(bodies):
+            if i:
+                time.sleep(2.0)
+            r = phone.post("/sensorlogger", content=b, headers={"Content-Type": "application/json"})
+            assert r.status_code == 200, r.text
+        st = wait_for(lambda: (lambda s: s if s["counts"]["samples"] > 2500 else None)(_state(srv)),
+                      20, what="samples processed")
+        assert st["counts"]["total_sessions"] == n0 + 1 and st["source"] == "phone"
+        # and it still ends: 2.5 periods (5 s) after the last push
+        wait_for(lambda: _state(srv)["source"] == "phone-disconnected", 15, what="the end")
+
+
+@pytest.mark.shared
 def test_a_sensor_logger_message_seconds_late_leaves_the_clock_alone(shared_dir):
     """Message 8 arrives after 12 (Wi-Fi held it): its place was given up 1.5 s after 9
     came. Its readings were released late, and the orderer took a run of readings 5 s
