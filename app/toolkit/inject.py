@@ -423,7 +423,16 @@ class InjectionService:
         self.spans: dict[int, list] = {}           # injection id -> [session, kind, start_s, end_s]
         # (mark, t on the stream's reference clock) -> None: the recorder notes each mark
         self.mark_listeners: list[Callable[[dict[str, Any], float], None]] = []
+        self._session = None      # the stream the disturbances on belong to
         core.sample_stages.append(self.stage)
+
+    def _follow(self, session) -> None:
+        """A disturbance belongs to the stream it was started on: when another stream is on
+        (a phone took over, a replay looped or ended, the demo resumed) every one still on
+        ends, rather than reaching into the new stream at its start time (another clock)."""
+        if session is not self._session:
+            self.injector.clear()
+            self._session = session
 
     def orientation(self) -> np.ndarray | None:
         """The phone's orientation for world-frame disturbances: the truth (demo), else
@@ -439,6 +448,7 @@ class InjectionService:
 
     def stage(self, session, samples: list) -> list:
         """The sample stage: the disturbances added, their marks noted."""
+        self._follow(session)
         if not self.injector.busy:
             return samples
         samples, marks = self.injector.feed(samples)
@@ -472,6 +482,7 @@ class InjectionService:
             raise ToolError(e.field, e.reason) from None
         if self.core.session is None or not self.core.session.open:
             raise ToolError("kind", "no stream to disturb: connect the phone or run the demo", 409)
+        self._follow(self.core.session)
         act = self.injector.active
         if len(act) >= self.max_active:
             # refused rather than replacing the oldest: a disturbance the class is watching

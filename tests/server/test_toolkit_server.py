@@ -213,6 +213,36 @@ def test_magnet_injected_into_a_real_stream_primary_rides_it_out(tmp_path, still
         assert variant not in _state(api)["estimators"]
 
 
+def test_a_disturbance_ends_with_its_stream_and_never_reaches_the_next(tmp_path, still_log):
+    """A reviewer's find: a magnet still on when its stream ended stayed armed and was
+    added to the next phone's live stream once that phone's clock passed its start time
+    (a real phone's data faked, and recorded so). It now ends with its stream."""
+    lines = still_log.read_bytes().splitlines()
+    k = _split_at(lines, 3.0)
+    with running_server(recordings=tmp_path / "rec", preset_dir=tmp_path) as s, \
+            httpx.Client(base_url=s.url, timeout=60.0) as api:
+        with Phone(s.phone_port) as phone:
+            _send(phone, lines[:k])
+            _processed(api, k - 200, "the first 3 s")
+            r = api.post("/api/inject", json={"kind": "magnet", "strength_uT": 80,
+                                              "direction": "east", "seconds": 60})
+            assert r.status_code == 200, r.text
+            _send(phone, lines[k:2 * k])                 # the magnet on this stream
+            _processed(api, 2 * k - 400, "3 s more")
+        wait_for(lambda: _state(api)["source"] == "phone-disconnected", 30, what="the end")
+        on = api.get("/api/inject").json()["recent"][-1]
+        assert on["lines"] > 0
+        # the same phone again, from its first line: its clock passes the magnet's start
+        with Phone(s.phone_port) as phone:
+            _send(phone, lines)
+            _processed(api, len(lines) - 300, "the second stream")
+        st = api.get("/api/inject").json()
+        assert st["active"] == [] and st["recent"][-1]["lines"] == on["lines"]
+        mag = s.app.state.engine.core.history.mag.window(1e9, 100_000)
+        clean = np.linalg.norm([x.values for x in _dec(lines) if x.tag == "MAG"], axis=1)
+        assert np.nanmax(mag["norm"]) < clean.max() + 1.0     # no 80 µT added anywhere
+
+
 def test_replay_a_recording_with_pause_speed_and_seek(tmp_path, still_log):
     rec_dir = tmp_path / "recordings"
     rec_dir.mkdir()
