@@ -191,7 +191,8 @@ class SensorFusionServer:
         peer = writer.get_extra_info("peername")
         label = f"{peer[0]}:{peer[1]}" if peer else "?"
         eng = self.engine
-        why = self.slot.refusal(PHONE_APP, label)
+        host = peer[0] if peer else label       # a release keeps the phone out, any port
+        why = self.slot.refusal(PHONE_APP, label, host)
         if why is not None:
             if self.slot.locked:
                 self.counts["refused_locked"] += 1
@@ -218,7 +219,8 @@ class SensorFusionServer:
                 eng.close_session(conn["session"], reason)
             writer.close()
 
-        why = self.slot.take(PHONE_APP, label, f"{label} (Sensor Fusion app)", on_release)
+        why = self.slot.take(PHONE_APP, label, f"{label} (Sensor Fusion app)", on_release,
+                             who=host)
         if why is not None:   # another phone got in meanwhile
             self._writers.discard(writer)
             return self._refuse(writer, label, why, counted=True)

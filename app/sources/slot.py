@@ -37,6 +37,7 @@ class Holder:
     since: float
     last_valid: float
     on_release: Callable[[str], None] | None = field(default=None, repr=False)
+    who: str = ""               # the phone kept out when released (default: the key)
 
 
 class PhoneSlot:
@@ -63,18 +64,20 @@ class PhoneSlot:
     def holds(self, key: str) -> bool:
         return self.holder is not None and self.holder.key == key
 
-    def refusal(self, phone_app: str, key: str) -> str | None:
-        """Why a phone (``phone_app``, ``key``) may not take the slot now, in words its user
-        can read; None if it may (free, silent holder, or it is the holder)."""
+    def refusal(self, phone_app: str, key: str, who: str = "") -> str | None:
+        """Why a phone (``phone_app``, ``key``; ``who``: its address if the key is more, as
+        a TCP peer's port) may not take the slot now, in words its user can read; None if
+        it may (free, silent holder, or it is the holder)."""
         if self.holds(key):
             return None
         now = self.clock()
-        until = self._banned.get(key)
+        who = who or key
+        until = self._banned.get(who)
         if until is not None:
             if now < until:
                 return ("orientlab: the presenter released this phone; it may stream again "
                         f"in {until - now:.0f} s")
-            del self._banned[key]
+            del self._banned[who]
         if self.locked:
             return "orientlab: the presenter has locked the phone slot; no new phone is accepted"
         if self.busy():
@@ -91,10 +94,12 @@ class PhoneSlot:
         self.last_refusal = why
 
     def take(self, phone_app: str, key: str, label: str,
-             on_release: Callable[[str], None] | None = None) -> str | None:
+             on_release: Callable[[str], None] | None = None, who: str = "") -> str | None:
         """Take the slot (a silent holder is released first, taken over). Returns the
-        refusal (nothing changed) or None. Taking it again as the holder only refreshes."""
-        why = self.refusal(phone_app, key)
+        refusal (nothing changed) or None. Taking it again as the holder only refreshes.
+        ``who``: the phone a release keeps out, if not ``key`` (a TCP phone reconnects from
+        another port: its address)."""
+        why = self.refusal(phone_app, key, who)
         if why is not None:
             self.count_refusal(why)
             return why
@@ -105,7 +110,7 @@ class PhoneSlot:
         if self.holder is not None:
             self._drop(f"silent for {self.idle_s:g} s, taken over by another phone "
                        f"({PHONE_APPS.get(phone_app, phone_app)})")
-        self.holder = Holder(phone_app, key, label, now, now, on_release)
+        self.holder = Holder(phone_app, key, label, now, now, on_release, who or key)
         return None
 
     def touch(self, key: str) -> None:
@@ -124,7 +129,7 @@ class PhoneSlot:
         h = self.holder
         if h is None:
             return None
-        self._banned[h.key] = self.clock() + self.release_s
+        self._banned[h.who or h.key] = self.clock() + self.release_s
         self.released += 1
         self._drop(reason)
         return h.label

@@ -207,6 +207,34 @@ def test_one_phone_at_a_time_across_apps_and_the_presenter_releases_it():
         assert httpx.post(srv.url + "/api/phone", json={"release": True}).status_code == 403
 
 
+def test_a_released_tcp_phone_is_kept_out_when_it_reconnects_from_another_port():
+    """The release keeps the same phone out for 30 s. A Sensor Fusion phone reconnects from
+    a new port each time, and the slot keyed the ban by host:port: it was let straight
+    back in (a reviewer's find). The ban is now on its address; another phone gets in."""
+    with running_server(open_access=False, token=TOKEN) as srv, \
+            _client(srv, token=TOKEN) as presenter, _client(srv, "127.0.0.2") as other:
+        with Phone(srv.phone_port) as ph:
+            ph.send_lines(["0\tACC\t0\t0\t9.81", "10\tACC\t0\t0\t9.81"])
+            wait_for(lambda: srv.app.state.slot.holder is not None, 10, what="the phone holds the slot")
+            r = presenter.post("/api/phone", json={"release": True})
+            assert r.status_code == 200 and r.json()["slot"]["holder"] is None
+            assert ph.closed_by_server(5.0)
+        refused = presenter.get("/api/phone").json()["slot"]["refused"]
+        with Phone(srv.phone_port) as again:             # the same address, a new port
+            try:
+                again.send_lines(["20\tACC\t0\t0\t9.81", "30\tACC\t0\t0\t9.81"])
+            except OSError:
+                pass                                      # closed before it could send
+            assert again.closed_by_server(5.0)
+        slot = presenter.get("/api/phone").json()["slot"]
+        assert slot["holder"] is None and slot["refused"] > refused
+        assert "released this phone" in slot["last_refusal"]
+        msg = {"messageId": 1, "sessionId": "a", "deviceId": "b",
+               "payload": [{"name": "gyroscope", "time": 1760000000013001000,
+                            "values": {"x": 0.0, "y": 0.0, "z": 0.0}}]}
+        assert other.post("/sensorlogger", content=json.dumps(msg).encode()).status_code == 200
+
+
 # ---------------------------------------------------------------- phyphox
 
 @pytest.mark.shared
