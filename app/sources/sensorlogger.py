@@ -80,6 +80,9 @@ _SOURCES = {
 # late: the downstream orderer would take a run of them for the phone's clock stepping back
 # (its jump_s, 2 s) and move the stream's clock on by seconds for good
 _STALE_NS = 2_000_000_000
+# after this many messages of other sensors without one orientation reading, the page says
+# the app sends none (a message is about a second: long past the start's hold)
+NO_ORI_AFTER = 5
 _PAIR_MAX_NS = 100_000_000  # accelerometer/gravity pairing: at most 0.1 s apart
 _RATE_HISTORY = 256
 
@@ -741,6 +744,12 @@ class SensorLoggerStream:
         sources = dict(self._sources)
         if "ORI" in sources and self.ori.chosen is None:
             sources["ORI"] = None
+        ori = self.ori.status()
+        if "ORI" not in self._sources and sources and self.messages >= NO_ORI_AFTER:
+            # holding the phone still cannot help: the app sends none
+            ori = {**ori, "state": "absent",
+                   "message": "no Orientation readings: tick Orientation in the app's sensors "
+                              "to compare with the phone's own estimate"}
         return {
             "platform": self.platform or "unknown",
             "platform_reason": self.platform_reason,
@@ -763,6 +772,6 @@ class SensorLoggerStream:
             "rates_hz": self.rates(),
             "last_sample_s": None if self._last_ms is None else self._last_ms / 1000.0,
             "clock_offset_s": None if off is None or not math.isfinite(off) else round(off, 3),
-            "orientation": self.ori.status(),
+            "orientation": ori,
             "sources": sources,
         }

@@ -95,6 +95,10 @@ def test_generated_log_is_followed(srv, api):
     assert len(st["euler_deg"]) == 3
     for name, e in st["estimators"].items():
         assert len(e["q"]) == 4, name
+    # the Lab tab's table says each estimator's last field decision in words, not codes
+    from app.estimators import REASON_TEXT
+    rows = srv.app.state.toolkit_tab._readouts().splitlines()[2:]
+    assert rows and all(r.split("|")[4].strip() in set(REASON_TEXT.values()) for r in rows), rows
 
 
 @pytest.mark.skipif(not REAL_LOGS.is_dir(), reason="../shared/data/sensorfusion-app not present")

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from app.sources.samples import Sample
-from app.sources.sensorlogger import Batch, SensorLoggerError, SensorLoggerStream
+from app.sources.sensorlogger import NO_ORI_AFTER, Batch, SensorLoggerError, SensorLoggerStream
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tyrex_sensorlogger as tx  # noqa: E402
@@ -726,3 +726,22 @@ def test_any_json_either_decodes_or_raises_a_sensorlogger_error():
             assert all(math.isfinite(v) for v in x.values)
         json.dumps(st.status(), allow_nan=False)
     st.flush()
+
+
+def test_a_phone_without_the_orientation_sensor_is_told_to_tick_it(shared_dir):
+    """Holding the phone still cannot help when the app sends no orientation at all: the
+    status says which sensor to tick instead (a reviewer's find)."""
+    path = trial(shared_dir, "Nexus5_Guillaume_NoDist_ar")
+    st = stream()
+    bodies = [json.loads(b) for b in tx.messages_android(path, 1.0, seconds=8)]
+    for i, m in enumerate(bodies):
+        m["payload"] = [r for r in m["payload"] if r["name"] != "orientation"]
+        st.decode(json.dumps(m).encode(), float(i))
+        o = st.status()["orientation"]
+        if i + 1 < NO_ORI_AFTER:
+            assert o["state"] != "absent"
+    assert o["state"] == "absent" and "tick Orientation" in o["message"]
+    with_ori = stream()
+    for i, b in enumerate(tx.messages_android(path, 1.0, seconds=8)):
+        with_ori.decode(b, float(i))
+    assert with_ori.status()["orientation"]["state"] != "absent"

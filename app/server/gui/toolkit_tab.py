@@ -27,6 +27,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from app.estimators import REASON_TEXT
 from app.quaternion import not_estimated, q2euler_many
 from app.live.changes import Change, PatchError, Variant
 from app.server.gui.plots import send_data, unwrap_deg
@@ -662,7 +663,7 @@ class ToolkitTab:
             e = np.degrees(q2euler_many(est.q[None, :])[0])
             err = "-" if phone is None else f"{math.degrees(angle_between(phone, est.q)):.1f}°"
             f = b.instances[n].flags("mag")
-            dec = "-" if f is None else f.mag.label
+            dec = "-" if f is None else REASON_TEXT[f.mag]
             tag = "" if b.base_of(n) == n else f" ({b.base_of(n)} variant)"
             rows.append(f"| `{n}`{tag} | {e[0]:.1f} {e[1]:.1f} {e[2]:.1f} | {err} | {dec} |")
         return "\n".join(rows)
