@@ -12,7 +12,7 @@ histogram per axis. From them it derives
   acc to +z), so the phone need not lie flat.
 
 A recording that does not look stationary (gyroscope or accelerometer spread too large,
-turning, |acc| far from 9.81) gets warnings. :func:`format_report` renders the result as
+turning, |acc| far from 9.81, a field that changed) gets warnings. :func:`format_report` renders the result as
 text; :func:`to_preset` writes it as a TOML preset for ``--config`` (tables ``[lab]``
 and ``[robust]``, the statistics as comments).
 """
@@ -48,6 +48,9 @@ class StationaryLimits:
     gyr_mean: float = 0.2       # rad/s, |mean rate| (slow steady turning)
     acc_std: float = 0.5        # m/s², per axis
     acc_norm_tol: float = 1.5   # m/s², | |mean acc| - 9.81 |
+    # µT, per axis: a phone magnetometer's noise is 0.2-2 µT; more is a field that changed
+    # (a magnet, a laptop, steel moved near the phone), whose mean and spread would mislead
+    mag_std: float = 5.0
     min_samples: int = 20       # fewer samples: statistics unreliable
 
 
@@ -197,13 +200,15 @@ def calibrate(t, gyr=None, acc=None, mag=None,
     # a short movement in a long still recording hides in the whole recording's spread (a
     # phone slid across the table for 2 s of 60), but not in the spread of its own second
     for name, x, lim, unit, what in (("acc", acc, limits.acc_std, "m/s²", "accelerometer"),
-                                     ("gyr", gyr, limits.gyr_std, "rad/s", "gyroscope")):
+                                     ("gyr", gyr, limits.gyr_std, "rad/s", "gyroscope"),
+                                     ("mag", mag, limits.mag_std, "µT", "magnetometer")):
         if x is None or name not in sensors or np.max(sensors[name].std) > lim:
             continue        # none, or the whole recording's spread already says it
         worst = _worst_second(t, np.asarray(x, dtype=float).reshape(n, 3))
         if worst is not None and worst[1] > lim:
+            why = "the field changed" if name == "mag" else "the phone moved"
             out.warnings.append(f"{what} spread {worst[1]:.3g} {unit} > {lim:g} in the second from "
-                                f"{worst[0]:.0f} s of the recording: the phone moved")
+                                f"{worst[0]:.0f} s of the recording: {why}")
     return out
 
 
@@ -253,6 +258,10 @@ def _stationarity_warnings(st: CalibrationStats, lim: StationaryLimits) -> list[
         if abs(norm - STANDARD_GRAVITY) > lim.acc_norm_tol:
             w.append(f"|mean acc| = {norm:.3g} m/s², far from {STANDARD_GRAVITY}: "
                      "accelerating or miscalibrated")
+    m = st.sensors.get("mag")
+    if m is not None and np.max(m.std) > lim.mag_std:
+        w.append(f"magnetometer spread {np.max(m.std):.3g} µT > {lim.mag_std:g}: the field "
+                 "changed (a magnet, a laptop or steel moved near the phone)")
     return w
 
 

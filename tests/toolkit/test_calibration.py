@@ -133,6 +133,29 @@ def test_a_short_movement_in_a_long_still_recording_is_flagged():
     assert any("in the second from 12 s" in w for w in st.warnings), st.warnings
 
 
+def test_a_field_that_changed_during_the_recording_is_not_stationary():
+    """A magnet brought near a still phone (the demo's magnet scene): gyroscope and
+    accelerometer said 'still', so a reviewer's calibration passed and set the lab
+    filter's magnetometer noise to 15.6 µT and m0 from the disturbed field. A field whose
+    spread is past any magnetometer's noise is now a warning, and so is one second of it."""
+    t, gyr, acc, mag = stationary(TILTED)
+    near = mag.copy()
+    on = (t >= 10.0) & (t < 20.0)
+    near[on] += [40.0, -10.0, 20.0]                     # 10 s of a magnet, then gone
+    st = calibrate(t, gyr, acc, near)
+    assert not st.stationary
+    assert any("magnetometer spread" in w and "the field changed" in w for w in st.warnings)
+    brief = mag.copy()
+    s1 = (t >= 5.0) & (t < 6.0)
+    brief[s1, 1] += 30.0 * np.sin(2 * np.pi * t[s1])     # one second of it
+    st = calibrate(t, gyr, acc, brief)
+    assert np.max(st.sensors["mag"].std) < StationaryLimits().mag_std
+    assert any("in the second from 5 s" in w and "field changed" in w for w in st.warnings)
+    # a phone magnetometer's own noise (up to 2 µT) stays clean
+    noisy = mag + np.random.default_rng(3).normal(0.0, 2.0, mag.shape)
+    assert calibrate(t, gyr, acc, noisy).stationary
+
+
 def test_report_and_preset_load_with_load_config(tmp_path):
     t, gyr, acc, mag = stationary(TILTED)
     st = calibrate(t, gyr, acc, mag)
