@@ -245,6 +245,32 @@ def test_patch_primary_specific_and_gui_follows(srv, api):
     assert gui.folders["robust"].order < gui.bias_folder.order < gui.folders["lab"].order
 
 
+def test_a_number_typed_through_a_refused_value_is_not_set_back_between_keystrokes(srv, api):
+    """A number box sends every keystroke. Typing 0.5 into lab's mag_std (2 µT) sends 0
+    first, below its minimum: it was refused and the box set back to 2 at once, so the
+    next keys made 2.5 and 2.5 was applied (a reviewer's find). The set-back now waits for
+    the typing to pause; a refused value left alone is still set back, and said."""
+    from app.server.gui.main import REFUSAL_SETTLE_S
+    gui = srv.app.state.gui
+    c = {(x.estimator, x.name): x for x in gui.controls}[("lab", "mag_std")]
+    lab = lambda: api.get("/api/params").json()["estimators"]["lab"]["mag_std"]  # noqa: E731
+    before = lab()
+    try:
+        c.handle.value = c.to_gui(0.0)              # "0", on the way to "0.5"
+        time.sleep(0.6)                              # between two keys
+        assert c.from_gui(c.handle.value) == 0.0     # not set back under the fingers
+        c.handle.value = c.to_gui(0.5)
+        wait_for(lambda: lab() == pytest.approx(0.5), what="0.5 applied")
+        time.sleep(REFUSAL_SETTLE_S + 0.5)
+        assert c.from_gui(c.handle.value) == pytest.approx(0.5) and lab() == pytest.approx(0.5)
+        c.handle.value = c.to_gui(0.0)              # refused, and left so
+        wait_for(lambda: c.from_gui(c.handle.value) == pytest.approx(0.5),
+                 REFUSAL_SETTLE_S + 10.0, what="the box set back to the value in force")
+        assert lab() == pytest.approx(0.5)
+    finally:
+        api.patch("/api/params", json={"estimators": {"lab": {"mag_std": before}}})
+
+
 def test_every_parameter_of_every_estimator_has_a_control(srv):
     """The page sets every parameter (issue 6): each field of each estimator's parameter
     set has its control in that estimator's folder; the sensor switches are common."""

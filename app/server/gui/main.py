@@ -51,6 +51,9 @@ log = logging.getLogger("orientlab.gui")
 
 SENSOR_SWITCHES = (("use_gyr", "Gyroscope"), ("use_acc", "Accelerometer"), ("use_mag", "Magnetometer"))
 HOLD_S = 1.0              # a rejection keeps its indicator lit this long
+# a number box sends every keystroke: a refused value ("0" on the way to "0.5") is set back
+# to the value in force, and said, only once the typing has paused this long
+REFUSAL_SETTLE_S = 1.5
 CONTROL_PANEL_PX = 340    # the control panel, docked right of the 3D view
 BIAS_ESTIMATORS = ("lab",)  # estimators given the bias by "Calibrate gyro bias"
 
@@ -64,6 +67,7 @@ class Gui:
         self.scene = scene
         self.settings = settings
         self._sync_thread: int | None = None
+        self._refusal = None      # the pending set-back of a refused number (loop handle)
         self.controls: list[Control] = []
         self.folders: dict[str, object] = {}
         self._hold: dict[str, tuple[str, float, float]] = {}  # sensor -> (text, lit until, since)
@@ -250,27 +254,54 @@ class Gui:
         def cb(ev):
             if self._ignored():
                 return
+            self.engine.loop.call_soon_threadsafe(self._typing)
             try:
                 value = c.from_gui(c.handle.value)
             except (TypeError, ValueError):
-                self.engine.loop.call_soon_threadsafe(self.sync)
+                self._refuse_later(ev, f"estimators.{c.estimator}.{c.name}: not a number")
                 return
             info = self.engine.core.ensemble.schema.instances.get(c.estimator)
             if info is None:        # its variant was removed meanwhile (controls going too)
                 return
             if c.same(value, getattr(info.params, c.name)):
                 return
-            self._submit({"estimators": {c.estimator: {c.name: value}}}, ev)
+            self._submit({"estimators": {c.estimator: {c.name: value}}}, ev, typing=True)
         return cb
 
-    def _submit(self, body: dict, ev=None) -> None:
+    def _typing(self) -> None:
+        """A parameter control changed (on the loop): a set-back pending is off."""
+        if self._refusal is not None:
+            self._refusal.cancel()
+            self._refusal = None
+
+    def _refuse_later(self, ev, text: str) -> None:
+        """A control's refused value (on viser's thread): said and set back to the value in
+        force once the typing pauses (:data:`REFUSAL_SETTLE_S`), not at once: a set-back
+        between two keystrokes made "0.5" in a box holding 2 become "2.5"."""
+        loop = self.engine.loop
+
+        def fire() -> None:
+            self._refusal = None
+            self._notify(ev, "Refused", f"{text} (the value in force stays)")
+            self.sync()
+
+        def arm() -> None:
+            self._typing()
+            self._refusal = loop.call_later(REFUSAL_SETTLE_S, fire)
+        loop.call_soon_threadsafe(arm)
+
+    def _submit(self, body: dict, ev=None, typing: bool = False) -> None:
         """Validate and post a change (the same body PATCH /api/params takes). Runs on
         viser's threads: validation reads one schema of the ensemble (thread-safe); the
         filter task refuses the change if its estimator went meanwhile (a variant
-        removed), and that refusal comes back here as a notice."""
+        removed), and that refusal comes back here as a notice. ``typing``: from a
+        parameter's box, whose refusal waits for the typing to pause."""
         try:
             change = self.engine.core.validate(body)
         except PatchError as e:
+            if typing:
+                self._refuse_later(ev, str(e))
+                return
             self._notify(ev, "Refused", str(e))
             self.engine.loop.call_soon_threadsafe(self.sync)
             return
