@@ -159,6 +159,18 @@
     return null;
   }
 
+  // the legend's "now" value: the newest finite one, if it is news (a sensor that stopped
+  // while the stream goes on has its last value seconds behind: "–", not a live figure)
+  const STALE_S = 3.0;
+  function newest(x, col) {
+    for (let i = col.length - 1; i >= 0; i--) {
+      if (col[i] !== null && isFinite(col[i])) {
+        return store.now !== null && x[i] !== undefined && x[i] < store.now - STALE_S ? null : col[i];
+      }
+    }
+    return null;
+  }
+
   function decades(min, max) {
     const out = [];
     if (!(min > 0) || !(max > 0)) return out;
@@ -233,7 +245,7 @@
     const hover = idx !== null && idx !== undefined;
     spec.series.forEach(([label, , dash, , , role, name], k) => {
       const col = u.data[k + 1] || [];
-      const v = hover ? col[idx] : lastFinite(col, col.length - 1);
+      const v = hover ? col[idx] : newest(u.data[0] || [], col);
       const el = items[k];
       if (name === null) return;
       let txt;
@@ -249,7 +261,7 @@
         const pair = spec.pairs ? spec.pairs[k] : undefined;
         if (pair !== undefined) {         // the phone's own value beside the estimate's
           const pc = u.data[pair + 1] || [];
-          const pv = hover ? pc[idx] : lastFinite(pc, pc.length - 1);
+          const pv = hover ? pc[idx] : newest(u.data[0] || [], pc);
           if (pv !== null && pv !== undefined) txt += ` (phone ${spec.fmt(pv)}${spec.unit})`;
         }
         // a series with nothing in the window (the phone's own angles without ORI, L_k of

@@ -160,6 +160,26 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path):
         assert "no magnetometer" in got["mag"]["why"]
 
 
+def test_a_sensor_that_stopped_shows_no_live_figure(tmp_path):
+    """The magnetometer switched off 3 s into a real log while the rest goes on: its chart
+    keeps the 3 s it had, but the legend's figure is "–", not its last value shown as
+    if live (a reviewer's find), while the accelerometer's still reads."""
+    pytest.importorskip("playwright.sync_api")
+    if not FULL_LOG.is_file():
+        pytest.skip(f"{FULL_LOG} not present")
+    lines = log_lines(FULL_LOG)
+    t0 = int(lines[0].split("\t")[0])
+    cut = [ln for ln in lines if not (ln.split("\t")[1] in ("MAG", "RAWMAG")
+                                      and int(ln.split("\t")[0]) - t0 > 3000)]
+    with running_server(preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, open_plots(srv, tmp_path) as page:
+        play(srv, api, cut)
+        wait_drawn(page, {"acc": ["|acc|"], "mag": ["|mag|"]})
+        legend = """(key) => window.orientlabPlots.charts[key].items[0].querySelector('.val').textContent"""
+        wait_for(lambda: page.evaluate(legend, "mag") == "–", 10.0, what="no live |mag| figure")
+        assert page.evaluate(legend, "acc").endswith("m/s²")
+
+
 def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
     """A student opens the watch-only link on a phone (390×844): the 3D view fills most of
     the screen, the Plots tab follows below it (the page scrolls down, never sideways), and

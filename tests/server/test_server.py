@@ -493,6 +493,8 @@ def test_a_sensor_switched_off_and_a_silent_phone_are_said_so(srv, api):
         stream = api.get("/api/connect").json()["stream"]
         assert stream["rates_hz"]["MAG"] == 0.0
         # the page's read-outs say it, the field's indicator is off, no field arrow is drawn
+        why = srv.app.state.engine.plot_feed.meta()["why"]
+        assert "magnetometer stopped sending" in why["mag"] and "no accelerometer" in why["acc"]
         gui = srv.app.state.gui
         wait_for(lambda: "MAG stopped" in gui.readouts.content, 10.0, what="MAG stopped")
         assert gui.indicators_now.mag is None

@@ -340,6 +340,13 @@ class PlotFeed:
         band = lambda b: None if b is None else [round(float(b[0]), 1), round(float(b[1]), 1)]  # noqa: E731
         gate = lambda g: None if not g or not math.isfinite(float(g)) else float(_sig([g])[0])  # noqa: E731
         ori = " (it needs the phone's Orientation sensor, ORI)" if core.ensemble.base_of(primary) == "phone" else ""
+        live = core.session
+        gone = live.stopped() if live is not None else frozenset()
+
+        def none_of(tag: str, what: str) -> str:
+            if tag in gone:
+                return f"the {what} stopped sending while the stream goes on (switched off in the app?)"
+            return f"no {what} samples in this stream"
         return {
             "span": self.span_s, "primary": primary,
             # the gates: robust's learned |mag| band moves a little all the time (0.1 µT:
@@ -351,8 +358,8 @@ class PlotFeed:
                 "euler": f"{primary} has no estimate yet{ori}",
                 "error": "no reference in this stream (the phone's Orientation sensor, ORI, "
                          "or the demo's truth)",
-                "acc": "no accelerometer samples in this stream",
-                "mag": "no magnetometer samples in this stream",
+                "acc": none_of("ACC", "accelerometer"),
+                "mag": none_of("MAG", "magnetometer"),
                 "nis": f"{primary} makes no Kalman update to test",
             },
         }
