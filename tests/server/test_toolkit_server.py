@@ -221,6 +221,7 @@ def test_a_disturbance_ends_with_its_stream_and_never_reaches_the_next(tmp_path,
     k = _split_at(lines, 3.0)
     with running_server(recordings=tmp_path / "rec", preset_dir=tmp_path) as s, \
             httpx.Client(base_url=s.url, timeout=60.0) as api:
+        assert api.post("/api/recordings/start", json={"name": "two"}).status_code == 200
         with Phone(s.phone_port) as phone:
             _send(phone, lines[:k])
             _processed(api, k - 200, "the first 3 s")
@@ -241,6 +242,13 @@ def test_a_disturbance_ends_with_its_stream_and_never_reaches_the_next(tmp_path,
         mag = s.app.state.engine.core.history.mag.window(1e9, 100_000)
         clean = np.linalg.norm([x.values for x in _dec(lines) if x.tag == "MAG"], axis=1)
         assert np.nanmax(mag["norm"]) < clean.max() + 1.0     # no 80 µT added anywhere
+        # the recording spans both streams: one file each, and the Lab tab names both
+        # (the first name alone plays the first stream only)
+        last = api.post("/api/recordings/stop").json()
+        assert [g["name"] for g in last["segments"]] == ["two", "two_2"]
+        tab = s.app.state.toolkit_tab
+        wait_for(lambda: "`two_2`" in tab.rec_md.content and "2 streams" in tab.rec_md.content,
+                 10.0, what="both files named")
 
 
 def test_replay_a_recording_with_pause_speed_and_seek(tmp_path, still_log):

@@ -561,9 +561,15 @@ class ToolkitTab:
                 self.rec_md.content = f"not recording; last: `{last['name']}` got no sample: nothing kept"
             else:
                 why = last.get("error") or last.get("stop_reason")
+                segs = last.get("segments") or []
+                # a recording over several streams is one file per stream: name each, with
+                # its own length (replaying the first name plays the first stream only)
+                files = (", ".join(f"`{g['name']}` {g['seconds']:.1f} s" for g in segs)
+                         if len(segs) > 1 else f"`{last['name']}` {last['seconds']:.1f} s")
                 self.rec_md.content = bare(
-                    f"not recording; last: `{last['name']}` {last['seconds']:.1f} s, "
-                    f"{last['samples']} samples, {size(last.get('bytes'))}"
+                    f"not recording; last: {files}"
+                    + (f" ({len(segs)} streams, {last['seconds']:.1f} s in all)" if len(segs) > 1 else "")
+                    + f", {last['samples']} samples, {size(last.get('bytes'))}"
                     + (f" -- **stopped: {why}**" if why else ""))
         names = tuple(r["name"] for r in tk.recording.recordings()) or ("(none)",)
         if names != self._known_recordings:
