@@ -358,9 +358,9 @@ class Scene:
                                           shaft_radius=0.025, head_radius=0.06)
         self.mag = sc.add_arrows("/arrows/field", _arrow_points(None), colors=C_MAG,
                                  position=tuple(MAG_AT), shaft_radius=0.025, head_radius=0.06)
-        sc.add_label("/arrows/gravity_label", "gravity (up: specific force)\ngrey expected, blue measured",
+        sc.add_label("/arrows/gravity_label", "gravity (up: specific force)\ngrey expected, blue measured (red: refused)",
                      position=tuple(GRAV_AT + [0, -0.25, 0]), anchor="top-center", font_screen_scale=0.8)
-        sc.add_label("/arrows/field_label", "magnetic field\ngrey expected, purple measured",
+        sc.add_label("/arrows/field_label", "magnetic field\ngrey expected, purple measured (red: refused)",
                      position=tuple(MAG_AT + [0, -0.25, 0]), anchor="top-center", font_screen_scale=0.8)
         self.status = sc.add_label("/status", "", position=(0.0, 0.0, 1.25), anchor="bottom-center")
         self._status_text = ""
