@@ -164,7 +164,10 @@ async function poll() {
     badge.textContent = st.status;
     // the whole status on hover: a narrow header cuts the badge short
     badge.title = st.status + (presenter ? "" : "\nwatch-only: the presenter's link holds the token that allows changes");
-    badge.className = "badge" + (st.source === "phone" ? " phone" : st.source === "phone-disconnected" ? " warn" : "");
+    // a phone connected but silent (its status says so) is a warning, not a live stream
+    const silent = st.silent_s !== null && st.silent_s !== undefined && st.silent_s >= 3;
+    badge.className = "badge" + (st.source === "phone" && !silent ? " phone"
+      : st.source === "phone-disconnected" || silent ? " warn" : "");
     if (!tabPicked && st.t !== null && st.t !== undefined && $("tab-plots").getAttribute("aria-selected") !== "true") showPanel($("tab-plots"));
     if (!poll.ready) {  // the first start compiles the filters: which are ready
       const h = await (await fetch("/api/health")).json();

@@ -89,6 +89,8 @@ class State(BaseModel):
                                         "base.Diagnostics), every field by name: references, "
                                         "gate bands and gates, learned state; null where "
                                         "the estimator has no such thing")
+    silent_s: float | None = Field(None, description="a connected phone: seconds (PC clock) "
+                                   "since its last samples; null otherwise")
     rates_hz: dict[str, float | None] = Field(description="per sensor tag (ACC, GYR, MAG, ORI): "
                                               "its rate; 0: it stopped while the stream goes on; "
                                               "null: not yet known")

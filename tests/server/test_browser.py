@@ -64,6 +64,34 @@ def test_on_a_projector_the_header_keeps_one_line_with_the_longest_status(tmp_pa
             assert got["title"].startswith(status), got       # the whole text on hover
 
 
+def test_a_connected_but_silent_phone_is_a_warning_in_the_header(tmp_path):
+    """A phone whose app stopped sending without hanging up: the badge says so, in the
+    warning colour, not the green of a live stream."""
+    pytest.importorskip("playwright.sync_api")
+    import threading
+    from harness import play_paced, turns_log_lines, turns_session
+    lines = turns_log_lines(*turns_session([(2, 1.0, 2.0)])[:4])
+    badge = "() => { const b = document.querySelector('#source'); return [b.textContent, b.className]; }"
+    stop = threading.Event()
+    with running_server(preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, \
+            chromium_page(srv.url + "/", tmp_path / "profile") as (page, _):
+        wait_for(lambda: "waiting" in page.evaluate(badge)[0], 30.0, what="the page")
+        th = threading.Thread(target=play_paced, args=(srv.phone_port, lines, stop), daemon=True)
+        th.start()          # at the phone's pace, then connected and silent
+        try:
+            text, cls = wait_for(lambda: (lambda b: b if "streaming" in b[0] else None)(
+                page.evaluate(badge)), 30.0, what="the live badge")
+            assert "phone" in cls.split() and "warn" not in cls.split()
+            text, cls = wait_for(lambda: (lambda b: b if "no samples for" in b[0] else None)(
+                page.evaluate(badge)), 60.0, what="the silent badge")
+            assert "warn" in cls.split() and "phone" not in cls.split(), cls
+            assert api.get("/api/state").json()["source"] == "phone"
+        finally:
+            stop.set()
+            th.join(10)
+
+
 def test_the_api_docs_work_on_a_network_without_internet(tmp_path):
     """The header's "API docs" link (/docs, Swagger UI) on a classroom network with no way
     out: every request that leaves the PC is refused, and the docs still draw, with their

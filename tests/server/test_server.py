@@ -515,6 +515,7 @@ def test_a_sensor_switched_off_and_a_silent_phone_are_said_so(srv, api):
         st = wait_for(lambda: (lambda s: s if "no samples for" in s["status"] else None)(
             api.get("/api/state").json()), 15.0, what="the silent status")
         assert st["source"] == "phone" and "is the app still sending" in st["status"]
+        assert st["silent_s"] >= 3.0
         for _ in range(4):
             ph.send_lines(["not a line", "123\tACC\t1.0"])
             time.sleep(0.5)
