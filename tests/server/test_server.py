@@ -95,10 +95,21 @@ def test_generated_log_is_followed(srv, api):
     assert len(st["euler_deg"]) == 3
     for name, e in st["estimators"].items():
         assert len(e["q"]) == 4, name
-    # the Lab tab's table says each estimator's last field decision in words, not codes
-    from app.estimators import REASON_TEXT
-    rows = srv.app.state.toolkit_tab._readouts().splitlines()[2:]
-    assert rows and all(r.split("|")[4].strip() in set(REASON_TEXT.values()) for r in rows), rows
+
+    # the Lab tab's table says each estimator's last field decision in words, not codes: lab
+    # given a field band no field fits refuses every sample ("field", in words "field
+    # strength L_k outside its band")
+    from app.estimators import REASON_TEXT, Reason
+    r = api.patch("/api/params", json={"estimators": {"lab": {"mag_band_uT": [1.0, 2.0]}}})
+    assert r.status_code == 200, r.text
+    try:
+        play(srv, api, lines)
+        rows = {row.split("|")[1].strip(" `"): row.split("|")[4].strip()
+                for row in srv.app.state.toolkit_tab._readouts().splitlines()[2:]}
+        assert rows["lab"] == REASON_TEXT[Reason.FIELD], rows
+        assert all(v in set(REASON_TEXT.values()) for v in rows.values()), rows
+    finally:
+        api.patch("/api/params", json={"estimators": {"lab": {"mag_band_uT": None}}})
 
 
 @pytest.mark.skipif(not REAL_LOGS.is_dir(), reason="../shared/data/sensorfusion-app not present")
