@@ -57,7 +57,7 @@ import numpy as np
 
 from app.quaternion import Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul_many
 from app.sources.samples import Sample, impossible_rows
-from app.sources.sensorlogger_wire import (MAX_IGNORED_NAMES, SensorLoggerError, WireMessage,
+from app.sources.sensorlogger_wire import (SensorLoggerError, WireMessage, count_ignored,
                                            read_message)
 
 __all__ = ["SensorLoggerError", "Batch", "SensorLoggerStream", "OrientationCheck",
@@ -405,10 +405,7 @@ class SensorLoggerStream:
         dropped = 0
         self.invalid.update(r.invalid)
         for name, n in r.ignored.items():
-            if name in self.ignored or len(self.ignored) < MAX_IGNORED_NAMES:
-                self.ignored[name] += n
-            else:
-                self.ignored["(other)"] += n
+            count_ignored(self.ignored, name, n)
         if r.latest is not None:
             self._offsets.append(r.latest / 1e9 - now)
         self._detect_platform(r.groups, r.accuracy)

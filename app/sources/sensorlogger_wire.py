@@ -22,7 +22,7 @@ import numpy as np
 
 from app.sources.samples import MAX_TIME_MS, impossible_rows
 
-__all__ = ["SensorLoggerError", "WireMessage", "read_message", "MAX_IGNORED_NAMES"]
+__all__ = ["SensorLoggerError", "WireMessage", "read_message", "count_ignored"]
 
 _MAX_NS = 9_000_000_000_000_000_000     # below int64's limit; MAX_TIME_MS is larger
 _MAX_NS = min(_MAX_NS, int(MAX_TIME_MS * 1e6))
@@ -67,6 +67,17 @@ class WireMessage:
     invalid: Counter = field(default_factory=Counter)
 
 
+def count_ignored(ignored: Counter, name: str, n: int = 1) -> None:
+    """Count ``n`` readings of an unknown ``name``: at most :data:`MAX_IGNORED_NAMES`
+    distinct names (40 characters each), the rest as ``(other)``: a stream of made-up
+    names cannot grow the counter."""
+    name = name[:40]
+    if name in ignored or len(ignored) < MAX_IGNORED_NAMES:
+        ignored[name] += n
+    else:
+        ignored["(other)"] += n
+
+
 def _parse(payload: list, out: WireMessage) -> None:
     """The readings of a payload into ``out``: per name, times (ns) and values as arrays;
     what was wrong counted in ``out``'s counters."""
@@ -85,10 +96,7 @@ def _parse(payload: list, out: WireMessage) -> None:
             name = name.strip().lower()
             keys = _KEYS.get(name)
             if keys is None:
-                if name in ignored or len(ignored) < MAX_IGNORED_NAMES:
-                    ignored[name[:40]] += 1
-                else:
-                    ignored["(other)"] += 1
+                count_ignored(ignored, name)
                 continue
         t = r.get("time")
         if type(t) is not int:

@@ -745,3 +745,20 @@ def test_a_phone_without_the_orientation_sensor_is_told_to_tick_it(shared_dir):
     for i, b in enumerate(tx.messages_android(path, 1.0, seconds=8)):
         with_ori.decode(b, float(i))
     assert with_ori.status()["orientation"]["state"] != "absent"
+
+
+def test_made_up_reading_names_cannot_grow_the_ignored_counter():
+    """A phone (or a stray client) sending new unknown names in every message: at most
+    MAX_IGNORED_NAMES distinct names are kept, each cut to 40 characters, the rest counted
+    as "(other)"; no reading goes uncounted."""
+    from app.sources.sensorlogger_wire import MAX_IGNORED_NAMES
+    st = stream()
+    n = 0
+    for m in range(1, 6):
+        payload = [rd(f"n{m}-{k}-" + "x" * 50, T0 + k, x=0.0, y=0.0, z=0.0) for k in range(30)]
+        payload.append(rd("gyroscope", T0 + 100 * m, x=0.0, y=0.0, z=0.0))
+        st.decode(body(payload, mid=m), float(m))
+        n += 30
+    ig = st.status()["ignored"]
+    assert len(ig) == MAX_IGNORED_NAMES + 1 and sum(ig.values()) == n
+    assert all(len(k) <= 40 for k in ig) and ig["(other)"] == n - MAX_IGNORED_NAMES
