@@ -165,7 +165,7 @@ async function poll() {
     // the whole status on hover: a narrow header cuts the badge short
     badge.title = st.status + (presenter ? "" : "\nwatch-only: the presenter's link holds the token that allows changes");
     // a phone connected but silent (its status says so) is a warning, not a live stream
-    const silent = st.silent_s !== null && st.silent_s !== undefined && st.silent_s >= 3;
+    const silent = st.silent_s !== null && st.silent_s !== undefined;
     badge.className = "badge" + (st.source === "phone" && !silent ? " phone"
       : st.source === "phone-disconnected" || silent ? " warn" : "");
     if (!tabPicked && st.t !== null && st.t !== undefined && $("tab-plots").getAttribute("aria-selected") !== "true") showPanel($("tab-plots"));

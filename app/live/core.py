@@ -36,8 +36,6 @@ from app.live.history import History
 from app.live.session import Session, Totals
 from app.sources.slot import PHONE_APPS
 
-SILENT_S = 3.0     # a connected phone sending nothing this long is said to be silent (s)
-
 log = logging.getLogger("orientlab.live")
 
 RecordListener = Callable[[Session, Records], None]    # (session, what one chunk made)
@@ -231,8 +229,8 @@ class LiveCore:
         app = PHONE_APPS.get(s.phone_app, "")
         who = f"phone ({app})" if app else "phone"
         if s.open:
-            silent = s.silent_s
-            if silent >= SILENT_S:
+            silent = s.silent()
+            if silent is not None:
                 return (f"{who} connected, but no samples for {silent:.0f} s: is the app "
                         "still sending? (showing its last state)")
             return f"{who} streaming"

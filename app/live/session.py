@@ -22,6 +22,9 @@ from app.sources.samples import Sample
 from app.sources.ordering import SampleOrderer
 
 
+SILENT_S = 3.0     # a connected phone sending nothing this long is said to be silent (s)
+
+
 class Session:
     """One stream. ``truth`` (demo only) maps phone times in ms (array) to true
     orientations (N, 4)."""
@@ -98,6 +101,14 @@ class Session:
     def silent_s(self) -> float:
         """Seconds (PC clock) since the last samples arrived."""
         return time.monotonic() - self.last_rx
+
+    def silent(self) -> float | None:
+        """An open phone stream that has sent no samples for :data:`SILENT_S` or more: for
+        how long (s); else None (streaming, or not a connected phone)."""
+        if self.kind != "phone" or not self.open:
+            return None
+        s = self.silent_s
+        return s if s >= SILENT_S else None
 
     @property
     def clock_offsets(self) -> dict[str, float]:

@@ -139,8 +139,8 @@ def state(core: CoreReadout) -> dict[str, Any]:
     s = core.session
     return {
         "t": core.t_sent, "source": core.source_kind(), "status": core.status_text(),
-        # a connected phone: seconds since its last samples (PC clock); else null
-        "silent_s": num(s.silent_s) if s is not None and s.kind == "phone" and s.open else None,
+        # a connected phone that went quiet: seconds since its last samples; else null
+        "silent_s": None if s is None else num(s.silent()),
         "primary": b.primary, "q": prim["q"], "euler_deg": prim["euler_deg"],
         "initialized": prim["initialized"],
         "phone_q": qlist(phone_q),

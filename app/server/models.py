@@ -89,8 +89,9 @@ class State(BaseModel):
                                         "base.Diagnostics), every field by name: references, "
                                         "gate bands and gates, learned state; null where "
                                         "the estimator has no such thing")
-    silent_s: float | None = Field(None, description="a connected phone: seconds (PC clock) "
-                                   "since its last samples; null otherwise")
+    silent_s: float | None = Field(None, description="a connected phone that has sent no "
+                                   "samples for 3 s or more: for how long (s, PC clock); "
+                                   "null otherwise")
     rates_hz: dict[str, float | None] = Field(description="per sensor tag (ACC, GYR, MAG, ORI): "
                                               "its rate; 0: it stopped while the stream goes on; "
                                               "null: not yet known")

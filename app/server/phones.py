@@ -9,9 +9,9 @@ shared phone slot (:class:`~app.sources.slot.PhoneSlot`, the same the TCP receiv
   Logger gets a 499 with the reason, which the app shows; phyphox an error status, which
   it shows as a network error);
 - a phone takes the slot with its first valid sample; its samples go to the engine as
-  every source's do (``engine.feed``); the handler reads the body (JSON, readings to
-  arrays) on a worker thread, then decodes, enqueues and answers on the loop; it never
-  filters on the request path;
+  every source's do (``engine.feed``); the handler reads the body on a worker thread (the
+  JSON; for Sensor Logger also its readings to arrays), then decodes the rest, enqueues
+  and answers on the loop; it never filters on the request path;
 - a push stream that has sent nothing for :data:`PUSH_END_S` seconds, or for 2.5 of its
   batch periods if they are longer (the app's batch period is the user's setting), has
   ended (the app stopped recording): its held messages are released and its stream is
@@ -100,8 +100,9 @@ class HttpPhones:
     # ------------------------------------------------------------------ pushes
     async def push(self, phone_app: str, body: bytes, client: str) -> Reply:
         """One POST of a push app (``sensorlogger`` or ``phyphox``) from ``client``. The
-        body is read (JSON, readings to arrays) on a worker thread, so a long batch does not
-        hold the server up while it is read; the stream's state sees it on the event loop."""
+        body is read (the decoder's ``read``: the JSON, and Sensor Logger's readings to
+        arrays) on a worker thread, so a long batch does not hold the server up while it is
+        read; the stream's state sees it on the event loop (``take``)."""
         c = self.counts[phone_app]
         c.requests += 1
         now = time.time()

@@ -500,7 +500,7 @@ def test_a_sensor_switched_off_and_a_silent_phone_are_said_so(srv, api):
         assert st["mag"]["reason"] == "absent" and not st["mag_rejected"]
         assert st["acc"]["reason"] != "absent"
         assert st["phone_q"] is None and st["error_to_phone_deg"] is None
-        assert "streaming" in st["status"]
+        assert "streaming" in st["status"] and st["silent_s"] is None
         stream = api.get("/api/connect").json()["stream"]
         assert stream["rates_hz"]["MAG"] == 0.0
         # the page's read-outs say it, the field's indicator is off, no field arrow is drawn
