@@ -160,12 +160,13 @@
   }
 
   // the legend's "now" value: the newest finite one, if it is news (a sensor that stopped
-  // while the stream goes on has its last value seconds behind: "–", not a live figure)
-  const STALE_S = 3.0;
+  // while the stream goes on has its last value seconds behind: "–", not a live figure;
+  // how far behind is the server's meta.stale_s)
   function newest(x, col) {
+    const stale = store.meta.stale_s ?? 3.0;
     for (let i = col.length - 1; i >= 0; i--) {
       if (col[i] !== null && isFinite(col[i])) {
-        return store.now !== null && x[i] !== undefined && x[i] < store.now - STALE_S ? null : col[i];
+        return store.now !== null && x[i] !== undefined && x[i] < store.now - stale ? null : col[i];
       }
     }
     return null;

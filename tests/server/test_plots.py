@@ -19,6 +19,7 @@ import pytest
 from app.live import LiveCore
 from app.server.gui.plots import (POINTS_PER_S, X_STEP, Y_BITS, PlotFeed, ends, quantize, unwrap_deg,
                                   wire)
+from app.sources.ordering import STOPPED_S
 from app.sources.simulate import simulate
 from harness import feed_lines, log_lines
 
@@ -140,6 +141,7 @@ def test_the_feed_sends_every_bin_once_at_a_bounded_rate_on_one_clock():
     _, msgs = _stream(core, lines, feed)
     assert msgs[0]["k"] == "s" and all(m["k"] == "d" for m in msgs[1:])
     assert msgs[0]["meta"]["span"] == 20.0 and "why" in msgs[0]["meta"]
+    assert msgs[0]["meta"]["stale_s"] == STOPPED_S     # the legend's limit: the orderer's
     for name, ncols in (("pose", 9), ("acc", 3), ("mag", 4)):
         cols = _merge(msgs, name)
         assert cols is not None and len(cols) == ncols

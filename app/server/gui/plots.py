@@ -40,6 +40,7 @@ except ImportError:  # pragma: no cover - viser depends on it
     msgspec = None
 
 from app.quaternion import angle_between_many, q2euler_many
+from app.sources.ordering import STOPPED_S
 from app.server import viser_adapter as va
 
 _JSON = msgspec.json.Encoder() if msgspec is not None else None
@@ -225,6 +226,7 @@ class PlotFeed:
     gap; every ``x`` in s since the stream started (one clock for every plot). ``"s"``
     (a snapshot: the whole window, a new stream) replaces what a client holds; ``"d"``
     appends. ``meta`` (in a delta only its keys that changed): the window ``span`` (s),
+    ``stale_s`` (a legend's figure further behind the newest is not shown as live),
     the ``primary``, the gate bands and NIS gates, the injected disturbances (``spans``:
     kind, from, to or null while on) and, per plot, why it may be empty (``why``).
     """
@@ -349,6 +351,9 @@ class PlotFeed:
             return f"no {what} samples in this stream"
         return {
             "span": self.span_s, "primary": primary,
+            # a legend's newest figure further behind the stream than this is no live
+            # value (its sensor stopped): the orderer's own limit
+            "stale_s": STOPPED_S,
             # the gates: robust's learned |mag| band moves a little all the time (0.1 µT:
             # what a magnetometer can tell)
             "acc_band": band(diag.acc_band), "mag_band": band(diag.mag_band),
