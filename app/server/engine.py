@@ -251,10 +251,19 @@ class Engine:
         """A phone has paused the demo (or log replay), and no one has resumed it yet."""
         return self.background_allowed is not None and not self.background_allowed.is_set()
 
-    def resume_background(self) -> None:
-        """Let the demo (or log replay) run again after a phone has left."""
+    def phone_streaming(self) -> bool:
+        """A phone's stream is on show (it has priority over the demo and a replay)."""
+        s = self.core.session
+        return s is not None and s.open and s.kind == "phone"
+
+    def resume_background(self) -> bool:
+        """Let the demo (or log replay) run again after a phone has left; False (nothing
+        done) while a phone streams: the demo would take the stream from it."""
+        if self.phone_streaming():
+            return False
         if self.loop is not None:
             self.loop.call_soon_threadsafe(self.background_allowed.set)
+        return True
 
     # ----------------------------------------------------------------- changes
     def post(self, change: Change, done: asyncio.Future | None = None) -> None:

@@ -56,8 +56,7 @@ class ReplayService:
                 raise ToolError("name", f"{path.name} is not an app log (only logs can be replayed)")
         except ReaderError as e:
             raise ToolError("name", str(e)) from None
-        s = self.engine.core.session
-        if s is not None and s.open and s.kind == "phone":
+        if self.engine.phone_streaming():
             raise ToolError("name", "a phone is streaming: it has priority over a replay", 409)
         ctl = ReplayControl(path.read_bytes().splitlines(), path.name)
         self.control, self.name = ctl, name

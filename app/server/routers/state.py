@@ -34,10 +34,8 @@ async def stats(request: Request, reset: bool = False, engine: Engine = Depends(
 async def resume(engine: Engine = Depends(get_engine)) -> dict:
     """Restart the demo (or log replay) after a phone has left; 409 while a phone streams
     (the demo would take the stream from it)."""
-    s = engine.core.session
-    if s is not None and s.open and s.kind == "phone":
+    if not engine.resume_background():
         raise HTTPException(409, "a phone is streaming: the demo resumes after it has left")
-    engine.resume_background()
     return {"ok": True}
 
 
