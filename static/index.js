@@ -111,7 +111,8 @@ function describe(v) {
   }
   if (s.kind === "phone" && s.rates_hz) {
     const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));
-    if (r.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${k} <b>stopped</b>` : `${k} ${fmt(x)} Hz`).join(" · "));
+    const held = Object.keys(s.withheld || {}).map((k) => `${k} <b>held back</b>`);
+    if (r.length || held.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${k} <b>stopped</b>` : `${k} ${fmt(x)} Hz`).concat(held).join(" · "));
   }
   if (s.kind === "phone") {
     const parts = [];

@@ -35,6 +35,8 @@ class Session:
         self.label = label
         self.phone_app = phone_app  # the phone app feeding a "phone" stream (slot.PHONE_APPS)
         self.details: dict[str, Any] = {}   # what its source detected: platform, convention
+        # the source's account of the sensors it receives but holds back (:attr:`withheld`)
+        self.withheld_by: Callable[[], dict[str, str]] | None = None
         self.orderer = SampleOrderer(window=window_s)
         self.truth = truth
         self.lines = 0              # readings received (samples and malformed ones)
@@ -89,13 +91,22 @@ class Session:
     def buffered(self) -> int:
         return self.orderer.buffered
 
+    @property
+    def withheld(self) -> dict[str, str]:
+        """The sensors the phone sends and its source holds back, and why (Sensor Logger's
+        orientation while its convention is checked): neither "stopped" nor a rate."""
+        return {} if self.withheld_by is None else self.withheld_by()
+
     def rates(self) -> dict[str, float]:
-        """Per sensor tag, its rate (Hz; 0.0: it stopped while the others go on)."""
-        return self.orderer.rates()
+        """Per sensor tag, its rate (Hz; 0.0: it stopped while the others go on); a tag the
+        source holds back (:attr:`withheld`) has none."""
+        held = self.withheld
+        return {k: v for k, v in self.orderer.rates().items() if k not in held}
 
     def stopped(self) -> frozenset[str]:
-        """The sensor tags that stopped while the stream goes on (a sensor switched off)."""
-        return self.orderer.stopped()
+        """The sensor tags that stopped while the stream goes on (a sensor switched off);
+        not one the source holds back while the phone still sends it (:attr:`withheld`)."""
+        return self.orderer.stopped() - self.withheld.keys()
 
     @property
     def silent_s(self) -> float:

@@ -154,6 +154,8 @@ def state(core: CoreReadout) -> dict[str, Any]:
         "sigma_deg": sigma,
         "diagnostics": json_safe(est.diagnostics().as_dict()),
         "rates_hz": {k: num(v) for k, v in s.rates().items()} if s else {},
+        # sensors the phone sends that its source holds back, and why (not stopped)
+        "withheld": dict(s.withheld) if s else {},
         "counts": core.counts(),
         "clock_offsets_s": s.clock_offsets if s else {},
         "estimators": ests,

@@ -192,6 +192,7 @@ class HttpPhones:
             st.session = self.engine.open_session(
                 "phone", f"{st.key} ({PHONE_APPS[st.phone_app]})", phone_app=st.phone_app,
                 window_s=WINDOW_S[st.phone_app])
+            st.session.withheld_by = getattr(st.decoder, "withheld", None)
         if samples or waiting:
             self._details(st)
             self.slot.touch(st.key)

@@ -734,6 +734,13 @@ class SensorLoggerStream:
             out.append("no sign evidence yet: iOS with Standardise off assumed (the app's default)")
         return out
 
+    def withheld(self) -> dict[str, str]:
+        """The sensors the app sends and this stream holds back, with why: ``orientation``
+        (ORI) until its convention is checked, or for good once it failed the check."""
+        if "ORI" not in self._sources or self.ori.chosen is not None:
+            return {}
+        return {"ORI": self.ori.message().removeprefix("orientation: ")}
+
     def status(self) -> dict:
         """A JSON-safe summary for the page and ``GET /api/connect``."""
         off = float(np.median(self._offsets)) if self._offsets else None

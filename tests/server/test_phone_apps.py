@@ -95,6 +95,47 @@ def test_a_longer_batch_period_is_one_stream_not_one_per_push(shared_dir, monkey
 
 
 @pytest.mark.shared
+def test_orientation_held_back_for_its_convention_is_not_a_stopped_sensor(shared_dir):
+    """The presenter sets Sensor Logger's convention by hand (here a wrong one): the app's
+    own orientation is checked again and held back meanwhile, for good once the check
+    fails. The phone still sends it: it read "ORI stopped" (switched off in the app?) once
+    3 s had passed. Now the rates, the read-outs and the plots say it is held back, and why."""
+    from tyrex_sensorlogger import messages_android
+    bodies = messages_android(_trial(shared_dir, NEXUS), 1.0, seconds=22)
+    with running_server() as srv, _client(srv) as phone:
+        def push(bs):
+            for b in bs:
+                r = phone.post("/sensorlogger", content=b)
+                assert r.status_code == 200, r.text
+
+        def sl():
+            v = httpx.get(srv.url + "/api/connect", timeout=10.0).json()
+            return next(s for s in v["http"]["streams"] if s["app"] == "sensorlogger"), v["stream"]
+
+        push(bodies[:8])
+        wait_for(lambda: sl()[0]["orientation"]["state"] == "ok", 20, what="ORI checked")
+        st = wait_for(lambda: (lambda s: s if s["rates_hz"].get("ORI") else None)(_state(srv)),
+                      20, what="ORI streaming")
+        assert st["withheld"] == {}
+        t_reset = st["t"]
+        r = phone.post("/api/sensorlogger/convention", json={"convention": "ios"})
+        assert r.status_code == 200, r.text
+        push(bodies[8:])
+        st = wait_for(lambda: (lambda s: s if s["t"] > t_reset + 8.0 else None)(_state(srv)),
+                      20, what="the stream 8 s on")
+        assert "ORI" not in st["rates_hz"] and st["rates_hz"]["ACC"] > 0
+        assert "ORI" in st["withheld"] and "checked" in st["withheld"]["ORI"]
+        stream_sl, stream = sl()
+        assert stream["withheld"] == st["withheld"] and "ORI" not in stream["rates_hz"]
+        assert stream_sl["orientation"]["state"] in ("checking", "left out")
+        gui = srv.app.state.gui
+        wait_for(lambda: "ORI held back" in gui.readouts.content, 10.0, what="ORI held back")
+        assert "ORI stopped" not in gui.readouts.content
+        why = srv.app.state.engine.plot_feed.meta()["why"]
+        assert "held back" in why["error"], why
+
+
+@pytest.mark.shared
 def test_a_sensor_logger_message_seconds_late_leaves_the_clock_alone(shared_dir):
     """Message 8 arrives after 12 (Wi-Fi held it): its place was given up 1.5 s after 9
     came. Its readings were released late, and the orderer took a run of readings 5 s

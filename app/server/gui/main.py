@@ -560,8 +560,9 @@ def _heading_noise_row(diag: dict) -> list[tuple[str, str]]:
 
 
 def _readouts_html(st: dict) -> str:
-    rates = ", ".join(f"{k} stopped" if v == 0 else f"{k} {v:.0f} Hz"
-                      for k, v in sorted(st["rates_hz"].items()) if v is not None)
+    rates = ", ".join([f"{k} stopped" if v == 0 else f"{k} {v:.0f} Hz"
+                       for k, v in sorted(st["rates_hz"].items()) if v is not None]
+                      + [f"{k} held back: {why}" for k, why in sorted(st.get("withheld", {}).items())])
     c = st["counts"]
     upd = c["updates"].get(st["primary"], {})
 

@@ -345,7 +345,11 @@ class PlotFeed:
         live = core.session
         gone = live.stopped() if live is not None else frozenset()
 
+        held = live.withheld if live is not None else {}
+
         def none_of(tag: str, what: str) -> str:
+            if tag in held:
+                return f"the phone sends its {what}, held back: {held[tag]}"
             if tag in gone:
                 return f"the {what} stopped sending while the stream goes on (switched off in the app?)"
             return f"no {what} samples in this stream"
@@ -361,7 +365,8 @@ class PlotFeed:
             "spans": spans,
             "why": {
                 "euler": f"{primary} has no estimate yet{ori}",
-                "error": "no reference in this stream (the phone's Orientation sensor, ORI, "
+                "error": none_of("ORI", "orientation (ORI)") if "ORI" in held else
+                         "no reference in this stream (the phone's Orientation sensor, ORI, "
                          "or the demo's truth)",
                 "acc": none_of("ACC", "accelerometer"),
                 "mag": none_of("MAG", "magnetometer"),
