@@ -215,6 +215,7 @@ class SensorFusionServer:
         conn: dict = {"session": None}
 
         def on_release(reason: str) -> None:     # released, or taken over while silent
+            conn["released"] = reason
             if conn["session"] is not None:
                 eng.close_session(conn["session"], reason)
             writer.close()
@@ -260,6 +261,7 @@ class SensorFusionServer:
             reason = "server stopping"
             raise
         finally:
+            reason = conn.get("released", reason)     # the socket closed by the release
             if splitter.pending.strip():
                 session.count_malformed("truncated")
             eng.close_session(session, reason)

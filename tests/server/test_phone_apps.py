@@ -6,6 +6,7 @@ Sensor Fusion app's TCP stream; bad input; the experiment file and ``/api/connec
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 import xml.etree.ElementTree as ET
@@ -248,10 +249,12 @@ def test_one_phone_at_a_time_across_apps_and_the_presenter_releases_it():
         assert httpx.post(srv.url + "/api/phone", json={"release": True}).status_code == 403
 
 
-def test_a_released_tcp_phone_is_kept_out_when_it_reconnects_from_another_port():
+def test_a_released_tcp_phone_is_kept_out_when_it_reconnects_from_another_port(caplog):
     """The release keeps the same phone out for 30 s. A Sensor Fusion phone reconnects from
     a new port each time, and the slot keyed the ban by host:port: it was let straight
-    back in (a reviewer's find). The ban is now on its address; another phone gets in."""
+    back in (a reviewer's find). The ban is now on its address; another phone gets in.
+    The server's log gives the release as the reason it left (it said "end of stream")."""
+    caplog.set_level(logging.INFO, logger="orientlab.receiver")
     with running_server(open_access=False, token=TOKEN) as srv, \
             _client(srv, token=TOKEN) as presenter, _client(srv, "127.0.0.2") as other:
         with Phone(srv.phone_port) as ph:
@@ -260,6 +263,9 @@ def test_a_released_tcp_phone_is_kept_out_when_it_reconnects_from_another_port()
             r = presenter.post("/api/phone", json={"release": True})
             assert r.status_code == 200 and r.json()["slot"]["holder"] is None
             assert ph.closed_by_server(5.0)
+        left = wait_for(lambda: [r.getMessage() for r in caplog.records if " left: " in r.getMessage()],
+                        10, what="the phone's leaving logged")
+        assert left[0].endswith("left: released by the presenter"), left
         refused = presenter.get("/api/phone").json()["slot"]["refused"]
         with Phone(srv.phone_port) as again:             # the same address, a new port
             try:
