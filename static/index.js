@@ -151,6 +151,8 @@ async function connect() {
     const p = v.http.poll;
     $("poll-status").textContent = p ? `${p.url}: ${p.state}${p.last_error ? " (" + p.last_error + ")" : ""}` : "";
     if (v.other_hosts.length) $("net-note").dataset.hosts = v.other_hosts.join(", ");
+    $("unreachable").textContent = v.unreachable || "";
+    $("unreachable").hidden = !v.unreachable;
   } catch (e) {
     $("phone-status").textContent = "server not reachable";
   }

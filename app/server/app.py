@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import textwrap
 from pathlib import Path
 
 import viser
@@ -47,7 +48,9 @@ STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 
 
 def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, http_port: int,
-           access: Access | None = None) -> str:
+           access: Access | None = None, unreachable: str | None = None) -> str:
+    """What ``serve`` prints: the links, the phones' addresses (``lan_ip``: the Connect tab's),
+    and ``unreachable``, the reason phones cannot push here, if there is one."""
     host = lan_ip if settings.host in ("0.0.0.0", "") else settings.host
     if access is None or access.open:
         page = [f"    open the page:      http://{host}:{http_port}/   (on this PC: http://localhost:{http_port}/)",
@@ -66,6 +69,8 @@ def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, h
         f"      Sensor Logger:      HTTP push URL  http://{lan_ip}:{http_port}/sensorlogger",
         f"      phyphox:            experiment     http://{lan_ip}:{http_port}/phyphox/orientlab.phyphox",
         f"      Sensor Fusion app:  address {lan_ip}   port {phone_port}   (Stream, 100 Hz)",
+        *([textwrap.fill(unreachable, 96, initial_indent="    note:               ",
+                         subsequent_indent=" " * 24)] if unreachable else []),
         f"    source:             {settings.source}",
         "  Ctrl-C stops.",
         "",
@@ -139,7 +144,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 st.tasks["source"] = src
             if settings.verbose:
                 print(banner(settings, st.lan_ip, st.viewer.get_port(), st.sensorfusion.port,
-                             settings.port, access), flush=True)
+                             settings.port, access, st.connect.unreachable()), flush=True)
             yield
         finally:
             for t in st.tasks.values():

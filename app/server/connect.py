@@ -27,8 +27,13 @@ class Connect:
         self.candidates = lan_ipv4_all()
 
     def host(self, request: Request | None = None) -> str:
-        """The PC's address for phones: the one the presenter's browser used, when it is
-        a LAN address (it is then reachable from this network), else the best guess."""
+        """The PC's address for phones: the one the page listens on when ``--host`` names
+        one (a PC on several networks: the one picked); else the one the presenter's
+        browser used, when it is a LAN address (it is then reachable from this network);
+        else the best guess."""
+        bound = _ipv4(self.settings.host)
+        if bound is not None and not bound.is_unspecified and not bound.is_loopback:
+            return str(bound)
         if request is not None:
             h = request.url.hostname
             ip = _ipv4(h)
@@ -39,10 +44,20 @@ class Connect:
     def base_url(self, request: Request | None = None) -> str:
         return f"http://{self.host(request)}:{self.settings.port}"
 
+    def unreachable(self) -> str | None:
+        """Why no phone can reach the push URLs (the page listens on this PC only), or None."""
+        bound = _ipv4(self.settings.host)
+        if bound is None or not bound.is_loopback:
+            return None
+        return (f"The page listens on {bound} only (--host): a phone cannot reach its push "
+                "URLs (Sensor Logger, phyphox). Start orientlab without --host, or with "
+                "--host set to this PC's network address.")
+
     def view(self, request: Request | None = None) -> dict[str, Any]:
         st = self.st
         base = self.base_url(request)
         return {
+            "unreachable": self.unreachable(),
             "host": self.host(request), "other_hosts": [h for h in self.candidates
                                                         if h != self.host(request)],
             "sensor_logger": {"url": f"{base}/sensorlogger"},

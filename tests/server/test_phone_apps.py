@@ -369,6 +369,12 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
                 assert out.stdout.strip() == text, (app, out.stdout, out.stderr)
             page.locator('.apps [data-app="sensorlogger"]').click()
             assert want["sensor_logger"]["url"] in page.locator("#app-sensorlogger").inner_text()
+            # this server listens on loopback only (--host 127.0.0.1): the tab says a phone
+            # cannot push here, and what to do
+            assert want["unreachable"] and "--host" in want["unreachable"]
+            note = page.locator("#unreachable")
+            note.wait_for(state="visible", timeout=10_000)
+            assert "cannot reach" in note.inner_text()
             # a student's page (no token, no cookie): no addresses, no codes
             page.context.clear_cookies()
             page2 = page.context.new_page()
@@ -397,6 +403,27 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
                     state="attached", timeout=30_000)
                 assert page3.locator("#app-sensorlogger").is_hidden()
                 page3.close()
+
+
+def test_phone_addresses_follow_the_address_given_with_host():
+    """``--host`` names the one address the page listens on (a PC on Wi-Fi and a VPN: the
+    Wi-Fi's). The banner, ``/api/connect`` and the QR codes gave phones the first LAN
+    address found instead, where nothing listens (a reviewer's find). Only loopback
+    addresses are bound in tests: this one is given to the pure parts (no server)."""
+    from app.server.app import banner
+    from app.server.connect import Connect
+    from app.server.settings import Settings
+    picked = "192.0.2.7"                       # TEST-NET-1: never a real host here
+    connect = Connect(Settings(host=picked), None)
+    assert connect.host() == picked and connect.base_url() == f"http://{picked}:8000"
+    assert connect.unreachable() is None
+    out = banner(Settings(host=picked), connect.host(), 8080, 3400, 8000)
+    assert f"http://{picked}:8000/sensorlogger" in out and f"address {picked}" in out
+    loop = Connect(Settings(host="127.0.0.1"), None)
+    assert loop.host() != "127.0.0.1" and "cannot reach" in loop.unreachable()
+    out = banner(Settings(host="127.0.0.1"), loop.host(), 8080, 3400, 8000,
+                 unreachable=loop.unreachable())
+    assert "note:" in out and "--host" in out
 
 
 @pytest.mark.shared
