@@ -73,6 +73,10 @@ class Session:
             self.close_reason = reason
         return self.orderer.flush()
 
+    def release_held(self) -> list[Sample]:
+        """The stream went quiet, still open: what the reorder buffer holds, released."""
+        return self.orderer.release_held()
+
     def count_malformed(self, reason: str, n: int = 1) -> None:
         """A reading the source could not use (``reason``: a short key)."""
         if n:

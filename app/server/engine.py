@@ -234,6 +234,14 @@ class Engine:
             self.queued += len(rest)
             self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
 
+    def release_held(self, s: Session) -> None:
+        """A stream that went quiet, still open: the samples its reorder buffer holds are
+        processed now, not when the next chunk or the end comes."""
+        rest = s.release_held() if s.open else []
+        if rest:
+            self.queued += len(rest)
+            self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
+
     def feed(self, s: Session, samples: list[Sample], t_arrival: float | None = None) -> None:
         """Samples of one received chunk (arrival order) into the stream."""
         if t_arrival is None:

@@ -248,6 +248,15 @@ class SampleOrderer:
             return []
         return self._insert(sample)
 
+    def release_held(self) -> list[Sample]:
+        """Release the samples waiting out the reorder window, in time order, the stream
+        going on (it went quiet: nothing newer will come soon to release them). A sample
+        that comes later and older than these is late, as any other."""
+        out: list[Sample] = []
+        while self._heap:
+            out.append(self._pop())
+        return out
+
     def flush(self) -> list[Sample]:
         """Release everything (end of stream), in time order."""
         out: list[Sample] = []
