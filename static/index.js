@@ -149,7 +149,7 @@ async function connect() {
     $("sl-detected").textContent = sl ? `detected: ${sl.platform}, ${sl.convention} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
     if (document.activeElement !== $("sl-convention")) $("sl-convention").value = v.http.sensorlogger_convention;
     const p = v.http.poll;
-    $("poll-status").textContent = p ? `${p.url}: ${p.state}${p.last_error ? " (" + p.last_error + ")" : ""}` : "";
+    $("poll-status").textContent = p ? `${p.url}: ${p.status || p.state}${p.last_error ? " (" + p.last_error + ")" : ""}` : "";
     if (v.other_hosts.length) $("net-note").dataset.hosts = v.other_hosts.join(", ");
     $("unreachable").textContent = v.unreachable || "";
     $("unreachable").hidden = !v.unreachable;

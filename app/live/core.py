@@ -231,8 +231,9 @@ class LiveCore:
         if s.open:
             silent = s.silent()
             if silent is not None:
-                return (f"{who} connected, but no samples for {silent:.0f} s: is the app "
-                        "still sending? (showing its last state)")
+                why = s.silent_hint() or "is the app still sending?"
+                return (f"{who} connected, but no samples for {silent:.0f} s: {why} "
+                        "(showing its last state)")
             return f"{who} streaming"
         return (f"{who} disconnected ({s.close_reason}): showing its last state; "
                 "waiting for a phone")

@@ -37,6 +37,8 @@ class Session:
         self.details: dict[str, Any] = {}   # what its source detected: platform, convention
         # the source's account of the sensors it receives but holds back (:attr:`withheld`)
         self.withheld_by: Callable[[], dict[str, str]] | None = None
+        # the source's account of why no samples come, when it knows (a paused phone)
+        self.silent_hint_by: Callable[[], str | None] | None = None
         self.orderer = SampleOrderer(window=window_s)
         self.truth = truth
         self.lines = 0              # readings received (samples and malformed ones)
@@ -124,6 +126,10 @@ class Session:
             return None
         s = self.silent_s
         return s if s >= SILENT_S else None
+
+    def silent_hint(self) -> str | None:
+        """Why a silent stream sends nothing, when its source knows (:attr:`silent_hint_by`)."""
+        return None if self.silent_hint_by is None else self.silent_hint_by()
 
     @property
     def clock_offsets(self) -> dict[str, float]:

@@ -296,6 +296,21 @@ class PhyphoxPoller:
             except RuntimeError:      # loop closed
                 pass
 
+    def lacking(self) -> str:
+        """The sensors the experiment on the phone does not record, in words ('' if none):
+        phyphox's own experiments record one sensor each."""
+        if not self.missing:
+            return ""
+        words = {"magnetic_field": "magnetometer", "attitude": "attitude (the phone's own estimate)"}
+        return (f"this experiment records no {', '.join(words.get(m, m) for m in self.missing)}: "
+                "orientlab's experiment (the QR code) records them all")
+
+    def silent_hint(self) -> str | None:
+        """Why no samples come, when the phone says (its measurement paused), else None."""
+        if self.measuring is False:
+            return "the measurement is paused on the phone: press ▶ in phyphox"
+        return None
+
     def status(self) -> dict:
         """JSON-safe state for the UI."""
         rates = {}
@@ -329,6 +344,8 @@ class PhyphoxPoller:
             self.last_error = f"{state}: {detail}" if detail else state
             log.warning(text)
         else:
+            if state == "measuring":    # data flows again: an old error is no news
+                self.last_error = None
             log.info(text)
         if self.on_status is not None:
             try:
@@ -517,7 +534,7 @@ class PhyphoxPoller:
                 await self._read_time()
                 await self._sleep(self.poll_s)
                 continue
-            self._set_state("measuring" if measuring else "not measuring")
+            self._set_state("measuring" if measuring else "not measuring", self.lacking())
             await self._sleep(self.poll_s if measuring else self.idle_s)
             if measuring and time.monotonic() - self._time_read > self.time_check_s:
                 await self._read_time()

@@ -337,6 +337,44 @@ def test_phyphox_remote_access_polled_from_the_page_api(shared_dir):
         assert srv.app.state.slot.holder is None
 
 
+@pytest.mark.shared
+def test_phyphox_remote_access_says_what_it_lacks_recovers_and_pauses(shared_dir):
+    """phyphox's own experiments record one sensor each. With one that has no magnetometer
+    the Connect tab said "measuring", nothing more (a reviewer's find): it now names what
+    the experiment lacks. An error while the phone was away stayed on show after it came
+    back; now it goes when data flows again. The phone paused in phyphox was reported as
+    "is the app still sending?", and the last 0.1 s it sent waited for more: now the
+    status says it is paused, and those samples are processed."""
+    from fake_phyphox import FakePhyphox
+    from test_phyphox import _fake_sensors
+    from tyrex_phyphox import load_trial
+    trial = load_trial(_trial(shared_dir, NEXUS), seconds=30.0)
+    sensors = [s for s in _fake_sensors(trial) if s.source != "magnetic_field"]
+    with FakePhyphox(sensors, speed=1.0) as fake, \
+            running_server(open_access=False, token=TOKEN) as srv, \
+            _client(srv, token=TOKEN) as presenter:
+        def poll():
+            return presenter.get("/api/connect").json()["http"]["poll"]
+
+        assert presenter.post("/api/phyphox/poll", json={"url": fake.url}).status_code == 200
+        wait_for(lambda: _state(srv)["counts"]["samples"] > 300, 30, what="polled samples")
+        p = poll()
+        assert p["state"] == "measuring" and "no magnetometer" in p["status"], p
+        fake.go_away()
+        wait_for(lambda: poll()["state"] == "unreachable", 20, what="the phone away")
+        assert poll()["last_error"]
+        fake.come_back()
+        n = _state(srv)["counts"]["samples"]
+        wait_for(lambda: _state(srv)["counts"]["samples"] > n + 100, 30, what="data again")
+        p = poll()
+        assert p["state"] == "measuring" and p["last_error"] is None, p
+        fake._stop()                                   # paused on the phone
+        st = wait_for(lambda: (lambda s: s if "no samples for" in s["status"] else None)(_state(srv)),
+                      20, what="the silent status")
+        assert "paused on the phone" in st["status"], st["status"]
+        assert st["counts"]["buffered"] == 0, st["counts"]
+
+
 @pytest.mark.browser
 def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
     """The presenter's Connect tab in a real Chromium: each app's QR code, decoded by
