@@ -311,6 +311,12 @@ def test_phyphox_experiment_points_here_and_its_pushes_stream(shared_dir):
         assert abs(trial.t["ORI"][i] - t) < 0.05
         fed = trial.v["ORI"][i].astype(float)
         assert angle_between(np.array(st["phone_q"]), fed) < math.radians(1.0)
+        # the phone paused (no more pushes): its last 0.3 s, held by the reorder window,
+        # are processed once it has gone quiet (1 s), not when the stream ends (5 s)
+        last = max(float(trial.t[tag][-1]) for tag in ("ACC", "GYR", "MAG"))
+        st = wait_for(lambda: (lambda s: s if s["counts"]["buffered"] == 0 else None)(_state(srv)),
+                      20, what="the held samples processed")
+        assert st["source"] == "phone" and abs(st["t"] - last) < 0.02, (st["t"], last)
 
 
 @pytest.mark.shared
