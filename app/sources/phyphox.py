@@ -298,8 +298,9 @@ class PhyphoxPushStream:
 
     ``counts`` (Counter, by reason): per sample ``duplicate`` (already released:
     overlapping or repeated POST, dropped), ``stale`` (older than the memory of
-    released times, dropped), ``reordered`` (older than the newest released but new:
-    released anyway; the downstream orderer clamps or counts them late), ``gap`` (a
+    released times, ``MEMORY_S`` behind the newest: dropped), ``reordered`` (older than
+    the newest released but new: released anyway; the downstream orderer clamps or
+    counts them late), ``gap`` (a
     lost POST: every sensor faster than 2 samples per interval jumps by more than half
     an interval + 3 sample periods, where consecutive POSTs are one period apart;
     taken back, ``gap_filled``, when a reordered POST fills the hole), ``truncated``,
@@ -459,7 +460,9 @@ class PhyphoxPushStream:
                     self.counts["duplicate"] += 1
                     continue
                 if last is not None and t <= last:
-                    if seen_q and t < seen_q[0]:
+                    # released times are remembered for MEMORY_S behind the newest: within
+                    # that, a time not seen is new (a POST overtaken, the first one too)
+                    if t < last - self.MEMORY_S:
                         self.counts["stale"] += 1
                         continue
                     self.counts["reordered"] += 1
