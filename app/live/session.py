@@ -23,6 +23,9 @@ from app.sources.ordering import SampleOrderer
 
 
 SILENT_S = 3.0     # a connected phone sending nothing this long is said to be silent (s)
+# A stream sending nothing this long (s, PC clock) has gone quiet: the samples its reorder
+# window holds are processed then (:meth:`Session.quiet`), not when it sends again or ends
+QUIET_S = 1.0
 
 
 class Session:
@@ -75,8 +78,13 @@ class Session:
             self.close_reason = reason
         return self.orderer.flush()
 
+    def quiet(self) -> bool:
+        """Open, with samples buffered, and nothing received for :data:`QUIET_S` or more."""
+        return self.open and self.orderer.buffered > 0 and self.silent_s >= QUIET_S
+
     def release_held(self) -> list[Sample]:
-        """The stream went quiet, still open: what the reorder buffer holds, released."""
+        """The stream went quiet, still open: the samples its reorder window holds back
+        (:meth:`SampleOrderer.release_held`)."""
         return self.orderer.release_held()
 
     def count_malformed(self, reason: str, n: int = 1) -> None:

@@ -132,6 +132,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if settings.phyphox_url is not None:
                 st.http_phones.start_poll(settings.phyphox_url)
             st.tasks["engine"] = asyncio.create_task(engine.run_when_ready(warmup), name="engine")
+            st.tasks["quiet"] = asyncio.create_task(engine.run_quiet_release(), name="quiet")
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
             st.toolkit = Toolkit.build(engine, settings, config, st.tasks)   # the lab's tools
             st.gui.injections = st.toolkit.injection.injected_spans   # marked in the Plots panel

@@ -46,10 +46,14 @@ class Connect:
 
     def unreachable(self) -> str | None:
         """Why no phone can reach the push URLs (the page listens on this PC only), or None."""
-        bound = _ipv4(self.settings.host)
-        if bound is None or not bound.is_loopback:
+        host = (self.settings.host or "").strip("[]")
+        try:
+            loopback = host.lower() == "localhost" or ipaddress.ip_address(host).is_loopback
+        except ValueError:
+            loopback = False
+        if not loopback:
             return None
-        return (f"The page listens on {bound} only (--host): a phone cannot reach its push "
+        return (f"The page listens on {host} only (--host): a phone cannot reach its push "
                 "URLs (Sensor Logger, phyphox). Start orientlab without --host, or with "
                 "--host set to this PC's network address.")
 

@@ -234,13 +234,26 @@ class Engine:
             self.queued += len(rest)
             self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
 
-    def release_held(self, s: Session) -> None:
-        """A stream that went quiet, still open: the samples its reorder buffer holds are
-        processed now, not when the next chunk or the end comes."""
-        rest = s.release_held() if s.open else []
+    def release_quiet(self) -> None:
+        """The stream on show went quiet, still open (:meth:`Session.quiet`: a phone paused,
+        an app stopped without hanging up, a replay paused): the samples its reorder window
+        holds back are processed now, not when it sends again or ends."""
+        s = self.core.session
+        if s is None or not s.quiet():
+            return
+        rest = s.release_held()
         if rest:
             self.queued += len(rest)
             self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
+
+    async def run_quiet_release(self, every_s: float = 0.2) -> None:
+        """:meth:`release_quiet` every ``every_s`` (a task of the lifespan)."""
+        while True:
+            await asyncio.sleep(every_s)
+            try:
+                self.release_quiet()
+            except Exception:       # never let the task die
+                log.exception("quiet release failed")
 
     def feed(self, s: Session, samples: list[Sample], t_arrival: float | None = None) -> None:
         """Samples of one received chunk (arrival order) into the stream."""

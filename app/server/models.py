@@ -95,6 +95,10 @@ class State(BaseModel):
     rates_hz: dict[str, float | None] = Field(description="per sensor tag (ACC, GYR, MAG, ORI): "
                                               "its rate; 0: it stopped while the stream goes on; "
                                               "null: not yet known")
+    withheld: dict[str, str] = Field(default_factory=dict, description="a sensor the phone sends "
+                                     "and orientlab holds back, with why (Sensor Logger's "
+                                     "orientation until its convention is checked); it has no "
+                                     "rate meanwhile")
     counts: dict[str, Any] = Field(description="lines, samples, malformed (+ by reason), late, "
                                    "clamped, jumps (the clock re-anchored), tags, updates per "
                                    "estimator and sensor, totals")

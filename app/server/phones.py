@@ -40,11 +40,6 @@ PUSH_END_S = 5.0        # a push stream silent this long has ended ...
 PUSH_END_PERIODS = 2.5  # ... or this many of its batch periods, if longer,
 MAX_PUSH_END_S = 60.0   # but never longer than this
 TICK_S = 0.2            # how often held messages and silent streams are looked at
-# A stream silent for this long, or 1.5 of its batch periods if longer, has gone quiet (the
-# phone paused): the samples waiting out its reorder window are processed then, not when it
-# sends again or has ended
-QUIET_S = 1.0
-QUIET_PERIODS = 1.5
 #: reorder windows (s): a push delivers in batches; phyphox's POSTs overlap and may swap
 WINDOW_S = {"sensorlogger": 0.05, "phyphox": 0.3, "phyphox-poll": 0.1}
 
@@ -60,15 +55,6 @@ class Stream:
     details_at: float = -1e9
     # the phone's time each recent batch spanned (s): its batch period, roughly
     spans: deque = field(default_factory=lambda: deque(maxlen=5))
-
-    quiet_done: bool = False     # the held samples were released since the last data
-
-    def quiet_s(self) -> float:
-        """How long it may be silent before it has gone quiet (:data:`QUIET_S`, or
-        :data:`QUIET_PERIODS` of its batch periods if longer)."""
-        if not self.spans:
-            return QUIET_S
-        return max(QUIET_S, QUIET_PERIODS * statistics.median(self.spans))
 
     def end_s(self) -> float:
         """How long it may be silent before it has ended: :data:`PUSH_END_S`, or
@@ -141,7 +127,6 @@ class HttpPhones:
         except (SensorLoggerError, PhyphoxError) as e:
             return self._malformed(st, e)
         st.last_rx = time.monotonic()
-        st.quiet_done = False
         if len(batch.samples) > 1:
             times = [x.time_ms for x in batch.samples]
             st.spans.append((max(times) - min(times)) / 1000.0)
@@ -246,9 +231,6 @@ class HttpPhones:
         """Release messages held for a missing one that timed out; end silent streams."""
         now_wall, now = time.time(), time.monotonic()
         for st in list(self.streams.values()):
-            if not st.quiet_done and now - st.last_rx > st.quiet_s() and st.session is not None:
-                st.quiet_done = True
-                self.engine.release_held(st.session)
             if st.phone_app == "phyphox-poll":
                 continue
             due = getattr(st.decoder, "due", None)
@@ -281,9 +263,7 @@ class HttpPhones:
                 st = self.streams[("phyphox-poll", key)] = Stream("phyphox-poll", key, self.poller)
             if self.slot.refusal("phyphox-poll", key) is not None:
                 return          # another phone holds the slot: the poller's status says so
-            if samples:
-                st.last_rx = time.monotonic()
-                st.quiet_done = False
+            st.last_rx = time.monotonic()
             self._deliver(st, samples, new_session)
 
         self.poller = PhyphoxPoller(url, on_samples)

@@ -249,11 +249,16 @@ class SampleOrderer:
         return self._insert(sample)
 
     def release_held(self) -> list[Sample]:
-        """Release the samples waiting out the reorder window, in time order, the stream
-        going on (it went quiet: nothing newer will come soon to release them). A sample
-        that comes later and older than these is late, as any other."""
+        """The stream went quiet, still open: release, in time order, the samples that wait
+        out the reorder window only (up to the time every active motion tag has reached),
+        since nothing newer will come soon to release them. A tag stamped ahead of the
+        others keeps its lead buffered: after a stall the others' queued samples come on
+        in order, none of them late."""
         out: list[Sample] = []
-        while self._heap:
+        if self._newest is None:
+            return out
+        limit = self._release_limit() + self.window * 1000.0
+        while self._heap and self._heap[0][0] <= limit:
             out.append(self._pop())
         return out
 

@@ -307,7 +307,7 @@ class PhyphoxPoller:
 
     def silent_hint(self) -> str | None:
         """Why no samples come, when the phone says (its measurement paused), else None."""
-        if self.measuring is False:
+        if self.state == "not measuring":     # the phone answers, and says so
             return "the measurement is paused on the phone: press ▶ in phyphox"
         return None
 

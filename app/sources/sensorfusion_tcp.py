@@ -60,10 +60,6 @@ log = logging.getLogger("orientlab.receiver")
 # queue without bound: each turn of the loop holds little of its work, and the API's
 # turns come between.
 READ_CHUNK = 2048
-# A connection that sent nothing for this long (s, PC clock) has gone quiet: the samples
-# waiting out the reorder window are processed then (the app paused, or stopped without
-# hanging up), not kept back until it sends again or closes
-QUIET_S = 1.0
 MAX_BACKLOG = 256
 
 
@@ -238,20 +234,9 @@ class SensorFusionServer:
         sock = writer.get_extra_info("socket")
         try:
             feed_lines(eng, session, held, time.perf_counter())
-            quiet = False
             while True:
                 quick_ack(sock)
-                if quiet:
-                    chunk = await reader.read(READ_CHUNK)
-                else:
-                    try:        # a cancelled read leaves the buffer as it was
-                        chunk = await asyncio.wait_for(reader.read(READ_CHUNK), QUIET_S)
-                    except asyncio.TimeoutError:
-                        quiet = True
-                        if session is eng.core.session:
-                            eng.release_held(session)
-                        continue
-                quiet = False
+                chunk = await reader.read(READ_CHUNK)
                 if not chunk:
                     break
                 t_arr = time.perf_counter()

@@ -56,6 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.quaternion import Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul_many
+from app.sources.ordering import STOPPED_S
 from app.sources.samples import Sample, impossible_rows
 from app.sources.sensorlogger_wire import (SensorLoggerError, WireMessage, count_ignored,
                                            read_message)
@@ -306,6 +307,7 @@ class SensorLoggerStream:
         self._last_gravity: tuple | None = None
         self._recent: dict[str, deque] = {}
         self._last_ms: float | None = None
+        self._ori_last_ms: float | None = None   # the newest orientation reading (released or not)
         self._offsets: deque = deque(maxlen=21)
         self.ori = OrientationCheck()
 
@@ -673,6 +675,9 @@ class SensorLoggerStream:
             gyr = out.get("GYR", (np.zeros(0, np.int64), np.zeros((0, 3))))
             mag = out.get("MAG", (np.zeros(0, np.int64), np.zeros((0, 3))))
             self._sources.setdefault("ORI", "orientation")
+            if len(t_o):
+                t_new = float(t_o.max()) / 1e6
+                self._ori_last_ms = t_new if self._ori_last_ms is None else max(self._ori_last_ms, t_new)
             self.ori.feed(t_o, q, acc[0], acc[1], mag[0], mag[1], gyr[0], gyr[1])
             if self.ori.chosen is not None:
                 out["ORI"] = (t_o, self.ori.to_enu(q))
@@ -736,10 +741,15 @@ class SensorLoggerStream:
 
     def withheld(self) -> dict[str, str]:
         """The sensors the app sends and this stream holds back, with why: ``orientation``
-        (ORI) until its convention is checked, or for good once it failed the check."""
-        if "ORI" not in self._sources or self.ori.chosen is not None:
+        (ORI) until its convention is checked, or for good once it failed the check. Not
+        once the app has stopped sending it (:data:`~app.sources.ordering.STOPPED_S` behind
+        the other sensors): that is a sensor that stopped."""
+        if "ORI" not in self._sources or self.ori.chosen is not None or self._ori_last_ms is None:
             return {}
-        return {"ORI": self.ori.message().removeprefix("orientation: ")}
+        if self._last_ms is not None and self._last_ms - self._ori_last_ms > STOPPED_S * 1000.0:
+            return {}
+        msg = self.ori.message()
+        return {"ORI": msg.removeprefix("orientation: ").removeprefix("orientation ")}
 
     def status(self) -> dict:
         """A JSON-safe summary for the page and ``GET /api/connect``."""

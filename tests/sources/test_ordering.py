@@ -89,6 +89,35 @@ def test_leading_tag_does_not_make_the_others_late():
     assert times(out) == sorted(times(src))
 
 
+def test_a_stall_releases_up_to_every_tag_and_nothing_comes_late():
+    """The stream stalls (Wi-Fi, a paused app): ``release_held`` lets out what waits for
+    the window, not a leading tag's lead. When the queued samples then come on, none is
+    late or clamped (releasing the whole buffer made the lagging tags late: 0.2 s here)."""
+    src = []
+    for k in range(300):
+        t = 5000 + 5 * k
+        src.append(Sample(t, "ACC", (0.0, 0.0, 9.81)))
+        src.append(Sample(t, "GYR", (0.0, 0.0, 0.0)))
+        if k % 4 == 0:
+            src.append(Sample(t + 200, "MAG", (0.0, 20.0, -40.0)))
+    o = SampleOrderer(window=0.05)
+    out = []
+    for s in src[:400]:
+        out.extend(o.push(s))
+    held = o.buffered
+    reached = min(max(s.time_ms for s in src[:400] if s.tag == tag) for tag in ("ACC", "GYR"))
+    released = o.release_held()
+    assert released and max(times(released)) == reached and o.buffered < held
+    assert o.buffered == sum(1 for s in src[:400] if s.time_ms > reached) > 0   # MAG's lead
+    out.extend(released)
+    for s in src[400:]:
+        out.extend(o.push(s))
+    out.extend(o.flush())
+    assert o.counters.late == o.counters.clamped == 0
+    assert times(out) == sorted(times(src))
+    assert SampleOrderer().release_held() == []          # nothing seen yet
+
+
 def test_silent_motion_tag_is_not_waited_for_longer_than_max_delay():
     o = SampleOrderer(window=0.05, max_delay=0.5)
     o.push(Sample(0, "MAG", (0.0, 20.0, -40.0)))      # MAG then goes silent
