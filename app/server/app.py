@@ -29,7 +29,7 @@ from app.server import viser_adapter
 from app.server.gui.main import Gui, run_gui
 from app.server.limits import BodyLimit, install_error_handlers
 from app.server.connect import Connect
-from app.server.phones import HttpPhones
+from app.server.phones import TICK_S, HttpPhones
 from app.sources.phyphox_poll import PhyphoxPoller
 from app.sources.sensorfusion_tcp import SensorFusionServer
 from app.sources.slot import PhoneSlot
@@ -45,6 +45,17 @@ from app.sources.runners import ReplayControl, run_demo, run_replay
 
 log = logging.getLogger("orientlab.server")
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
+
+
+async def every(seconds: float, fn) -> None:
+    """``fn()`` every ``seconds``, for as long as the lifespan runs: an exception is logged,
+    and the task goes on."""
+    while True:
+        await asyncio.sleep(seconds)
+        try:
+            fn()
+        except Exception:
+            log.exception("%s failed", getattr(fn, "__qualname__", fn))
 
 
 def banner(settings: Settings, lan_ip: str, viewer_port: int, phone_port: int, http_port: int,
@@ -126,13 +137,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             st.sensorfusion = SensorFusionServer(engine, settings, st.slot)
             await st.sensorfusion.start()
             st.http_phones = HttpPhones(engine, settings, st.slot)
-            st.tasks["phones"] = asyncio.create_task(st.http_phones.run(), name="phones")
+            st.tasks["phones"] = asyncio.create_task(every(TICK_S, st.http_phones.tick), name="phones")
             st.connect = Connect(settings, st)
             st.lan_ip = st.connect.host()
             if settings.phyphox_url is not None:
                 st.http_phones.start_poll(settings.phyphox_url)
             st.tasks["engine"] = asyncio.create_task(engine.run_when_ready(warmup), name="engine")
-            st.tasks["quiet"] = asyncio.create_task(engine.run_quiet_release(), name="quiet")
+            st.tasks["quiet"] = asyncio.create_task(every(TICK_S, engine.release_quiet), name="quiet")
             st.tasks["gui"] = asyncio.create_task(run_gui(st.gui, settings.text_hz, settings.plot_hz), name="gui")
             st.toolkit = Toolkit.build(engine, settings, config, st.tasks)   # the lab's tools
             st.gui.injections = st.toolkit.injection.injected_spans   # marked in the Plots panel

@@ -229,10 +229,7 @@ class Engine:
 
     def close_session(self, s: Session, reason: str = "end of stream") -> None:
         """End a stream: release what the reorder buffer holds; the last state stays."""
-        rest = self.core.close_session(s, reason)
-        if rest:
-            self.queued += len(rest)
-            self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
+        self._queue(s, self.core.close_session(s, reason))
 
     def release_quiet(self) -> None:
         """The stream on show went quiet, still open (:meth:`Session.quiet`: a phone paused,
@@ -241,28 +238,20 @@ class Engine:
         s = self.core.session
         if s is None or not s.quiet():
             return
-        rest = s.release_held()
-        if rest:
-            self.queued += len(rest)
-            self.inbox.put_nowait(("samples", s, rest, time.perf_counter()))
-
-    async def run_quiet_release(self, every_s: float = 0.2) -> None:
-        """:meth:`release_quiet` every ``every_s`` (a task of the lifespan)."""
-        while True:
-            await asyncio.sleep(every_s)
-            try:
-                self.release_quiet()
-            except Exception:       # never let the task die
-                log.exception("quiet release failed")
+        self._queue(s, s.release_held())
 
     def feed(self, s: Session, samples: list[Sample], t_arrival: float | None = None) -> None:
         """Samples of one received chunk (arrival order) into the stream."""
         if t_arrival is None:
             t_arrival = time.perf_counter()
-        released = self.core.feed(s, samples)
-        if released:
-            self.queued += len(released)
-            self.inbox.put_nowait(("samples", s, released, t_arrival))
+        self._queue(s, self.core.feed(s, samples), t_arrival)
+
+    def _queue(self, s: Session, samples: list[Sample], t_arrival: float | None = None) -> None:
+        """Released samples of stream ``s`` to the filter task (none: nothing)."""
+        if samples:
+            self.queued += len(samples)
+            self.inbox.put_nowait(("samples", s, samples,
+                                   time.perf_counter() if t_arrival is None else t_arrival))
 
     def pause_background(self) -> None:
         self.background_allowed.clear()

@@ -242,15 +242,6 @@ class HttpPhones:
             if now - st.last_rx > end_s:
                 self._end(st, f"no data for {end_s:.0f} s: the phone stopped streaming")
 
-    async def run(self) -> None:
-        """The periodic :meth:`tick` (a task of the lifespan)."""
-        while True:
-            await asyncio.sleep(TICK_S)
-            try:
-                self.tick()
-            except Exception:   # never let the task die
-                log.exception("phone tick failed")
-
     # ------------------------------------------------------------------ phyphox polled
     def start_poll(self, url: str) -> None:
         """Poll a phyphox phone's remote access at ``url`` (ValueError for a bad URL)."""
