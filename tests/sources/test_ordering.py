@@ -33,6 +33,19 @@ def imu_stream(n: int, start_ms: int = 1_000_000, step_ms: int = 10, acc_offset_
     return out
 
 
+def leading_mag_stream() -> list[Sample]:
+    """ACC and GYR at 200 Hz, MAG at 50 Hz stamped 0.2 s ahead of them when it arrives (as
+    in a real log), in arrival order."""
+    src = []
+    for k in range(300):
+        t = 5000 + 5 * k
+        src.append(Sample(t, "ACC", (0.0, 0.0, 9.81)))
+        src.append(Sample(t, "GYR", (0.0, 0.0, 0.0)))
+        if k % 4 == 0:
+            src.append(Sample(t + 200, "MAG", (0.0, 20.0, -40.0)))
+    return src
+
+
 def times(samples) -> list[int]:
     return [s.time_ms for s in samples]
 
@@ -76,13 +89,7 @@ def test_unsorted_lines_come_out_in_time_order_without_loss():
 def test_leading_tag_does_not_make_the_others_late():
     """A real log had MAG stamped ~0.2 s ahead of ACC/GYR when it arrived: the buffer
     waits for the lagging motion tags instead of releasing past them."""
-    src = []
-    for k in range(300):
-        t = 5000 + 5 * k
-        src.append(Sample(t, "ACC", (0.0, 0.0, 9.81)))
-        src.append(Sample(t, "GYR", (0.0, 0.0, 0.0)))
-        if k % 4 == 0:
-            src.append(Sample(t + 200, "MAG", (0.0, 20.0, -40.0)))
+    src = leading_mag_stream()
     o = SampleOrderer(window=0.05)
     out = run_all(o, src)
     assert o.counters.late == o.counters.clamped == 0
@@ -93,13 +100,7 @@ def test_a_stall_releases_up_to_every_tag_and_nothing_comes_late():
     """The stream stalls (Wi-Fi, a paused app): ``release_held`` lets out what waits for
     the window, not a leading tag's lead. When the queued samples then come on, none is
     late or clamped (releasing the whole buffer made the lagging tags late: 0.2 s here)."""
-    src = []
-    for k in range(300):
-        t = 5000 + 5 * k
-        src.append(Sample(t, "ACC", (0.0, 0.0, 9.81)))
-        src.append(Sample(t, "GYR", (0.0, 0.0, 0.0)))
-        if k % 4 == 0:
-            src.append(Sample(t + 200, "MAG", (0.0, 20.0, -40.0)))
+    src = leading_mag_stream()
     o = SampleOrderer(window=0.05)
     out = []
     for s in src[:400]:
