@@ -365,6 +365,21 @@ class RateLimitFilter(logging.Filter):
         self._lock = threading.Lock()
 
     def filter(self, record: logging.LogRecord) -> bool:
+        # one decision per record: it is shown to the filter once per handler (and once more
+        # on its own logger), and each showing counted, so two handlers halved the burst
+        done = getattr(record, "_orientlab_rate_ok", None)
+        if done is not None:
+            return done
+        ok = self._judge(record)
+        record._orientlab_rate_ok = ok
+        return ok
+
+    def reset(self) -> None:
+        """Forget every line seen (a new run in the same process: the tests)."""
+        with self._lock:
+            self._seen.clear()
+
+    def _judge(self, record: logging.LogRecord) -> bool:
         key = (record.name, record.msg if isinstance(record.msg, str) else repr(record.msg)[:80])
         now = time.monotonic()
         with self._lock:
@@ -386,6 +401,11 @@ class RateLimitFilter(logging.Filter):
 
 
 _limiter = RateLimitFilter()
+
+
+def reset_log_limits() -> None:
+    """Forget the lines the log's rate limit has seen (it is one per process)."""
+    _limiter.reset()
 
 
 def _limited_log(msg: str, *args) -> None:

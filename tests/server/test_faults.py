@@ -569,6 +569,13 @@ def test_log_lines_are_rate_limited():
     time.sleep(0.3)
     lg.warning("refused connection %d", 1000)
     assert got[-1] == "refused connection 1000 (995 similar lines suppressed)"
+    # a record shown to several handlers (the root's, pytest's) counts once: it counted
+    # once per handler, and two handlers let half the burst through
+    f = RateLimitFilter(burst=2, period=60.0)
+    recs = [logging.LogRecord("orientlab.x", logging.INFO, __file__, 1, "left: %s", ("r",), None)
+            for _ in range(3)]
+    assert [f.filter(r) for r in recs[:2] for _ in range(3)] == [True] * 6
+    assert f.filter(recs[2]) is False and f.filter(recs[2]) is False
 
 
 def test_every_changing_route_requires_the_presenter(srv, api):
