@@ -107,7 +107,7 @@ function describe(v) {
   }
   if (http && http.orientation) {
     const o = http.orientation;
-    lines.push("phone's own orientation: " + String(typeof o === "string" ? o : (o.message || o.state)).replace(/^orientation:\s*/, ""));
+    lines.push("phone's own orientation: " + String(typeof o === "string" ? o : (o.message || o.state)));
   }
   if (s.kind === "phone" && s.rates_hz) {
     const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));

@@ -163,10 +163,11 @@
   // while the stream goes on has its last value seconds behind: "–", not a live figure;
   // how far behind is the server's meta.stale_s)
   function newest(x, col) {
-    const stale = store.meta.stale_s ?? 3.0;
+    const stale = store.meta.stale_s;       // none before the first meta: not judged
     for (let i = col.length - 1; i >= 0; i--) {
       if (col[i] !== null && isFinite(col[i])) {
-        return store.now !== null && x[i] !== undefined && x[i] < store.now - stale ? null : col[i];
+        return stale !== undefined && store.now !== null && x[i] !== undefined
+          && x[i] < store.now - stale ? null : col[i];
       }
     }
     return null;

@@ -177,15 +177,15 @@ class OrientationCheck:
         return int(order[0]), float(frac[order[0]]), float(frac[order[1]])
 
     def message(self) -> str:
+        """The state in words, for the page (what the app's orientation is, in its place)."""
         st = self.state
         if st == "ok":
-            return f"orientation: checked ({self.names[self.chosen]})"
+            return f"checked ({self.names[self.chosen]})"
         if st == "left out":
-            return "orientation left out: its convention did not match gravity and the field"
+            return "left out: its convention did not match gravity and the field"
         if st == "checking":
-            return (f"orientation: not yet checked ({self.rest_s:.1f} s of {self.need_s:g} s "
-                    "near rest seen)")
-        return "orientation: not yet checked (hold the phone still for a moment)"
+            return f"not yet checked ({self.rest_s:.1f} s of {self.need_s:g} s near rest seen)"
+        return "not yet checked (hold the phone still for a moment)"
 
     def status(self) -> dict:
         i, best, _ = self._best()
@@ -748,8 +748,7 @@ class SensorLoggerStream:
             return {}
         if self._last_ms is not None and self._last_ms - self._ori_last_ms > STOPPED_S * 1000.0:
             return {}
-        msg = self.ori.message()
-        return {"ORI": msg.removeprefix("orientation: ").removeprefix("orientation ")}
+        return {"ORI": self.ori.message()}
 
     def status(self) -> dict:
         """A JSON-safe summary for the page and ``GET /api/connect``."""

@@ -37,7 +37,7 @@ class Holder:
     since: float
     last_valid: float
     on_release: Callable[[str], None] | None = field(default=None, repr=False)
-    who: str = ""               # the phone kept out when released (default: the key)
+    who: str = ""               # the phone kept out when released (take() sets it: the key if none)
 
 
 class PhoneSlot:
@@ -129,7 +129,7 @@ class PhoneSlot:
         h = self.holder
         if h is None:
             return None
-        self._banned[h.who or h.key] = self.clock() + self.release_s
+        self._banned[h.who] = self.clock() + self.release_s
         self.released += 1
         self._drop(reason)
         return h.label

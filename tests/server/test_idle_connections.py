@@ -224,9 +224,10 @@ def test_a_silent_connection_is_closed_quickly(srv):
     assert limit <= 3.0 < srv.settings.header_timeout_s
     t0 = time.monotonic()
     with socket.create_connection(("127.0.0.1", srv.settings.port), timeout=10) as s:
-        assert _closed(s, limit + 3.0)
+        assert _closed(s, srv.settings.header_timeout_s)
     took = time.monotonic() - t0
-    # not before its limit, and by it rather than by the (longer) header timeout
+    # not before its limit, and by it rather than by the (longer) header timeout (waited
+    # for up to that long: a loaded machine may close it late, by the right timer still)
     assert limit - 0.5 <= took < srv.settings.header_timeout_s, took
     with socket.create_connection(("127.0.0.1", srv.settings.port), timeout=10) as s:
         time.sleep(0.2)

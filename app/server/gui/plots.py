@@ -344,7 +344,6 @@ class PlotFeed:
         ori = " (it needs the phone's Orientation sensor, ORI)" if core.ensemble.base_of(primary) == "phone" else ""
         live = core.session
         gone = live.stopped() if live is not None else frozenset()
-
         held = live.withheld if live is not None else {}
 
         def none_of(tag: str, what: str) -> str:
