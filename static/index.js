@@ -101,7 +101,9 @@ function describe(v) {
     if (http && http.convention && http.app === "sensorlogger") who += ` (${CONVENTION[http.convention] || http.convention}, ${http.convention_source})`;
     if (http && (http.model || http.device_model)) who += ` · ${http.model || http.device_model}`;
     lines.push(`${who} · streaming ${span(slot.holder.for_s)}`);
-    lines.push(slot.holder.silent_s > 1.5 ? `<b>silent for ${span(slot.holder.silent_s)}</b>` : `last data ${span(slot.holder.silent_s)} ago`);
+    // silent by the slot's own rule (slot.busy): from then on another phone may take over
+    lines.push(slot.busy ? `last data ${span(slot.holder.silent_s)} ago`
+      : `<b>silent for ${span(slot.holder.silent_s)}</b>` + (slot.locked ? "" : ": another phone may take over"));
   } else {
     lines.push(s.kind === "phone" ? `last phone: ${s.label} (${s.close_reason || "ended"})` : "no phone: " + (s.kind || "waiting"));
   }

@@ -469,6 +469,35 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
                 page3.close()
 
 
+def test_connect_tab_says_silent_by_the_slots_own_rule(tmp_path):
+    """The Connect tab calls a phone "silent" when the slot does: once another phone may
+    take over (``phone_idle_s``). It had a threshold of its own, 1.5 s, and called a phone
+    silent that the slot still held as busy."""
+    from harness import CHROMIUM, chromium_page
+    if CHROMIUM is None:
+        pytest.skip("needs Debian's chromium")
+    pytest.importorskip("playwright.sync_api")
+    with running_server(open_access=False, token=TOKEN, phone_idle_s=4.0) as srv:
+        with chromium_page(f"{srv.url}/?token={TOKEN}", tmp_path / "profile", viewer=False) as (page, _):
+            status = page.locator("#phone-status")
+            with Phone(srv.phone_port) as ph:
+                ph.send_lines([f"{10 * k}\tACC\t0\t0\t9.81" for k in range(20)])
+                wait_for(lambda: "last data" in status.inner_text(), 30.0, what="the phone on the tab")
+                seen = []
+
+                def silent_shown():
+                    page.wait_for_timeout(100)
+                    if "silent for" not in status.inner_text():
+                        return False
+                    seen.append(httpx.get(srv.url + "/api/connect",
+                                          headers={"X-Orientlab-Token": TOKEN}).json()["slot"])
+                    return True
+                wait_for(silent_shown, 30.0, what="the tab saying silent")
+                # the slot agrees (asked after the page said so: busy can only have ended)
+                assert seen[0]["holder"] is not None and not seen[0]["busy"], seen
+                assert "another phone may take over" in status.inner_text()
+
+
 def test_phone_addresses_follow_the_address_given_with_host():
     """``--host`` names the one address the page listens on (a PC on Wi-Fi and a VPN: the
     Wi-Fi's). The banner, ``/api/connect`` and the QR codes gave phones the first LAN
