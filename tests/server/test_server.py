@@ -477,6 +477,24 @@ def test_the_whatif_goes_to_a_new_primary(srv, api):
         api.patch("/api/params", json={"primary": "robust"})
 
 
+def test_the_whatif_is_ready_to_show_a_change_on_the_newest_recording(tmp_path):
+    """A reviewer's find: the what-if stayed on the oldest recording when a new one was
+    made, and after a new primary it offered the magnetometer "on", as it was: a click
+    re-ran nothing. It goes to a recording just made, and offers a switch turned over."""
+    with running_server(source="demo", preset_dir=tmp_path, recordings=tmp_path / "rec") as s, \
+            httpx.Client(base_url=s.url, timeout=30.0) as api:
+        tab = s.app.state.toolkit_tab
+        for name in ("first", "second"):
+            assert api.post("/api/recordings/start", json={"name": name}).status_code == 200
+            time.sleep(1.0)
+            assert api.post("/api/recordings/stop").status_code == 200
+            wait_for(lambda: tab.whatif.recording.value == name, 10.0, what=f"the what-if on {name}")
+        api.patch("/api/params", json={"primary": "lab"})
+        wait_for(lambda: tab.whatif.est.value == "lab", 10.0, what="the what-if on lab")
+        assert tab.whatif.rows[tab.whatif.param.value]["name"] == "use_mag"
+        assert tab.whatif.choice.value == "off"
+
+
 def test_a_sensor_switched_off_and_a_silent_phone_are_said_so(srv, api):
     """The phone app stops its magnetometer and its orientation while the stream goes on:
     their rates read 0 (stopped) and the field's last judgement is gone ("absent", not a

@@ -106,7 +106,9 @@ class WhatIfPanel:
         except (KeyError, AttributeError):
             pass
         now = row["now"]
-        new = now if suggested is None else suggested
+        # a switch is offered turned over (a re-run with the value in force changes nothing);
+        # a number or a choice as it is, to be changed
+        new = (not now if isinstance(now, bool) else now) if suggested is None else suggested
         unit = row["user_unit"] or ""
         if isinstance(now, bool) or row["choices"]:
             opts = ("off", "on") if isinstance(now, bool) else tuple(str(c) for c in row["choices"])
@@ -222,8 +224,11 @@ class WhatIfPanel:
         removed), the primary (a new one is followed unless a viewer picked another)."""
         if tuple(self.recording.options) != recordings:
             v = self.recording.value
+            new = [r for r in recordings if r not in self.recording.options]
             self.recording.options = recordings
-            if v in recordings:
+            if new and new[0] != "(none)":     # one just recorded (the list is newest first)
+                self.recording.value = new[0]
+            elif v in recordings:
                 self.recording.value = v
         b = self.core.ensemble
         if tuple(self.est.options) != self.estimators():
