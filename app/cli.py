@@ -122,7 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"estimator: {', '.join(NAMES)} (default: the preset's primary, "
                         f"else {DEFAULT})")
     e.add_argument("--config", "-c", metavar="FILE",
-                   help="preset TOML (a path or a name in configs/)")
+                   help="preset TOML (a path or a name in configs/), or a recording's "
+                        "NAME.events.jsonl: the settings it began with and the magnetometer "
+                        "calibration in force while it was made (the log holds the raw field)")
     e.add_argument("--set", "-s", action="append", metavar="KEY=VALUE", dest="set",
                    help="override one parameter of the estimator (repeatable); VALUE is "
                         "JSON when it parses (0.01, true, [0,0,9.81]), else text")
@@ -270,14 +272,45 @@ def flag_summary(flags: dict) -> list[str]:
     return out
 
 
-def make_configured(name: str | None, config_path: str | None, sets: list[str] | None):
-    """The estimator chosen by ``--filter`` (or the preset's primary) with the preset's
-    parameters then the ``--set`` overrides. CliError on a refused value."""
-    overrides = parse_set(sets)
+def load_settings(config_path: str | None) -> tuple[dict[str, Any], list]:
+    """``--config``: a preset (TOML), or a recording's events file (``NAME.events.jsonl``:
+    the settings it began with). Returns the checked config and the magnetometer
+    calibration to apply to the field's rows, as it changed over time
+    (:func:`app.toolkit.recording.magcal_changes`; a preset's ``[magcal]`` from the start).
+    CliError on a refused file or value."""
+    from app.config import config_from
+    from app.toolkit.recording import (EVENTS_SUFFIX, magcal_changes, read_events, settings_of,
+                                       warm_note, warm_start_s)
     try:
+        if config_path is not None and str(config_path).endswith(EVENTS_SUFFIX):
+            if not Path(config_path).is_file():
+                raise CliError(f"{config_path}: no such file")
+            events = read_events(config_path)
+            try:
+                config = config_from(settings_of(events), str(config_path))
+            except ValueError as e:
+                if isinstance(e, ConfigError):
+                    raise
+                raise CliError(f"{config_path}: {e}") from None
+            changed = sum(1 for e in events if e.get("kind") == "params")
+            notes = [warm_note(warm_start_s(events))]
+            if changed:
+                notes.append(f"the settings changed {changed}× during the recording: these are "
+                             "the ones it began with (the magnetometer calibration follows its "
+                             "changes)")
+            for note in filter(None, notes):
+                print(f"{PROG}: {config_path}: {note}", file=sys.stderr)
+            return config, magcal_changes(events)
         config = load_config(config_path)
     except ConfigError as e:
         raise CliError(str(e)) from None
+    return config, [(None, config["magcal"])] if config.get("magcal") else []
+
+
+def configured(name: str | None, config: dict[str, Any], sets: list[str] | None):
+    """The estimator ``name`` (or ``config``'s primary) with ``config``'s parameters then
+    the ``--set`` overrides. CliError on a refused value."""
+    overrides = parse_set(sets)
     name = name or config.get("primary", DEFAULT)
     params = {**config.get(name, {}), **overrides}
     try:
@@ -291,7 +324,10 @@ def make_configured(name: str | None, config_path: str | None, sets: list[str] |
 def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
-    est = make_configured(args.filter, args.config, args.set)
+    config, magcal = load_settings(args.config)
+    est = configured(args.filter, config, args.set)
+    if magcal:
+        from app.toolkit.magcal import correct_rows
     if args.chunk < 1:
         raise CliError("--chunk must be at least 1")
     try:
@@ -317,7 +353,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             fh.write(",".join(OUTPUT_COLUMNS) + "\n")
             for chunk in iter_chunks(args.input, rows=args.chunk):
                 t0 = time.perf_counter()
-                res = est.run(chunk.t, chunk.gyr, chunk.acc, chunk.mag, chunk.ori)
+                mag = correct_rows(chunk.t, chunk.mag, magcal) if magcal else chunk.mag
+                res = est.run(chunk.t, chunk.gyr, chunk.acc, mag, chunk.ori)
                 spent += time.perf_counter() - t0
                 fh.write(format_rows(res.t, res.q, res.flags))
                 n_rows += len(chunk)

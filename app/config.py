@@ -127,12 +127,19 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
             raise ConfigError(str(e)) from None
         except Exception as e:  # tomllib.TOMLDecodeError and friends
             raise ConfigError(f"{path}: not valid TOML: {e}") from None
-        over = {k: translate_renamed(k, estimator_class(k).Params, v, str(path))
-                if isinstance(v, dict) and k in NAMES else v for k, v in over.items()}
-        validate_config(over, str(path))
-        raw = merge(raw, over)
-        src = str(path)
+        return config_from(over, str(path))
     return validate_config(raw, src)
+
+
+def config_from(over: dict[str, Any], source: str) -> dict[str, Any]:
+    """``configs/default.toml`` merged with the preset table ``over`` (read from
+    ``source``: a TOML file, or a recording's settings): renamed keys read as their new
+    names, the whole checked (ConfigError says which value and why)."""
+    raw = load_toml(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else {}
+    over = {k: translate_renamed(k, estimator_class(k).Params, v, source)
+            if isinstance(v, dict) and k in NAMES else v for k, v in over.items()}
+    validate_config(over, source)
+    return validate_config(merge(raw, over), source)
 
 
 def estimator_params(config: dict[str, Any], name: str) -> dict[str, Any]:

@@ -60,6 +60,7 @@ class Toolkit:
         engine.param_listeners.append(recording.note_params)
         engine.change_listeners.append(magcal.on_change)
         engine.preset_parts.append(magcal.preset_part)
+        recording.record_parts.append(magcal.record_part)
         magcal.listeners.append(recording.note_params)
         files = recording.files
         return cls(engine=engine, settings=settings, injection=injection, recording=recording,

@@ -316,6 +316,26 @@ def correct_samples(cal: MagCalibration | None, samples: list) -> list:
             for s in samples]
 
 
+def correct_rows(t: np.ndarray, mag: np.ndarray,
+                 changes: list[tuple[float | None, dict | None]]) -> np.ndarray:
+    """Rows of raw field (N, 3) corrected by the calibration in force at each row's time
+    ``t`` (s): ``changes`` is ``[(after t or None: from the start, [magcal] table or
+    None)]`` in order (:func:`app.toolkit.recording.magcal_changes`); a calibration takes
+    the rows later than its ``t``. Rows under none stay as they are; NaN rows stay NaN."""
+    out = np.array(mag, dtype=float, copy=True)
+    t = np.asarray(t, dtype=float)
+    for k, (t0, table) in enumerate(changes):
+        if not table:
+            continue
+        t1 = changes[k + 1][0] if k + 1 < len(changes) else None
+        sel = np.ones(len(t), dtype=bool) if t0 is None else (t > t0)
+        if t1 is not None:
+            sel &= t <= t1
+        if sel.any():
+            out[sel] = from_preset(table).apply(out[sel])
+    return out
+
+
 MAGCAL_MIN_S, MAGCAL_MAX_S = 5.0, 300.0   # a live collection's seconds
 
 
@@ -341,15 +361,29 @@ class MagCalService:
         self.refused: MagCalRefused | None = None   # the last fit refused, and why
         self.listeners: list = []
         self._raw = np.empty((0, 3))                 # MAX_ROWS rows at most
+        # where the calibration in force took over: the stage runs as samples arrive,
+        # before the reorder buffer, so a change applies from the next MAG sample to
+        # arrive, not from the time the filters have reached (record_part)
+        self._session = None
+        self._last_mag_ms: int | None = None         # the newest MAG sample through here
+        self._since_ms: int | None = None            # the calibration's first MAG is after it
         core.sample_stages.append(self.stage)
 
     def stage(self, session, samples: list) -> list:
         """The sample stage: the raw field collected, then the correction applied."""
+        if session is not self._session:             # a new stream: a new clock
+            self._session, self._last_mag_ms, self._since_ms = session, None, None
         if self.capture is not None and self.capture.running:
             self._collect(samples)
         if self.applied is not None:
             samples = correct_samples(self.applied, samples)
+        for x in samples:
+            if x.tag == "MAG" and (self._last_mag_ms is None or x.time_ms > self._last_mag_ms):
+                self._last_mag_ms = x.time_ms
         return samples
+
+    def _changed(self) -> None:
+        self._since_ms = self._last_mag_ms
 
     def _collect(self, samples: list) -> None:
         """The MAG samples' readings kept (at most :data:`MAX_ROWS`); the fit once the
@@ -396,9 +430,19 @@ class MagCalService:
             self.applied = from_preset(ch.magcal) if ch.magcal else None
         except MagCalError as e:    # load_config validated it: not expected
             log.error("preset's [magcal] not applied: %s", e)
+        self._changed()
 
     def preset_part(self) -> dict[str, Any]:
         return {} if self.applied is None else {"magcal": self.applied.preset()}
+
+    def record_part(self) -> dict[str, Any]:
+        """What a recording notes beside :meth:`preset_part` at a change: the stream time
+        (s) of the last MAG sample corrected the old way, ``magcal_from_t`` (None: no MAG
+        yet in this stream, every one is corrected the new way). A re-run corrects the
+        log's raw field by the calibration in force after it
+        (:func:`app.toolkit.recording.magcal_changes`)."""
+        ms = self._since_ms
+        return {"magcal_from_t": None if ms is None else ms / 1000.0}
 
     def tick(self) -> None:
         """Called a few times a second: end a collection past its wall-time cap (a
@@ -443,6 +487,7 @@ class MagCalService:
                                               + self.refused.reason, 409)
                 raise ToolError("magcal", "no fit yet: turn the phone in all directions first", 409)
             self.applied = self.result
+        self._changed()
         for cb in self.listeners:
             cb()
         return self.status()

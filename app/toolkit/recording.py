@@ -252,9 +252,10 @@ class Recorder:
 
     # ----------------------------------------------------------------- life
     def start(self, params: dict[str, Any], label: str = "",
-              phone: dict[str, Any] | None = None) -> Segment:
+              phone: dict[str, Any] | None = None, at: dict[str, Any] | None = None) -> Segment:
         """Open the first segment; RecordingError (nothing written) if the folder
-        cannot be created or written, or the name is taken."""
+        cannot be created or written, or the name is taken. ``at``: more of the ``start``
+        event (where the stream is: ``t``, ``warm_s``)."""
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
@@ -271,7 +272,7 @@ class Recorder:
         self._started = self.clock()
         self.active = True
         try:
-            return self._open_segment(label, phone)
+            return self._open_segment(label, phone, at)
         except OSError as e:
             self.active = False
             raise RecordingError(_os_message(self.folder / self.base, e)) from None
@@ -284,7 +285,8 @@ class Recorder:
             name = f"{self.base}_{k}"
         return name
 
-    def _open_segment(self, label: str, phone: dict[str, Any] | None = None) -> Segment:
+    def _open_segment(self, label: str, phone: dict[str, Any] | None = None,
+                      at: dict[str, Any] | None = None) -> Segment:
         name = self._segment_name()
         seg = Segment(name=name, path=self.folder / (name + LOG_SUFFIX), label=label,
                       started=self.clock())
@@ -303,7 +305,7 @@ class Recorder:
         self._est_last = {}
         self._est.write(head.encode())
         # the phone: its app, platform and sign convention, as the source detected them
-        self._event({"kind": "start", "source": label, "phone": phone or None,
+        self._event({"kind": "start", **(at or {}), "source": label, "phone": phone or None,
                      "params": self._params})
         return seg
 
@@ -311,13 +313,14 @@ class Recorder:
     def segment(self) -> Segment | None:
         return self.segments[-1] if self.segments and self._log is not None else None
 
-    def new_segment(self, label: str = "", phone: dict[str, Any] | None = None) -> None:
+    def new_segment(self, label: str = "", phone: dict[str, Any] | None = None,
+                    at: dict[str, Any] | None = None) -> None:
         """A new stream started while recording: go on in a new segment."""
         if not self.active:
             return
         if self._log is not None:
             self.end_segment("a new stream started")
-        self._guard(lambda: self._open_segment(label, phone), self.folder / self.base)
+        self._guard(lambda: self._open_segment(label, phone, at), self.folder / self.base)
 
     def end_segment(self, reason: str) -> None:
         """The stream ended (phone disconnected, end of log): close the files cleanly;
@@ -630,6 +633,72 @@ def read_events(path: str | Path | None) -> list[dict[str, Any]]:
     return out
 
 
+def settings_of(events: list[dict[str, Any]]) -> dict[str, Any]:
+    """The settings a recording began with (its ``start`` event), as a preset table
+    (:func:`app.config.validate_config` checks it): ``primary``, each estimator's
+    parameters (the instances named as their estimator; variants are left out) and the
+    magnetometer calibration in force (``magcal``), if any. ValueError when there is no
+    ``start`` event with parameters."""
+    start = next((e for e in events if e.get("kind") == "start"
+                  and isinstance(e.get("params"), dict)), None)
+    if start is None:
+        raise ValueError("no 'start' event with the parameters (not an orientlab recording's "
+                         "events file?)")
+    out: dict[str, Any] = {}
+    for key, value in start["params"].items():
+        if key == "primary" or key == "magcal":
+            out[key] = value
+        elif isinstance(value, dict) and value.get("base", key) == key:
+            out[key] = {k: v for k, v in value.items() if k != "base" and v is not None}
+    return out
+
+
+def warm_start_s(events: list[dict[str, Any]]) -> float:
+    """How long the live filters had run on the stream when the recording began (its
+    ``start`` event's ``warm_s``; 0 when it does not say)."""
+    start = next((e for e in events if e.get("kind") == "start"), None)
+    try:
+        return float((start or {}).get("warm_s") or 0.0)
+    except (TypeError, ValueError):
+        return 0.0
+
+
+WARM_NOTE_S = 0.5    # a recording begun later than this into its stream is said to be warm
+
+
+def warm_note(warm_s: float) -> str | None:
+    """What a re-run of a recording begun ``warm_s`` into its stream should say, or None."""
+    if warm_s <= WARM_NOTE_S:
+        return None
+    return (f"the recording began {warm_s:.1f} s into its stream: a re-run starts cold at its "
+            "first line, where the live filters had been running; it differs from what they "
+            "showed until it has learned the gyroscope's bias and the field again (the heading "
+            "can take tens of seconds). To reproduce a recording, press Record before the "
+            "phone streams")
+
+
+def magcal_changes(events: list[dict[str, Any]]) -> list[tuple[float | None, dict | None]]:
+    """The magnetometer calibration in force over a recording, as it changed:
+    ``[(after t, its [magcal] table or None), ...]``, the first from the start (``None``),
+    then one per ``params`` event that changed it, for the MAG samples after its
+    ``magcal_from_t`` (the last one corrected the old way: the correction is applied as
+    samples arrive; None: all of them), or after the event's ``t`` in a recording that
+    does not have it. The log holds the raw field; the live filters got it corrected by
+    these."""
+    out: list[tuple[float | None, dict | None]] = []
+    for e in events:
+        params = e.get("params")
+        if not isinstance(params, dict) or e.get("kind") not in ("start", "params"):
+            continue
+        table = params.get("magcal") or None
+        if e["kind"] == "start":
+            out = [(None, table)]
+        elif not out or out[-1][1] != table:
+            t = params["magcal_from_t"] if "magcal_from_t" in params else e.get("t")
+            out.append((None if t is None else float(t), table))
+    return out
+
+
 def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
     """Every recording in ``folder``, newest first: our own (log + siblings) and any app
     log, CSV or npz dropped in it (name = file stem); never an empty (0-byte) file.
@@ -669,9 +738,9 @@ def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
     return out
 
 
-def _estimate_lines(path: Path):
+def _estimate_lines(path: Path, cut: list[str] | None = None):
     """The text lines of an estimates file, gzip or plain; a gzip still being written
-    (or cut short) gives the lines up to where it was flushed."""
+    (or cut short) gives the lines up to where it was flushed, and says why in ``cut``."""
     with open(path, "rb") as fh:
         gz = fh.read(2) == b"\x1f\x8b"
     if not gz:
@@ -683,7 +752,9 @@ def _estimate_lines(path: Path):
         while True:
             try:
                 block = fh.read(1 << 16)
-            except (EOFError, gzip.BadGzipFile, OSError):
+            except (EOFError, gzip.BadGzipFile, OSError) as e:
+                if cut is not None:
+                    cut.append(str(e) or type(e).__name__)
                 block = b""
             if not block:
                 break
@@ -694,12 +765,30 @@ def _estimate_lines(path: Path):
     # a last line without its newline was cut short: dropped
 
 
-def read_estimates(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
+def read_estimates(path: str | Path, warn: bool = True) -> dict[str, dict[str, np.ndarray]]:
     """A recording's estimates file (``.estimates.csv.gz`` or an older plain
-    ``.estimates.csv``): per estimator ``{"t": (N,), "q": (N, 4)}``."""
+    ``.estimates.csv``): per estimator ``{"t": (N,), "q": (N, 4)}``. A gzip that ends
+    early (a recording still being written, or a file cut short) gives the rows up to
+    there, with a warning (``EstimatesCutShort``) saying so, unless ``warn`` is False."""
     import csv
+    import warnings
     per: dict[str, tuple[list, list]] = {}
-    rd = csv.reader(_estimate_lines(Path(path)))
+    cut: list[str] = []
+    try:
+        return _read_estimate_rows(csv.reader(_estimate_lines(Path(path), cut)), per)
+    finally:
+        if cut and warn:
+            n = sum(len(v[0]) for v in per.values())
+            warnings.warn(f"{path}: the file ends early ({cut[0]}): {n} rows read, the rest is "
+                          "missing (a recording still being written, or a file cut short)",
+                          EstimatesCutShort, stacklevel=2)
+
+
+class EstimatesCutShort(UserWarning):
+    """An estimates file that ends early: :func:`read_estimates` read what is there."""
+
+
+def _read_estimate_rows(rd, per: dict[str, tuple[list, list]]) -> dict[str, dict[str, np.ndarray]]:
     header = next(rd, None)
     if not header:
         return {}

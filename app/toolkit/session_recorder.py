@@ -27,6 +27,11 @@ from app.toolkit.recording import (Recorder, RecordingError, RecordingLimits, li
 log = logging.getLogger("orientlab.recording")
 
 
+def _source(session) -> str:
+    """A segment's source as its ``start`` event names it."""
+    return f"{session.kind} {session.label}"
+
+
 def params_in_force(ensemble, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
     """Every instance's base and parameters, the primary, and the tables ``parts`` add
     (the magnetometer calibration in force): what a recording notes at each change."""
@@ -48,6 +53,9 @@ class RecordingService:
         self.folder = Path(folder)
         self.limits = limits or RecordingLimits()
         self.parts = parts if parts is not None else []
+        # what only a recording notes beside them (not a preset's: where a magnetometer
+        # calibration took over, MagCalService.record_part)
+        self.record_parts: list[Callable[[], dict]] = []
         self.recorder: Recorder | None = None
         self.last: dict[str, Any] | None = None      # the last recording's summary
         self._session = None                         # the stream being recorded
@@ -59,7 +67,7 @@ class RecordingService:
         return self.recorder is not None
 
     def params_in_force(self) -> dict[str, Any]:
-        return params_in_force(self.core.ensemble, self.parts)
+        return params_in_force(self.core.ensemble, [*self.parts, *self.record_parts])
 
     # ----------------------------------------------------------------- the hooks
     def stage(self, session, samples: list) -> list:
@@ -68,8 +76,8 @@ class RecordingService:
         if rec is None:
             return samples
         if session is not self._session:
-            if self._session is not None:
-                rec.new_segment(session.label, session.describe())
+            if self._session is not None:     # a stream that starts now: the filters too
+                rec.new_segment(_source(session), session.describe(), {"t": None, "warm_s": 0.0})
             self._session = session
         rec.write_samples(samples)
         self._check()
@@ -139,8 +147,8 @@ class RecordingService:
         try:
             rec = Recorder(self.folder, name, limits=self.limits)
             s = self.core.session
-            rec.start(self.params_in_force(), label="" if s is None else f"{s.kind} {s.label}",
-                      phone=None if s is None else s.describe())
+            rec.start(self.params_in_force(), label="" if s is None else _source(s),
+                      phone=None if s is None else s.describe(), at=self._warm())
         except RecordingError as e:
             msg = str(e)
             status = 409 if "exists" in msg else 507 if msg.startswith("free space") else 422
@@ -148,6 +156,17 @@ class RecordingService:
         self.recorder = rec
         self._session = self.core.session
         return rec.summary()
+
+    def _warm(self) -> dict[str, Any]:
+        """Where the stream on show is as a recording begins: its time ``t`` (s, the last
+        sample the filters stepped; None: none yet) and ``warm_s``, how long the filters
+        have run on it. A re-run starts cold at the log's first line: it reproduces the
+        live estimates when ``warm_s`` is 0."""
+        c = self.core
+        s = c.session
+        if s is None or not s.open or c.t_sent is None or c.t_first is None:
+            return {"t": None, "warm_s": 0.0}
+        return {"t": c.t_sent, "warm_s": round(max(0.0, c.t_sent - c.t_first), 3)}
 
     def stop(self) -> dict[str, Any]:
         if self.recorder is None:

@@ -353,6 +353,22 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
             "estimators": results, "counts": _json_counts(rec.counts)}
 
 
+def with_recorded_magcal(rec: LogData, events: list[dict[str, Any]]) -> LogData:
+    """``rec`` with its field corrected by the magnetometer calibration in force while it
+    was recorded (its events; the log holds the raw field, the live filters got it
+    corrected), or ``rec`` itself when none was. The copy's ``counts["magcal"]`` says how
+    many calibrations were applied."""
+    from dataclasses import replace
+    from app.toolkit.magcal import correct_rows
+    from app.toolkit.recording import magcal_changes
+    changes = magcal_changes(events)
+    used = sum(1 for _, table in changes if table)
+    if not used or not len(rec):
+        return rec
+    return replace(rec, mag=correct_rows(rec.t, rec.mag, changes),
+                   counts={**rec.counts, "magcal": used})
+
+
 def _json_counts(c: dict) -> dict:
     out = {}
     for k, v in c.items():
@@ -388,7 +404,7 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recording import read_estimates
+        from app.toolkit.recording import read_estimates, read_events, warm_note, warm_start_s
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")
@@ -397,9 +413,17 @@ class WhatIfService:
         def run():   # in the job's thread: reading the files too (never on the loop)
             recorded = None    # what the live filters showed (and the demo's truth)
             if files["estimates"] is not None:
-                recorded = read_estimates(files["estimates"])
-            return rerun(self._read_cached(files["log"]), specs, patch,
-                         (recorded or {}).get("truth"), recorded=recorded)
+                recorded = read_estimates(files["estimates"], warn=False)   # (may be in progress)
+            events = read_events(files.get("events"))
+            rec = with_recorded_magcal(self._read_cached(files["log"]), events)
+            out = rerun(rec, specs, patch, (recorded or {}).get("truth"), recorded=recorded)
+            if rec.counts.get("magcal"):
+                out["notes"].append("the magnetometer calibration in force while recording "
+                                    "is applied to the log's raw field, as it was live")
+            warm = warm_note(warm_start_s(events))
+            if warm:
+                out["notes"].append(warm)
+            return out
         try:
             out = await self.jobs.run(run)
         except ToolError:        # busy (429): as it is

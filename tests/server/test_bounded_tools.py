@@ -21,7 +21,7 @@ import pytest
 from app.sources.readers import read_log_data
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import SimConfig, simulate
-from app.toolkit.recording import read_estimates, read_events
+from app.toolkit.recording import EstimatesCutShort, read_estimates, read_events
 from harness import Phone, free_ports, running_server, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -255,6 +255,14 @@ def test_estimates_are_compact_readable_and_the_full_rate_comes_back_from_the_lo
         assert est_path.is_file() and not (rec / "fast.estimates.csv").exists()
         assert est_path.read_bytes()[:2] == b"\x1f\x8b"
         est = read_estimates(est_path)
+        # a copy cut short (a student's download stopped half-way): the rows up to the cut,
+        # and a warning that says the rest is missing (it said nothing)
+        cut = tmp_path / "cut.estimates.csv.gz"
+        cut.write_bytes(est_path.read_bytes()[:est_path.stat().st_size * 19 // 20])
+        with pytest.warns(EstimatesCutShort, match="ends early"):
+            part = read_estimates(cut)
+        assert 0 < len(part["robust"]["t"]) <= len(est["robust"]["t"])
+        assert np.array_equal(part["robust"]["t"], est["robust"]["t"][:len(part["robust"]["t"])])
         log = read_log_data(rec / "fast.txt")
         span = log.t[-1] - log.t[0]
         for name in ("robust", "lab", "complementary"):

@@ -1,0 +1,92 @@
+"""A recording made on the real server from a real phone log (a TCP client playing the
+Sensor Fusion app), re-run with ``orientlab estimate --config NAME.events.jsonl``:
+recorded before the phone streams, the re-run gives the live estimates; recorded while
+it streams, the events say how long the filters had run (``warm_s``) and the re-run says
+that it starts cold."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+
+from app.cli import main
+from app.quaternion import error_angles
+from app.toolkit.recording import read_estimates, read_events
+from harness import Phone, running_server, wait_for
+
+LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
+AGREE_DEG = 0.05      # as in toolkit/test_recording_reproduce.py
+SPLIT_S = 4.0         # the warm recording begins this far into the stream
+
+
+def _lines(shared_dir):
+    p = shared_dir / "data" / "sensorfusion-app" / LOG
+    if not p.is_file():
+        pytest.skip(f"{p} not present")
+    return p.read_text().splitlines()
+
+
+def _ended(api):
+    st = api.get("/api/state").json()
+    return st["source"] == "phone-disconnected" and st["counts"]["buffered"] == 0 \
+        and st["counts"]["queued"] == 0
+
+
+def _rerun_error(folder, name, tmp_path, capsys):
+    out = tmp_path / f"{name}.csv"
+    assert main(["estimate", str(folder / f"{name}.txt"), "--filter", "robust", "-q",
+                 "--out", str(out), "--config", str(folder / f"{name}.events.jsonl")]) == 0
+    rows = np.genfromtxt(out, delimiter=",", names=True, usecols=(0, 1, 2, 3, 4))
+    t, q = rows["t"], np.column_stack([rows[c] for c in ("qw", "qx", "qy", "qz")])
+    live = read_estimates(folder / f"{name}.estimates.csv.gz")["robust"]
+    keep = live["t"] >= t[0]          # (rows of samples buffered before the log's first)
+    lt, lq = live["t"][keep], live["q"][keep]
+    # several samples share a millisecond (ACC, GYR, MAG): the live row is one of them
+    lo, hi = np.searchsorted(t, lt, side="left"), np.searchsorted(t, lt, side="right")
+    assert (hi > lo).all(), "a live row's time is not in the re-run"
+    err = np.array([np.degrees(error_angles(np.repeat(lq[k:k + 1], hi[k] - lo[k], axis=0),
+                                            q[lo[k]:hi[k]])[0]).min() for k in range(len(lt))])
+    return err, capsys.readouterr().err
+
+
+def test_recorded_before_the_phone_streams_a_rerun_gives_the_live_estimates(shared_dir, tmp_path,
+                                                                           capsys):
+    lines = _lines(shared_dir)
+    folder = tmp_path / "rec"
+    with running_server(preset_dir=tmp_path, recordings=folder) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        assert api.post("/api/recordings/start", json={"name": "cold"}).status_code == 200
+        with Phone(srv.phone_port) as ph:
+            ph.send_lines(lines)
+            wait_for(lambda: api.get("/api/state").json()["source"] == "phone", 30.0,
+                     what="the phone's stream")
+        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
+        assert api.post("/api/recordings/stop").status_code == 200
+        start = read_events(folder / "cold.events.jsonl")[0]
+        assert start["kind"] == "start" and start["warm_s"] == 0.0
+        err, said = _rerun_error(folder, "cold", tmp_path, capsys)
+        print(f"cold: {err.size} rows, max {err.max():.4f}°")
+        assert err.size > 100 and err.max() < AGREE_DEG
+        assert "into its stream" not in said
+
+        # the same phone again, recorded from SPLIT_S into its stream
+        with Phone(srv.phone_port) as ph:
+            t0 = int(lines[0].split("\t")[0])
+            split = next(k for k, ln in enumerate(lines)
+                         if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
+            ph.send_lines(lines[:split])
+            def processed():
+                st = api.get("/api/state").json()     # t: the phone's clock (s)
+                return st["source"] == "phone" and (st["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5
+            wait_for(processed, 30.0, what="the first seconds processed")
+            assert api.post("/api/recordings/start", json={"name": "warm"}).status_code == 200
+            ph.send_lines(lines[split:])
+        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
+        assert api.post("/api/recordings/stop").status_code == 200
+        start = read_events(folder / "warm.events.jsonl")[0]
+        assert SPLIT_S - 1.0 < start["warm_s"] < SPLIT_S + 1.0, start
+        err, said = _rerun_error(folder, "warm", tmp_path, capsys)
+        print(f"warm: max {err.max():.2f}° at first, {err[-20:].max():.2f}° at the end")
+        assert "into its stream" in said
+        assert err.max() > 1.0      # (what the note is for: here 88°, and 20° at the end)
