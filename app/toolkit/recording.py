@@ -305,8 +305,10 @@ class Recorder:
         self._est_last = {}
         self._est.write(head.encode())
         # the phone: its app, platform and sign convention, as the source detected them
-        self._event({"kind": "start", **(at or {}), "source": label, "phone": phone or None,
-                     "params": self._params})
+        # a new stream goes on in NAME_2, NAME_3...: each says which recording it belongs to
+        self._event({"kind": "start", **(at or {}), "recording": self.base,
+                     "segment": sum(not x.removed for x in self.segments),
+                     "source": label, "phone": phone or None, "params": self._params})
         return seg
 
     @property

@@ -78,6 +78,8 @@ class RecordingService:
         if session is not self._session:
             if self._session is not None:     # a stream that starts now: the filters too
                 rec.new_segment(_source(session), session.describe(), {"t": None, "warm_s": 0.0})
+            else:                              # recording before any stream: this is its source
+                rec.note("stream", source=_source(session), phone=session.describe())
             self._session = session
         rec.write_samples(samples)
         self._check()

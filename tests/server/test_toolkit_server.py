@@ -246,6 +246,13 @@ def test_a_disturbance_ends_with_its_stream_and_never_reaches_the_next(tmp_path,
         # (the first name alone plays the first stream only)
         last = api.post("/api/recordings/stop").json()
         assert [g["name"] for g in last["segments"]] == ["two", "two_2"]
+        # each file says which recording it belongs to, and whose stream it holds
+        starts = [read_events(s.settings.recordings / f"{n}.events.jsonl")[0] for n in ("two", "two_2")]
+        assert [(e["recording"], e["segment"]) for e in starts] == [("two", 1), ("two", 2)]
+        assert starts[0]["source"] == "" and starts[1]["source"].startswith("phone "), starts
+        # (recorded before the phone streamed: its stream is named when it came)
+        came = [e for e in read_events(s.settings.recordings / "two.events.jsonl") if e["kind"] == "stream"]
+        assert len(came) == 1 and came[0]["source"].startswith("phone "), came
         tab = s.app.state.toolkit_tab
         wait_for(lambda: "`two_2`" in tab.rec_md.content and "2 streams" in tab.rec_md.content,
                  10.0, what="both files named")
