@@ -101,6 +101,10 @@ function describe(v) {
     if (http && http.convention && http.app === "sensorlogger") who += ` (${CONVENTION[http.convention] || http.convention}, ${http.convention_source})`;
     if (http && (http.model || http.device_model)) who += ` · ${http.model || http.device_model}`;
     lines.push(`${who} · streaming ${span(slot.holder.for_s)}`);
+    // what to change for a right pose (a sensor missing for the tilt, a guessed convention)
+    for (const h of (http && http.holder && http.hints) || []) lines.push(`<b>${h}</b>`);
+    const bad = http && http.holder ? Object.entries(http.invalid || {}) : [];
+    if (bad.length) lines.push("readings refused: " + bad.map(([k, n]) => `${k} ${n}`).join(", "));
     // silent by the slot's own rule (slot.busy): from then on another phone may take over
     lines.push(slot.busy ? `last data ${span(slot.holder.silent_s)} ago`
       : `<b>silent for ${span(slot.holder.silent_s)}</b>` + (slot.locked ? "" : ": another phone may take over"));

@@ -72,7 +72,8 @@ START_HOLD_S = 2.0
 CONVENTIONS = ("auto", "android", "ios", "ios-standardised")
 # per tag, the sources in order of preference
 _SOURCES = {
-    "ACC": ("totalacceleration", "accelerometer+gravity", "accelerometeruncalibrated"),
+    # the phone's gravity alone last: the tilt without the shakes, better than no tilt
+    "ACC": ("totalacceleration", "accelerometer+gravity", "accelerometeruncalibrated", "gravity"),
     "GYR": ("gyroscope", "gyroscopeuncalibrated"),
     "MAG": ("magnetometer", "magnetometeruncalibrated"),
     "ORI": ("orientation",),
@@ -552,7 +553,8 @@ class SensorLoggerStream:
         if n >= 50:
             if self._dip[0] >= 0.8 * n:
                 self._set_conv("ios-standardised",
-                               "field dips against gravity as sent: iOS, Standardise on", strong=False)
+                               "field dips against gravity as sent: iOS, Standardise on "
+                               "(northern hemisphere assumed)", strong=False)
             elif self._dip[1] >= 0.8 * n:
                 self._set_conv("ios", "field dips along gravity as sent: iOS, Standardise off "
                                "(northern hemisphere assumed)", strong=False)
@@ -619,12 +621,15 @@ class SensorLoggerStream:
         elif src == "accelerometeruncalibrated" and src in by:
             t_f, f_and = by[src]
             used.add(src)
+        elif src == "gravity" and src in by:
+            t_f, f_and = by[src]
+            used.add(src)
         if "gravity" in by:
             t_g, g = by["gravity"]
             self._last_gravity = (t_g[-1:], g[-1:])
         for name in by:
             if name not in used and name != "orientation" and not (
-                    name == "gravity" and src == "accelerometer+gravity"):
+                    name == "gravity" and src in ("accelerometer+gravity", "gravity")):
                 self.unused[name] += len(by[name][0])
         if f_and is not None:
             gyr = out.get("GYR", (np.zeros(0, np.int64), np.zeros((0, 3))))
@@ -632,6 +637,9 @@ class SensorLoggerStream:
             if src == "accelerometeruncalibrated":
                 scale = G_STD if self._looks_in_g(f_and) else 1.0
                 f_and = f_and * scale
+            if self._sources.get("MAG") != "magnetometer":
+                # the raw field's hard-iron offset (up to hundreds of µT) turns its dip any way
+                mag = (np.zeros(0, np.int64), np.zeros((0, 3)))
             if self._override is None:
                 if "gravity" in by:     # the app's gravity: no motion in it, moving or not
                     self._check_dip(by["gravity"][0], by["gravity"][1], mag[0], mag[1], None, None)
@@ -739,6 +747,28 @@ class SensorLoggerStream:
             out.append("no sign evidence yet: iOS with Standardise off assumed (the app's default)")
         return out
 
+    def hints(self) -> list[str]:
+        """What the student should change in the app, or the presenter on the Connect tab,
+        for a right pose: a sensor missing for the tilt, a convention that is a guess."""
+        out = []
+        src = self._sources.get("ACC")
+        if src == "gravity":
+            out.append("the tilt comes from the phone's Gravity alone: tick Accelerometer too, "
+                       "or no shake reaches the filters")
+        elif src is None and self.unused.get("accelerometer"):
+            out.append("no tilt: Accelerometer without Gravity (the phone removes gravity from "
+                       "it): tick Gravity in the app")
+        if self._override is None and self.platform != "android" and self._released:
+            if self._conv_source == "assumed":
+                out.append("the sign convention is a guess (no magnetometer or raw accelerometer "
+                           "to tell): if the phone shows upside down, pick the sign convention on "
+                           "the Connect tab")
+            elif not self._conv_strong:
+                out.append("the sign convention comes from the field's dip, which assumes the "
+                           "northern hemisphere: south of the magnetic equator, pick it on the "
+                           "Connect tab")
+        return out
+
     def withheld(self) -> dict[str, str]:
         """The sensors the app sends and this stream holds back, with why: ``orientation``
         (ORI) until its convention is checked, or for good once it failed the check. Not
@@ -769,6 +799,7 @@ class SensorLoggerStream:
             "convention": self.convention,
             "convention_source": self.convention_source,
             "reasons": self._reasons_now(),
+            "hints": self.hints(),
             "device_id": _short(dev),
             "session_id": _short(ses),
             "sessions": self.sessions,

@@ -498,6 +498,27 @@ def test_connect_tab_says_silent_by_the_slots_own_rule(tmp_path):
                 assert "another phone may take over" in status.inner_text()
 
 
+def test_connect_tab_says_what_to_change_for_a_right_pose(tmp_path):
+    """An iPhone with Standardise on and no Magnetometer ticked showed upside down, and the
+    page said only "assumed" in small print. The Connect tab now says the convention is a
+    guess and where to set it; a Gravity without Accelerometer says to tick it."""
+    from harness import CHROMIUM, chromium_page
+    from sources.test_sensorlogger import T0, body, face_up_ios
+    if CHROMIUM is None:
+        pytest.skip("needs Debian's chromium")
+    pytest.importorskip("playwright.sync_api")
+    with running_server(open_access=False, token=TOKEN) as srv, _client(srv) as phone:
+        with chromium_page(f"{srv.url}/?token={TOKEN}", tmp_path / "profile", viewer=False) as (page, _):
+            status = page.locator("#phone-status")
+            for m in range(30):       # 3 s, face up, no magnetometer, no accelerometer
+                rows = [r for r in face_up_ios(10, t_start=T0 + m * 100_000_000, standardised=True)
+                        if r["name"] not in ("magnetometer", "accelerometer")]
+                assert phone.post("/sensorlogger", content=body(rows, mid=m + 1)).status_code == 200
+            wait_for(lambda: "a guess" in status.inner_text(), 30.0, what="the guess said")
+            text = status.inner_text()
+            assert "Connect tab" in text and "tick Accelerometer" in text, text
+
+
 def test_phone_addresses_follow_the_address_given_with_host():
     """``--host`` names the one address the page listens on (a PC on Wi-Fi and a VPN: the
     Wi-Fi's). The banner, ``/api/connect`` and the QR codes gave phones the first LAN

@@ -443,6 +443,68 @@ def test_ios_without_sign_evidence_waits_at_most_start_hold_s():
     assert len(by_tag(st2.flush(), "ACC")) == 5
 
 
+def test_the_hints_say_which_convention_is_a_guess_and_which_rests_on_the_dip():
+    """An iPhone reviewer's finds: without a magnetometer (Standardise on) the convention is
+    the app's default, a guess, and a phone standardised showed upside down with nothing
+    said; from the field's dip it holds north of the magnetic equator only. The status's
+    hints say both, for the page to show."""
+    st = stream()
+    st.decode(body([r for r in face_up_ios(60, standardised=True) if r["name"] != "magnetometer"]), 0.0)
+    s = st.status()
+    assert s["convention_source"] == "assumed"
+    assert any("a guess" in h and "Connect tab" in h for h in s["hints"]), s["hints"]
+    st = stream()
+    st.decode(body(face_up_ios(60)), 0.0)
+    s = st.status()
+    assert s["convention_source"] == "detected"
+    assert any("northern hemisphere" in h for h in s["hints"]), s["hints"]
+    st = stream()                                       # decisive evidence: no hint
+    st.decode(body(face_up_ios(60, raw_g=-1.0)), 0.0)
+    assert st.status()["hints"] == []
+
+
+def test_the_raw_field_does_not_decide_the_sign():
+    """Only the uncalibrated magnetometer ticked: its hard-iron offset (here +120 µT on z)
+    turned the dip over, and an iPhone with Standardise off was taken as standardised:
+    upside down. Its dip is no evidence now: the app's default holds, said to be a guess."""
+    rows = []
+    for r in face_up_ios(60):
+        if r["name"] == "magnetometer":
+            v = r["values"]
+            r = rd("magnetometeruncalibrated", r["time"], x=v["x"], y=v["y"], z=v["z"] + 120.0)
+        rows.append(r)
+    st = stream()
+    out = st.decode(body(rows), 0.0).samples
+    s = st.status()
+    assert s["sources"]["MAG"] == "magnetometeruncalibrated"
+    assert s["convention"] == "ios" and s["convention_source"] == "assumed"
+    assert all(a.values[2] > 9.0 for a in by_tag(out, "ACC"))
+    assert any("a guess" in h for h in s["hints"])
+
+
+def test_gravity_alone_gives_the_tilt_and_accelerometer_alone_says_what_to_tick():
+    """Gravity ticked without Accelerometer: the filters had no tilt at all (90° off); the
+    phone's gravity is the tilt now, and the hint asks for Accelerometer (the shakes).
+    Accelerometer without Gravity (linear acceleration: gravity removed) cannot give a tilt:
+    the hint asks for Gravity."""
+    st = stream()
+    out = st.decode(body([r for r in face_up_ios(60) if r["name"] != "accelerometer"]), 0.0).samples
+    acc = by_tag(out, "ACC")
+    assert len(acc) == 60 and all(a.values[2] == pytest.approx(9.80665) for a in acc)
+    s = st.status()
+    assert s["sources"]["ACC"] == "gravity" and "gravity" not in s["unused"]
+    assert any("tick Accelerometer" in h for h in s["hints"]), s["hints"]
+    st = stream()
+    out = st.decode(body([r for r in face_up_ios(60) if r["name"] != "gravity"]), 0.0).samples
+    assert by_tag(out, "ACC") == []
+    assert any("tick Gravity" in h for h in st.status()["hints"])
+    # and Accelerometer ticked later: the pair takes over
+    st = stream()
+    st.decode(body([r for r in face_up_ios(60) if r["name"] != "accelerometer"], mid=1), 0.0)
+    st.decode(body(face_up_ios(60, t_start=T0 + 1_000_000_000), mid=2), 1.0)
+    assert st.status()["sources"]["ACC"] == "accelerometer+gravity"
+
+
 def test_android_is_never_negated():
     st = stream()
     payload = [rd("totalacceleration", T0 + i * 5_000_000, accuracy=3, x=0.0, y=0.0, z=9.81)
