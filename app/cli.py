@@ -292,7 +292,11 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list]:
                 if isinstance(e, ConfigError):
                     raise
                 raise CliError(f"{config_path}: {e}") from None
-            changed = sum(1 for e in events if e.get("kind") == "params")
+            def tuned(e):     # the estimators' settings, not the calibration
+                return {k: v for k, v in (e.get("params") or {}).items()
+                        if k not in ("magcal", "magcal_from_t")}
+            seq = [tuned(e) for e in events if e.get("kind") in ("start", "params")]
+            changed = sum(1 for a, b in zip(seq, seq[1:]) if a != b)
             notes = [warm_note(warm_start_s(events))]
             if changed:
                 notes.append(f"the settings changed {changed}× during the recording: these are "

@@ -21,7 +21,7 @@ counted in ``ignored`` and ``invalid``, and why); this module applies them to a 
 ``totalacceleration`` (Android's specific force, as is), else ``accelerometer`` +
 ``gravity`` (linear acceleration + the OS's gravity, each accelerometer reading paired
 with the gravity reading nearest in time; identical times on iOS), else
-``accelerometeruncalibrated``; GYR from ``gyroscope`` else ``gyroscopeuncalibrated``;
+``accelerometeruncalibrated``, else ``gravity`` alone (the tilt without the shakes); GYR from ``gyroscope`` else ``gyroscopeuncalibrated``;
 MAG from ``magnetometer`` else ``magnetometeruncalibrated`` (hard-iron offsets beyond
 the limit are skipped as impossible); ORI from ``orientation`` once its convention is
 checked (:class:`OrientationCheck`).
@@ -29,7 +29,9 @@ checked (:class:`OrientationCheck`).
 *Signs.* iOS with "Standardise Units & Frames" off (the app's default) reports
 acceleration and gravity negated against Android, and the raw accelerometer in g. The
 convention is detected per session from the data (see :meth:`SensorLoggerStream.status`
-``reasons``), or set by the presenter (:meth:`SensorLoggerStream.set_convention`).
+``reasons``; the field's dip from the calibrated ``magnetometer`` only, northern
+hemisphere assumed), or set by the presenter (:meth:`SensorLoggerStream.set_convention`);
+``hints`` say what to change for a right pose.
 Until the evidence decides it, a session's first samples are held, for at most
 ``START_HOLD_S`` of the phone's time (then the app's default goes): released with a
 guessed sign, they would align the filters upside down.
@@ -760,9 +762,9 @@ class SensorLoggerStream:
                        "it): tick Gravity in the app")
         if self._override is None and self.platform != "android" and self._released:
             if self._conv_source == "assumed":
-                out.append("the sign convention is a guess (no magnetometer or raw accelerometer "
-                           "to tell): if the phone shows upside down, pick the sign convention on "
-                           "the Connect tab")
+                out.append("the sign convention is a guess (no calibrated magnetometer or raw "
+                           "accelerometer to tell): if the phone shows upside down, pick the sign "
+                           "convention on the Connect tab")
             elif not self._conv_strong:
                 out.append("the sign convention comes from the field's dip, which assumes the "
                            "northern hemisphere: south of the magnetic equator, pick it on the "

@@ -332,7 +332,7 @@ def correct_rows(t: np.ndarray, mag: np.ndarray,
         if t1 is not None:
             sel &= t <= t1
         if sel.any():
-            out[sel] = from_preset(table).apply(out[sel])
+            out[sel] = from_preset(table).apply(np.asarray(mag, dtype=float)[sel])   # the raw rows
     return out
 
 

@@ -306,7 +306,7 @@ class Recorder:
         self._est.write(head.encode())
         # the phone: its app, platform and sign convention, as the source detected them
         # a new stream goes on in NAME_2, NAME_3...: each says which recording it belongs to
-        self._event({"kind": "start", **(at or {}), "recording": self.base,
+        self._event({"kind": "start", **(at or {}), "recording": self.base, "name": name,
                      "segment": sum(not x.removed for x in self.segments),
                      "source": label, "phone": phone or None, "params": self._params})
         return seg
@@ -647,8 +647,12 @@ def settings_of(events: list[dict[str, Any]]) -> dict[str, Any]:
         raise ValueError("no 'start' event with the parameters (not an orientlab recording's "
                          "events file?)")
     out: dict[str, Any] = {}
-    for key, value in start["params"].items():
-        if key == "primary" or key == "magcal":
+    params = start["params"]
+    for key, value in params.items():
+        if key == "primary":       # a variant on show (robust-no-rejection): its estimator
+            inst = params.get(value)
+            out[key] = inst.get("base", value) if isinstance(inst, dict) else value
+        elif key == "magcal":
             out[key] = value
         elif isinstance(value, dict) and value.get("base", key) == key:
             out[key] = {k: v for k, v in value.items() if k != "base" and v is not None}
@@ -697,7 +701,10 @@ def magcal_changes(events: list[dict[str, Any]]) -> list[tuple[float | None, dic
             out = [(None, table)]
         elif not out or out[-1][1] != table:
             t = params["magcal_from_t"] if "magcal_from_t" in params else e.get("t")
-            out.append((None if t is None else float(t), table))
+            if t is None:          # before any field sample of the stream: it is the first
+                out = [(None, table)]
+            else:
+                out.append((float(t), table))
     return out
 
 

@@ -182,3 +182,36 @@ def test_a_recording_begun_into_its_stream_says_a_rerun_starts_cold(recorded, tm
     assert start["warm_s"] == 0.0
     out = asyncio.run(WhatIfService(core, recs.files).rerun("lesson", None))
     assert not any("into its stream" in n for n in out["notes"]), out["notes"]
+
+
+def test_a_calibration_changed_before_the_first_field_sample_replaces_the_first():
+    """A reviewer's find: a calibration cleared or replaced before the stream's first field
+    sample (Record pressed before the phone streams, then a preset loaded) was applied on
+    top of the first one, or not undone: 77° off. Each change corrects the raw field."""
+    from app.toolkit.magcal import correct_rows, from_preset
+    from app.toolkit.recording import magcal_changes
+    start = {"kind": "start", "params": {"magcal": FIRST}}
+    cleared = {"kind": "params", "t": None, "params": {"magcal_from_t": None}}
+    second = {"kind": "params", "t": 5.0, "params": {"magcal": SECOND, "magcal_from_t": None}}
+    assert magcal_changes([start, cleared]) == [(None, None)]
+    assert magcal_changes([start, second]) == [(None, SECOND)]
+    t = np.arange(10.0)
+    m = np.tile([10.0, 20.0, -40.0], (10, 1))
+    assert np.array_equal(correct_rows(t, m, magcal_changes([start, cleared])), m)
+    later = {"kind": "params", "t": 5.0, "params": {"magcal": SECOND, "magcal_from_t": 4.0}}
+    out = correct_rows(t, m, magcal_changes([start, later]))
+    assert np.allclose(out[:5], from_preset(FIRST).apply(m[:5]))
+    assert np.allclose(out[5:], from_preset(SECOND).apply(m[5:]))      # not on top of FIRST
+
+
+def test_a_recording_whose_primary_was_a_variant_gives_its_estimators_settings():
+    """A recording made with a variant on show (robust-no-rejection) was refused by
+    ``--config``: "primary: unknown estimator". Its primary reads as its estimator."""
+    from app.config import config_from
+    from app.toolkit.recording import settings_of
+    events = [{"kind": "start", "params": {
+        "robust": {"base": "robust", "gyr_noise": 0.006},
+        "robust-no-rejection": {"base": "robust", "gyr_noise": 0.005},
+        "primary": "robust-no-rejection"}}]
+    cfg = config_from(settings_of(events), "rec.events.jsonl")
+    assert cfg["primary"] == "robust" and cfg["robust"]["gyr_noise"] == 0.006
