@@ -287,11 +287,10 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list]:
                 raise CliError(f"{config_path}: no such file")
             events = read_events(config_path)
             try:
-                config = config_from(settings_of(events), str(config_path))
-            except ValueError as e:
-                if isinstance(e, ConfigError):
-                    raise
+                table = settings_of(events)
+            except ValueError as e:           # no start event: not a recording's
                 raise CliError(f"{config_path}: {e}") from None
+            config = config_from(table, str(config_path))     # ConfigError: below
             def tuned(e):     # the estimators' settings, not the calibration
                 return {k: v for k, v in (e.get("params") or {}).items()
                         if k not in ("magcal", "magcal_from_t")}

@@ -688,9 +688,9 @@ def magcal_changes(events: list[dict[str, Any]]) -> list[tuple[float | None, dic
     ``[(after t, its [magcal] table or None), ...]``, the first from the start (``None``),
     then one per ``params`` event that changed it, for the MAG samples after its
     ``magcal_from_t`` (the last one corrected the old way: the correction is applied as
-    samples arrive; None: all of them), or after the event's ``t`` in a recording that
-    does not have it. The log holds the raw field; the live filters got it corrected by
-    these."""
+    samples arrive), or after the event's ``t`` in a recording that does not have it. A
+    change before the stream's first field sample (``None``) replaces those before it.
+    The log holds the raw field; the live filters got it corrected by these."""
     out: list[tuple[float | None, dict | None]] = []
     for e in events:
         params = e.get("params")
