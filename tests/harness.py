@@ -352,6 +352,25 @@ def magnet_rows(size_ut=None, scenes=MAGNET_TURNS, seed=3):
     return rows, truth
 
 
+# ---- a phone that lies on a laptop when the stream starts (tests/estimators/test_field_reference.py,
+# benchmarks/first_field.py): lying still 8 s, then turned about each axis; until LAPTOP_LIFT_S a
+# field fixed in the *world* frame is added (the laptop's), then the room's field alone
+LAPTOP_SCENES = ("still", "still") + MAGNET_TURNS[:12]   # 8 s still, 72 s of turning
+LAPTOP_LIFT_S = 10.0
+LAPTOP_FIELD_UT = (30.0, 0.0, -20.0)                     # with the earth's 50 µT: 75 µT
+
+
+def laptop_rows(field_ut=LAPTOP_FIELD_UT, lift_s=LAPTOP_LIFT_S, seed=5):
+    """``sim_rows`` of the phone picked up from a laptop at ``lift_s`` (it starts turning at
+    8 s, on the laptop still): ``field_ut`` (world frame, µT) added to the field until then."""
+    import numpy as np
+    from app.quaternion import rotate_inv_many
+    rows, truth = sim_rows(LAPTOP_SCENES, seed=seed)
+    on = (rows.t < lift_s) & np.isfinite(rows.mag[:, 0])
+    rows.mag[on] += rotate_inv_many(truth[on], np.tile(np.asarray(field_ut, float), (int(on.sum()), 1)))
+    return rows, truth
+
+
 # ---- the 3D viewer's WebSocket, as a script (or a browser tab) speaks it
 
 def viser_messages(raw: bytes) -> list[dict]:

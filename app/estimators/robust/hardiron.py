@@ -267,9 +267,11 @@ def _judge(s, p, status, ref):
     fits = (sd <= f * p[PRM.hard_iron_max_std]
             and abs(s[S.hi_r] - ref) <= f * tol * ref
             and s[S.hi_rms] <= f * tol * ref)
-    if s[S.hi_rms] > 2.0 * tol * ref:
-        # no sphere: the window mixes two fields (a magnet put on while the
-        # phone turned) or the field is not homogeneous; start over
+    if s[S.hi_rms] > 2.0 * tol * min(ref, s[S.cand_norm]):
+        # no sphere: the window mixes two fields (a magnet put on while the phone turned, a
+        # phone picked up from a laptop turning) or the field is not homogeneous; start over.
+        # Judged by the weaker of the reference and the field now (the candidate's): a
+        # tentative reference may be a desk's stronger field (heading._field_check)
         _reset_fit(s)
         s[S.hi_o:S.hi_o + 3] = 0.0
         s[S.hi_std] = np.inf

@@ -6,9 +6,11 @@
 - **Magnetic disturbance detection** (VQF's logic, :func:`_field_check`). The low-passed
   field strength and dip angle are compared with a reference learned while undisturbed
   (``mag_norm_gate_rel``, ``mag_dip_gate``); the first reference is a field stable for
-  ``mag_first_field_time`` (never the first samples of a phone that starts moving); a
+  ``mag_first_field_time`` (never the first samples of a phone that starts moving), and
+  tentative until the phone has turned in it as long (a still phone may lie on a laptop); a
   new homogeneous field (stable strength and dip while the phone turns for
-  ``mag_new_field_time``) becomes the reference. Within the gates, a deviation from the
+  ``mag_new_field_time``, or for ``mag_first_field_time`` against a tentative reference
+  when the offset fit sees it as a centred sphere) becomes the reference. Within the gates, a deviation from the
   reference adds heading noise (``mag_dev_weight``).
 - **The field's heading noise measured from the data** (:func:`_heading_evidence`,
   ``heading_evidence_tau``): the field's wander against the gyroscope slows the correction.
@@ -119,6 +121,7 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         s[S.cand_norm] = n
         s[S.cand_dip] = dip
         s[S.cand_time] = 0.0
+        s[S.cand_turned] = 0.0
     else:
         k = lp_coef(dt, p[PRM.mag_norm_dip_tau])
         s[S.mag_nd_norm] += k * (n - s[S.mag_nd_norm])
@@ -129,7 +132,10 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
     cd_dev = abs(df - s[S.cand_dip])
     if (cn_dev <= (p[PRM.mag_norm_gate_rel] if p[PRM.mag_norm_gate_rel] > 0.0 else CAND_OFF_NORM_REL)
             and cd_dev <= (p[PRM.mag_dip_gate] if p[PRM.mag_dip_gate] > 0.0 else CAND_OFF_DIP)):
-        if rate >= p[PRM.mag_new_min_rate] or s[S.ref_ok] == 0.0:
+        if rate >= p[PRM.mag_new_min_rate]:
+            s[S.cand_time] += dt
+            s[S.cand_turned] += dt
+        elif s[S.ref_ok] == 0.0:
             s[S.cand_time] += dt
         kc = lp_coef(dt, p[PRM.mag_cand_tau]) if dt > 0 else 0.0
         s[S.cand_norm] += kc * (nf - s[S.cand_norm])
@@ -138,10 +144,12 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         s[S.cand_norm] = nf
         s[S.cand_dip] = df
         s[S.cand_time] = 0.0
+        s[S.cand_turned] = 0.0
     if s[S.ref_ok] == 0.0:
         if s[S.cand_time] >= p[PRM.mag_first_field_time]:
             s[S.ref_norm] = s[S.cand_norm]
             s[S.ref_dip] = s[S.cand_dip]
+            s[S.ref_turned] = s[S.cand_turned]
             s[S.ref_ok] = 1.0
             s[S.disturbed] = 0.0
             s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
@@ -158,6 +166,8 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         reason = R_TURN
     if reason == R_USED:
         s[S.undisturbed_time] += dt
+        if rate >= p[PRM.mag_new_min_rate]:
+            s[S.ref_turned] += dt
         if s[S.undisturbed_time] >= p[PRM.mag_min_undisturbed]:
             s[S.disturbed] = 0.0
             # a field with a sensor-fixed offset found in it (not yet removed) is not the
@@ -186,10 +196,27 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
     # homogeneous field is centred) or a radius of its own strength.
     explained = (s[S.hi_status] != HI_NONE
                  and abs(s[S.hi_r] - s[S.ref_norm]) <= p[PRM.hard_iron_tol] * s[S.ref_norm])
-    if s[S.disturbed] != 0.0 and s[S.cand_time] >= p[PRM.mag_new_field_time] and not explained:
+    # A reference the phone has not yet turned in for mag_first_field_time is tentative: seen
+    # from one attitude, a desk's or a laptop's field is as stable as the earth's (a phone
+    # that starts lying on one). A new field the phone has turned in for as long takes over
+    # from it (VQF's magNewFirstTime, which needs the turn for the first reference too) once
+    # the offset fit has seen it from every side as a homogeneous field: a sphere of the
+    # candidate's strength centred on zero (half a window of turning, σ at the sensor's
+    # noise, no offset beyond 3σ). A magnet put on a phone that lay still shows an offset,
+    # and waits for mag_new_field_time (and the offset's verdict) as before.
+    new_time = p[PRM.mag_new_field_time]
+    if s[S.ref_turned] < p[PRM.mag_first_field_time] and p[PRM.hard_iron_window] > 0.0:
+        sd = s[S.hi_std]
+        on = np.sqrt(s[S.hi_o] ** 2 + s[S.hi_o + 1] ** 2 + s[S.hi_o + 2] ** 2)
+        if (s[S.hi_W] >= 0.5 * p[PRM.hard_iron_window] and sd <= p[PRM.hard_iron_max_std]
+                and on < 3.0 * sd
+                and abs(s[S.hi_r] - s[S.cand_norm]) <= p[PRM.hard_iron_tol] * s[S.cand_norm]):
+            new_time = p[PRM.mag_first_field_time]
+    if s[S.disturbed] != 0.0 and s[S.cand_time] >= new_time and not explained:
         # a new homogeneous field: the phone moved to another place (or a magnet stays on it)
         s[S.ref_norm] = s[S.cand_norm]
         s[S.ref_dip] = s[S.cand_dip]
+        s[S.ref_turned] = s[S.cand_turned]
         s[S.disturbed] = 0.0
         s[S.undisturbed_time] = p[PRM.mag_min_undisturbed]
         f[F_MAG] = R_NEW_FIELD

@@ -83,6 +83,8 @@ def _align(s, P, p, t, acc, mag, use_mag):
     s[S.mag_upd_time] = 0.0
     s[S.ref_ok] = 0.0
     s[S.cand_time] = 0.0
+    s[S.cand_turned] = 0.0
+    s[S.ref_turned] = 0.0
     s[S.far_time] = 0.0
     s[S.mag_nd_ok] = 0.0
     s[S.undisturbed_time] = 0.0

@@ -142,7 +142,10 @@ class RobustParams(CommonParams):
                                       "does not change it); 0: off", rejects=True)
     mag_first_field_time: float = param(5.0, unit="s", lo=0.0, hi=600.0,
                                         doc="the first field reference is a field stable this long (until "
-                                            "then every sample corrects the heading: nothing to judge it by)")
+                                            "then every sample corrects the heading: nothing to judge it by); "
+                                            "until the phone has turned this long in it, it is tentative: a "
+                                            "new field the phone has turned in this long, homogeneous by the "
+                                            "offset fit, replaces it (a phone picked up from a laptop)")
     mag_min_undisturbed: float = param(0.5, unit="s", lo=0.0, hi=60.0,
                                        doc="a field within the gates this long ends a disturbance")
     mag_norm_dip_tau: float = param(0.05, unit="s", lo=0.0, hi=10.0,

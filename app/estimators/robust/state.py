@@ -43,6 +43,11 @@ STATE = (
     ("cand_norm", 1, "candidate new field: strength (µT)"),
     ("cand_dip", 1, "candidate new field: dip (rad)"),
     ("cand_time", 1, "s the candidate has been stable while turning"),
+    ("cand_turned", 1, "s of that the phone turned at mag_new_min_rate or faster (before the first "
+                       "reference cand_time counts a still phone too)"),
+    ("ref_turned", 1, "s the phone has turned (mag_new_min_rate) in the reference's field, undisturbed: "
+                      "below mag_first_field_time the reference is tentative (seen from one attitude, "
+                      "a desk's or a laptop's field as well as the earth's)"),
     ("t0", 1, "time of the alignment"),
     ("mag_t", 1, "time of the last magnetometer update attempt"),
     ("acc_t", 1, "time of the last accelerometer sample"),
