@@ -166,8 +166,6 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
         reason = R_TURN
     if reason == R_USED:
         s[S.undisturbed_time] += dt
-        if rate >= p[PRM.mag_new_min_rate]:
-            s[S.ref_turned] += dt
         if s[S.undisturbed_time] >= p[PRM.mag_min_undisturbed]:
             s[S.disturbed] = 0.0
             # a field with a sensor-fixed offset found in it (not yet removed) is not the
@@ -180,6 +178,8 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
             off = dev > (p[PRM.hard_iron_tol] * s[S.ref_norm]) ** 2
             kr = (lp_coef(dt, p[PRM.mag_ref_tau])
                   if dt > 0 and s[S.hi_status] != HI_TRACKING and not off else 0.0)
+            if not off and rate >= p[PRM.mag_new_min_rate]:
+                s[S.ref_turned] += dt          # turned in the reference's own field
             s[S.ref_norm] += kr * (nf - s[S.ref_norm])
             s[S.ref_dip] += kr * (df - s[S.ref_dip])
     else:

@@ -45,7 +45,8 @@ STATE = (
     ("cand_time", 1, "s the candidate has been stable while turning"),
     ("cand_turned", 1, "s of that the phone turned at mag_new_min_rate or faster (before the first "
                        "reference cand_time counts a still phone too)"),
-    ("ref_turned", 1, "s the phone has turned (mag_new_min_rate) in the reference's field, undisturbed: "
+    ("ref_turned", 1, "s the phone has turned (mag_new_min_rate) in the reference's own field (within "
+                      "hard_iron_tol of its strength, undisturbed): "
                       "below mag_first_field_time the reference is tentative (seen from one attitude, "
                       "a desk's or a laptop's field as well as the earth's)"),
     ("t0", 1, "time of the alignment"),
