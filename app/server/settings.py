@@ -30,7 +30,7 @@ class Settings:
     port: int = 8000
     viewer_host: str | None = None   # viser; None: same as host
     viewer_port: int = 8080
-    phone_host: str | None = None    # phone receiver; None: all interfaces
+    phone_host: str | None = None    # phone receiver; None: same as host
     phone_port: int = 3400
     source: str = "demo"
     recordings: Path = Path("recordings")   # --recordings: the lab's recordings folder
@@ -86,7 +86,7 @@ class Settings:
 
     @property
     def phone_bind(self) -> str:
-        return self.phone_host or "0.0.0.0"
+        return self.phone_host or self.host
 
     @classmethod
     def from_args(cls, args) -> "Settings":

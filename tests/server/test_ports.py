@@ -4,9 +4,12 @@ port really held by a listening socket on the loopback interface."""
 
 from __future__ import annotations
 
+import signal
 import socket
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -89,3 +92,39 @@ def test_the_tests_ports_are_free_distinct_and_below_the_ephemeral_range():
         client = socket.create_connection(("127.0.0.1", ports[0]), timeout=5)
         assert client.getsockname()[1] >= lo      # what the run's clients are handed
         client.close()
+
+
+def _listening(port: int) -> set[str]:
+    """The local addresses (hex, as /proc/net/tcp* write them) listening on ``port``."""
+    out = set()
+    for name in ("tcp", "tcp6"):
+        path = Path("/proc/net") / name
+        if not path.is_file():
+            continue
+        for line in path.read_text().splitlines()[1:]:
+            f = line.split()
+            addr, p = f[1].rsplit(":", 1)
+            if f[3] == "0A" and int(p, 16) == port:
+                out.add(addr)
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").is_file(), reason="Linux's /proc/net/tcp needed")
+def test_host_loopback_binds_every_port_on_loopback_only():
+    """``--host 127.0.0.1`` is "this PC only": the Sensor Fusion app's TCP port too (it was
+    bound on every interface, open to the room while the page was not)."""
+    ports = {opt: free_port() for opt in OPTIONS}
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--host", "127.0.0.1",
+                             "--source", "none", *[x for o, p in ports.items() for x in (o, str(p))]],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            stdin=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not all(_listening(p) for p in ports.values()):
+            assert proc.poll() is None, proc.stdout.read()
+            time.sleep(0.2)
+        for opt, port in ports.items():
+            assert _listening(port) == {"0100007F"}, (opt, _listening(port))
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
