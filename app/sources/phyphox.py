@@ -248,7 +248,7 @@ def buffers_to_samples(tag: str, t: Sequence, comps: Sequence[Sequence],
                 if qr is None:
                     bad = "impossible"
                 else:
-                    vals = [-v for v in qr] if qr[0] < 0.0 else list(qr)
+                    vals = list(qr)
             elif impossible(tag, vals):
                 bad = "impossible"
             elif tag == "MAG" and vals[0] == 0.0 and vals[1] == 0.0 and vals[2] == 0.0:

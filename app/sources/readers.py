@@ -525,6 +525,8 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
             with np.errstate(invalid="ignore", over="ignore"):
                 n2 = np.einsum("ij,ij->i", vals, vals)
             imp = ~((n2 > QUAT_NORM2[0]) & (n2 < QUAT_NORM2[1]))
+            if vals.shape[1] == 4:    # w >= 0, as quaternion_reading gives it
+                vals = np.where(vals[:, :1] < 0.0, -vals, vals)
         if imp is not None:
             if imp.any():
                 reasons.setdefault("impossible", []).extend(rows[imp].tolist())

@@ -54,8 +54,9 @@ QUAT_NORM2 = (0.5, 1.5)
 
 
 def quaternion_reading(values) -> tuple[float, float, float, float] | None:
-    """A phone's attitude reading (w, x, y, z, or x, y, z with w completed) as four floats,
-    or None when it is no unit quaternion (:data:`QUAT_NORM2`); NaN passes (missing)."""
+    """A phone's attitude reading (w, x, y, z, or x, y, z with w completed) as four floats
+    with w >= 0 (the convention: q and -q are one attitude), or None when it is no unit
+    quaternion (:data:`QUAT_NORM2`); NaN passes (missing)."""
     if len(values) == 3:
         x, y, z = values
         w2 = 1.0 - x * x - y * y - z * z
@@ -67,7 +68,7 @@ def quaternion_reading(values) -> tuple[float, float, float, float] | None:
         return q
     if not (QUAT_NORM2[0] < n2 < QUAT_NORM2[1]):    # also inf
         return None
-    return q
+    return (-q[0], -q[1], -q[2], -q[3]) if q[0] < 0.0 else q
 
 
 def impossible_rows(tag: str, v):

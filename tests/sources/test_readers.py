@@ -480,3 +480,25 @@ def test_a_logs_lines_held_in_memory_give_the_files_rows(real_log):
     rows, rec = rows_of_lines(real_log.read_bytes().splitlines()), read_log_data(real_log)
     for k in ("t", "gyr", "acc", "mag"):
         np.testing.assert_array_equal(getattr(rows, k), getattr(rec, k), err_msg=k)
+
+
+def test_an_ori_reading_with_negative_w_is_read_with_w_positive(tmp_path):
+    """q and -q are one attitude; the convention is w >= 0, and each source gives it so at its
+    edge (the Sensor Fusion app's ORI lines kept the phone's sign): the line decoder, the
+    vectorised whole-file read and a live TCP line alike."""
+    from collections import Counter
+
+    from app.sources.readers import _applog_whole
+    from app.sources.sensorfusion import decode_lines
+    lines = []
+    for k in range(40):
+        t = 100_000 + 10 * k
+        lines += [f"{t}\tACC\t0.1\t0.2\t9.8", f"{t + 1}\tGYR\t0.01\t0.0\t0.0",
+                  f"{t + 2}\tMAG\t0.0\t20.0\t-40.0", f"{t + 3}\tORI\t-0.5\t0.5\t-0.5\t0.5"]
+    path = write_log(tmp_path / "log.txt", lines)
+    for rec in (_applog_whole(path), _line_by_line(path)):
+        ori = rec.ori[np.all(np.isfinite(rec.ori), axis=1)]
+        assert len(ori) == 40
+        np.testing.assert_allclose(ori, np.tile([0.5, -0.5, 0.5, -0.5], (40, 1)))
+    samples = decode_lines([ln.encode() for ln in lines[:4]], Counter())
+    assert [s.values for s in samples if s.tag == "ORI"] == [(0.5, -0.5, 0.5, -0.5)]
