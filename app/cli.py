@@ -33,6 +33,14 @@
     look stationary (the phone moved...) writes no preset: the reasons on stderr, exit
     status 1; ``--force`` writes it anyway.
 
+``orientlab gyro-scale INPUT... --out PRESET.toml``
+    The gyroscope's scale-factor error per axis from recordings with rests
+    (:mod:`app.toolkit.gyro_scale`), written as a preset's ``gyr_scale``.
+
+``orientlab params [--toml]``
+    Every estimator's parameters (units, ranges, defaults); ``--toml`` prints
+    ``configs/default.toml``.
+
 ``orientlab serve``
     The live dashboard (:mod:`app.server.run`). A taken port gives one line naming it
     and its option, exit status 1. The page answers at once; on a cold numba cache the
@@ -165,8 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         "serve", help="run the live dashboard (phone receiver + browser view)",
-        description="Serve the live dashboard: the phone connects over TCP, the browser "
-                    "shows the estimates and the controls.")
+        description="Serve the live dashboard: a phone streams to it (the Sensor Fusion app "
+                    "over TCP, Sensor Logger or phyphox over HTTP), the browser shows the "
+                    "estimates and the controls.")
     s.add_argument("--host", default="0.0.0.0",
                    help="address to listen on (default 0.0.0.0 so the phone can connect)")
     s.add_argument("--port", type=int, default=8000, help="HTTP port of the dashboard (8000)")

@@ -75,13 +75,14 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
     est.attitude_cov()
     est.reset()
     # the live ensemble's per-chunk bookkeeping (app.live.ensemble)
-    from app.estimators.base import NFLAGS, split_rows, tally_rows
+    from app.estimators.base import NFLAGS, Reason, split_rows, tally_rows
+    nreason = len(Reason)
     kind = np.array([0, 1, 2, 3], dtype=np.int8)
     G, A, M, O = np.empty((4, 3)), np.empty((4, 3)), np.empty((4, 3)), np.empty((4, 4))
     split_rows(kind, np.zeros((4, 4)), G, A, M, O)
     tally_rows(kind, np.zeros(4), np.zeros((4, NFLAGS)), np.zeros((4, 4)),
-               np.zeros((3, 20), np.int64), np.zeros((3, 1 + NFLAGS)), np.zeros((3, 1 + NFLAGS)),
-               np.zeros(20, dtype=bool))
+               np.zeros((3, nreason), np.int64), np.zeros((3, 1 + NFLAGS)), np.zeros((3, 1 + NFLAGS)),
+               np.zeros(nreason, dtype=bool))
     # what the dashboard computes from every estimate (read-outs, plots)
     qm.q2euler(o)
     qm.angle_between(o, o)

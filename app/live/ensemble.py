@@ -64,7 +64,6 @@ _IS_REJECTION = np.zeros(NREASON, dtype=bool)    # by reason code (a lookup: np.
 _IS_REJECTION[[int(r) for r in REJECTIONS]] = True
 GOOD_EVERY_S = 1.0          # how often (wall clock) an instance's good state is kept
 NAME_RE = re.compile(r"[a-z][a-z0-9_-]{0,39}")
-_UIDS = itertools.count(1)      # every Instance ever made has its own (next() is atomic)
 
 
 class EnsembleError(ValueError):
@@ -104,7 +103,8 @@ class Instance:
     _good_at: float = -np.inf
     # this instance's identity: a variant removed and added again under the same name is
     # another instance (a change validated against the first is not applied to it)
-    uid: int = field(default_factory=lambda: next(_UIDS))
+    # (the ensemble's counter numbers them: Ensemble._uids)
+    uid: int = 0
     # the stream's sensor tags that stopped while it goes on (set by the ensemble): their
     # last decision is no longer news
     stopped: frozenset = frozenset()
@@ -240,13 +240,14 @@ class Ensemble:
             from app.config import load_config
             config = load_config(None)
         self.instances: dict[str, Instance] = {}
+        self._uids = itertools.count(1)       # every Instance this ensemble makes has its own
         for name in NAMES:
             try:
                 est = estimator_class(name)(**dict(config.get(name, {})))
             except ImportError as e:  # an estimator not available: run the others
                 log.warning("estimator %s unavailable: %s", name, e)
                 continue
-            self.instances[name] = Instance(name, name, est, builtin=True)
+            self.instances[name] = Instance(name, name, est, builtin=True, uid=next(self._uids))
         if not self.instances:
             raise RuntimeError("no estimator available")
         p = config.get("primary")
@@ -308,7 +309,7 @@ class Ensemble:
         if estimator is not None and not isinstance(estimator, estimator_class(base)):
             raise EnsembleError("estimator", f"must be a {estimator_class(base).__name__}")
         inst = Instance(name, base, estimator if estimator is not None else estimator_class(base)(p),
-                        builtin=False, stopped=self.stopped)
+                        builtin=False, stopped=self.stopped, uid=next(self._uids))
         self.instances[name] = inst
         self._publish()
         return inst

@@ -94,16 +94,11 @@ def _split_origin(origin: str) -> tuple[str, str, int] | None:
 
 
 _OWN_TTL_S = 30.0          # this machine's addresses, looked up again after this (DHCP)
-_own_cache: list = [0.0, frozenset()]
-_own_lock = threading.Lock()
 
 
 def _own_names() -> frozenset:
-    """This machine's host names and addresses (no traffic; cached for a while)."""
-    now = time.monotonic()
-    with _own_lock:
-        if now - _own_cache[0] < _OWN_TTL_S:
-            return _own_cache[1]
+    """This machine's host names and addresses (no traffic: the host name and the
+    interfaces' addresses). :meth:`Access.own_names` caches them for a while."""
     names = {"localhost", "localhost.localdomain", "ip6-localhost"}
     try:
         hn = socket.gethostname().lower()
@@ -116,10 +111,7 @@ def _own_names() -> frozenset:
         names |= set(lan_ipv4_all())
     except Exception:     # an odd network set-up: loopback still works
         log.debug("could not list this machine's addresses", exc_info=True)
-    out = frozenset(names)
-    with _own_lock:
-        _own_cache[:] = [now, out]
-    return out
+    return frozenset(names)
 
 
 def _is_loopback(host: str) -> bool:
@@ -138,6 +130,9 @@ class Access:
     lock: threading.Lock = field(default_factory=threading.Lock)
     ports: frozenset = frozenset()     # this server's HTTP and viewer ports (as configured)
     hosts: frozenset = frozenset()     # the addresses it is configured to listen on
+    # this machine's names and addresses, and when they were looked up (own_names)
+    _own: tuple = field(default=(float("-inf"), frozenset()), repr=False)
+    _own_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @classmethod
     def from_settings(cls, settings) -> "Access":
@@ -162,7 +157,20 @@ class Access:
             return True
         if local is not None and h == str(local).lower().strip("[]"):
             return True
-        return h in _own_names()
+        return h in self.own_names()
+
+    def own_names(self) -> frozenset:
+        """This machine's host names and addresses, looked up again after ``_OWN_TTL_S``
+        (a laptop's DHCP address changes mid-lesson)."""
+        now = time.monotonic()
+        with self._own_lock:
+            at, names = self._own
+        if now - at < _OWN_TTL_S:
+            return names
+        names = _own_names()
+        with self._own_lock:
+            self._own = (now, names)
+        return names
 
     def host_ok(self, host_header: str | None, local: str | None = None) -> bool:
         """The ``Host`` header of a state-changing request: absent (HTTP/1.0, a bare

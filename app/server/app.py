@@ -3,9 +3,12 @@
 The lifespan starts and stops every resource and keeps them on ``app.state`` (no
 module-level state): the engine (estimators) and its task, the viser server with the
 scene and GUI and their refresh task, the phone TCP server, and the background source
-(demo or log replay). Routers: ``health`` (/api/health, /api/info), ``state``
-(/api/state, /api/stats, WS /ws/state), ``params`` (/api/params, /api/reset, presets);
-the landing page ``/`` comes from ``static/``.
+(demo or log replay). A router per concern, in ``app/server/routers/``: ``health``
+(/api/health, /api/info), ``state`` (/api/state, /api/stats, WS /ws/state), ``params``
+(/api/params, /api/reset, presets), ``phone``, ``push`` (the phone apps' HTTP pushes),
+``connect``, ``recordings``, ``calibrate``, ``replay``, ``estimators`` (variants, the
+What-if), ``inject``; docs/api.md lists every route. The landing page ``/`` comes from
+``static/``.
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.estimators import NAMES
 from app.live import LiveCore
 from harness import feed_lines
 from app.sources.sensorfusion import format_line
@@ -33,7 +34,7 @@ def test_a_stream_through_the_core():
     assert st["counts"]["samples"] == len(lines) == sum(r.n_samples for r in recs)
     assert st["source"] == "phone-disconnected" and st["initialized"]
     assert st["phone_q"] is not None and st["error_to_phone_deg"] < 5.0
-    assert set(st["estimators"]) == {"robust", "lab", "complementary", "phone"}
+    assert set(st["estimators"]) == set(NAMES)
     assert st["acc"]["reason"] in ("used", "norm", "nis")
     w = core.history.pose.window(5.0, 100)
     ok = np.isfinite(w["q"]).all(axis=1)
