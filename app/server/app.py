@@ -32,7 +32,7 @@ from app.server import viser_adapter
 from app.server.gui.main import Gui, run_gui
 from app.server.limits import BodyLimit, install_error_handlers
 from app.server.connect import Connect
-from app.server.phones import TICK_S, HttpPhones
+from app.server.phones import PUSH_APPS, TICK_S, HttpPhones
 from app.sources.phyphox_poll import PhyphoxPoller
 from app.sources.sensorfusion_tcp import SensorFusionServer
 from app.sources.slot import PhoneSlot
@@ -181,8 +181,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     install_tool_errors(app)       # a tool's refusal (ToolError) as an HTTP answer
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
-                       paths={"/sensorlogger": settings.max_push_bytes,
-                              "/phyphox": settings.max_push_bytes})
+                       paths={a.path: settings.max_push_bytes for a in PUSH_APPS.values()})
     app.include_router(health.router)
     app.include_router(state.router)
     app.include_router(params.router)

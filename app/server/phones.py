@@ -29,9 +29,12 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.sources.phyphox import PhyphoxError, PhyphoxPushStream
+from typing import Callable, Protocol
+
+from app.sources.phyphox import PhyphoxPushStream
 from app.sources.phyphox_poll import PhyphoxPoller
-from app.sources.sensorlogger import SensorLoggerError, SensorLoggerStream
+from app.sources.samples import DecodeError
+from app.sources.sensorlogger import SensorLoggerStream
 from app.sources.slot import PHONE_APPS, PhoneSlot
 
 log = logging.getLogger("orientlab.phones")
@@ -40,8 +43,47 @@ PUSH_END_S = 5.0        # a push stream silent this long has ended ...
 PUSH_END_PERIODS = 2.5  # ... or this many of its batch periods, if longer,
 MAX_PUSH_END_S = 60.0   # but never longer than this
 TICK_S = 0.2            # how often held messages and silent streams are looked at
-#: reorder windows (s): a push delivers in batches; phyphox's POSTs overlap and may swap
-WINDOW_S = {"sensorlogger": 0.05, "phyphox": 0.3, "phyphox-poll": 0.1}
+POLL_WINDOW_S = 0.1     # phyphox polled: the reorder window (s)
+
+
+class PushDecoder(Protocol):
+    """What a push app's source module gives per phone (a stream's decoder): ``read`` the
+    body (on a worker thread: JSON, arrays), ``take`` it on the loop (a batch with
+    ``samples``, ``ended``, ``new_session``, ``late``), ``count_rejected`` a
+    :class:`~app.sources.samples.DecodeError`, ``status`` for the page, ``waiting`` while it
+    holds samples back, ``flush`` what it holds when the stream ends, ``due`` what it held
+    that is due now. Optional: ``withheld`` and ``silent_hint`` (read by the session)."""
+    waiting: bool
+
+    def read(self, body: bytes) -> Any: ...
+    def take(self, read: Any, now: float) -> Any: ...
+    def count_rejected(self, e: DecodeError) -> None: ...
+    def status(self) -> dict: ...
+    def flush(self) -> list: ...
+    def due(self, now: float) -> list: ...
+
+
+@dataclass(frozen=True)
+class PushApp:
+    """A phone app that pushes over HTTP: everything the server needs of it, in one place
+    (the route ``POST /{key}`` in :mod:`app.server.routers.push`; its label in
+    :data:`~app.sources.slot.PHONE_APPS`; its wire format in its source module)."""
+    key: str
+    window_s: float                       # the reorder window (s)
+    refused_status: int                   # the answer when another phone holds the slot
+    decoder: Callable[[], PushDecoder]    # a new stream's decoder
+
+    @property
+    def path(self) -> str:
+        return "/" + self.key
+
+
+#: the push apps. Sensor Logger delivers in batches (0.05 s reorder window) and shows a 499's
+#: reason; phyphox's POSTs overlap and may swap (0.3 s), and it shows an error status
+PUSH_APPS = {a.key: a for a in (
+    PushApp("sensorlogger", 0.05, 499, SensorLoggerStream),
+    PushApp("phyphox", 0.3, 409, PhyphoxPushStream),
+)}
 
 
 @dataclass
@@ -91,7 +133,7 @@ class HttpPhones:
         self.settings = settings
         self.slot = slot
         self.streams: dict[tuple[str, str], Stream] = {}    # (phone_app, key) -> decoder state
-        self.counts = {a: PhoneAppCounts() for a in ("sensorlogger", "phyphox", "phyphox-poll")}
+        self.counts = {a: PhoneAppCounts() for a in (*PUSH_APPS, "phyphox-poll")}
         self.poller: PhyphoxPoller | None = None
         self.poll_task: asyncio.Task | None = None
         self.conventions: dict[str, str] = {}     # Sensor Logger: the presenter's choice
@@ -103,6 +145,8 @@ class HttpPhones:
         body is read (the decoder's ``read``: the JSON, and Sensor Logger's readings to
         arrays) on a worker thread, so a long batch does not hold the server up while it is
         read; the stream's state sees it on the event loop (``take``)."""
+        if phone_app not in PUSH_APPS:
+            raise ValueError(f"{phone_app!r} is no push app (PUSH_APPS)")
         c = self.counts[phone_app]
         c.requests += 1
         now = time.time()
@@ -115,7 +159,7 @@ class HttpPhones:
         try:
             async with self._reading:    # one body at a time: parallel reads are no faster
                 read = await asyncio.to_thread(decoder.read, body)     # (the GIL), only larger
-        except (SensorLoggerError, PhyphoxError) as e:
+        except DecodeError as e:
             return self._malformed(self._stream(phone_app, client), e)
         # while it was read, another phone may have taken the slot, or this stream ended
         refused = self._refused(phone_app, client)
@@ -124,7 +168,7 @@ class HttpPhones:
         st = self._stream(phone_app, client)
         try:
             batch = st.decoder.take(read, now)
-        except (SensorLoggerError, PhyphoxError) as e:
+        except DecodeError as e:
             return self._malformed(st, e)
         st.last_rx = time.monotonic()
         if len(batch.samples) > 1:
@@ -147,7 +191,8 @@ class HttpPhones:
         self.counts[phone_app].refused += 1
         self.slot.count_refusal(why)
         self.engine.core.totals.count_refused()
-        return Reply(499 if phone_app == "sensorlogger" else 409, why)
+        app = PUSH_APPS.get(phone_app)
+        return Reply(app.refused_status if app else 409, why)
 
     def _stream(self, phone_app: str, client: str) -> Stream:
         st = self.streams.get((phone_app, client))
@@ -156,7 +201,7 @@ class HttpPhones:
             self.streams[(phone_app, client)] = st
         return st
 
-    def _malformed(self, st: Stream, e: SensorLoggerError | PhyphoxError) -> Reply:
+    def _malformed(self, st: Stream, e: DecodeError) -> Reply:
         """A body that cannot be used: counted, answered 400 with the reason."""
         st.decoder.count_rejected(e)
         self.counts[st.phone_app].bad[e.reason] += 1
@@ -164,14 +209,12 @@ class HttpPhones:
             st.session.count_malformed(e.reason)
         return Reply(400, str(e)[:200])
 
-    def _decoder(self, phone_app: str):
-        if phone_app == "sensorlogger":
-            d = SensorLoggerStream()
-            conv = self.conventions.get("sensorlogger")
-            if conv:
-                d.set_convention(conv)
-            return d
-        return PhyphoxPushStream()
+    def _decoder(self, phone_app: str) -> PushDecoder:
+        d = PUSH_APPS[phone_app].decoder()
+        conv = self.conventions.get(phone_app)
+        if conv:
+            d.set_convention(conv)
+        return d
 
     def _deliver(self, st: Stream, samples: list, new_session: bool = False,
                  waiting: bool = False) -> None:
@@ -191,7 +234,8 @@ class HttpPhones:
             self.engine.pause_background()
             st.session = self.engine.open_session(
                 "phone", f"{st.key} ({PHONE_APPS[st.phone_app]})", phone_app=st.phone_app,
-                window_s=WINDOW_S[st.phone_app])
+                window_s=PUSH_APPS[st.phone_app].window_s if st.phone_app in PUSH_APPS
+                else POLL_WINDOW_S)
             st.session.withheld_by = getattr(st.decoder, "withheld", None)
             st.session.silent_hint_by = getattr(st.decoder, "silent_hint", None)
         if samples or waiting:
@@ -218,7 +262,7 @@ class HttpPhones:
     def _end(self, st: Stream, reason: str) -> None:
         """End a stream: what its decoder holds goes in first, then the session closes."""
         if st.session is not None and st.session.open:
-            rest = st.decoder.flush() if hasattr(st.decoder, "flush") else []
+            rest = st.decoder.flush()
             if rest:
                 self.engine.feed(st.session, rest, time.perf_counter())
             self.engine.close_session(st.session, reason)
@@ -233,9 +277,8 @@ class HttpPhones:
         for st in list(self.streams.values()):
             if st.phone_app == "phyphox-poll":
                 continue
-            due = getattr(st.decoder, "due", None)
-            if due is not None and st.session is not None and st.session.open:
-                rest = due(now_wall)
+            if st.session is not None and st.session.open:
+                rest = st.decoder.due(now_wall)
                 if rest:
                     self.engine.feed(st.session, rest, time.perf_counter())
             end_s = st.end_s()

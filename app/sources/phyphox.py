@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 from urllib.parse import urlsplit
 
-from app.sources.samples import MAX_TIME_MS, Sample, impossible, quaternion_reading
+from app.sources.samples import MAX_TIME_MS, DecodeError, Sample, impossible, quaternion_reading
 
 # phyphox sensor type -> orientlab tag
 SENSOR_TAGS: dict[str, str] = {
@@ -72,13 +72,9 @@ COMPONENTS: dict[str, tuple[str, ...]] = {
 
 
 
-class PhyphoxError(ValueError):
+class PhyphoxError(DecodeError):
     """Input from phyphox that cannot be used; ``reason`` is a short key for counting,
     the message a short description (never the input itself)."""
-
-    def __init__(self, reason: str, detail: str = ""):
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
 
 
 @dataclass
@@ -518,6 +514,14 @@ class PhyphoxPushStream:
                 self.counts["gap"] -= 1
                 self.counts["gap_filled"] += 1
                 return
+
+    def flush(self) -> list[Sample]:
+        """What it holds when the stream ends: nothing (each POST's samples go at once)."""
+        return []
+
+    def due(self, now: float) -> list[Sample]:
+        """What it held that is due now: nothing (see :meth:`flush`)."""
+        return []
 
     def status(self) -> dict:
         """JSON-safe summary for the UI."""

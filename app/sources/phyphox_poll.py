@@ -278,6 +278,10 @@ class PhyphoxPoller:
         self.time_check_s = 2.0
 
     # ------------------------------------------------------------ control
+    def flush(self) -> list:
+        """What it holds when its stream ends: nothing (every poll's samples go at once)."""
+        return []
+
     def stop(self) -> None:
         """End :meth:`run` promptly (callable from any thread)."""
         self._stop_flag = True

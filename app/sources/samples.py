@@ -18,6 +18,16 @@ from dataclasses import dataclass
 # tags whose values are vectors the estimators use
 MOTION_TAGS = ("ACC", "GYR", "MAG", "ORI")
 
+
+class DecodeError(ValueError):
+    """Input from a phone app that cannot be used (a line, a message, a push's body): every
+    source's own error derives from it. ``reason`` is a short key for counting; the message
+    a short description (never the input itself)."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
 G0 = 9.81
 # Physically impossible readings, one definition for the live stream and every file
 # reader (app.sources.readers): a vector whose norm is above its limit is no reading of a phone

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from app.sources.samples import MAX_TIME_MS, VALUE_LIMITS, Sample, impossible, quaternion_reading
+from app.sources.samples import MAX_TIME_MS, VALUE_LIMITS, DecodeError, Sample, impossible, quaternion_reading
 
 # tag -> accepted value counts (numeric tags) ; None = free text fields
 TAG_ARITY: dict[str, tuple[int, ...] | None] = {
@@ -78,12 +78,8 @@ class LineSplitter:
         return lines
 
 
-class MalformedLine(ValueError):
+class MalformedLine(DecodeError):
     """A line that cannot be used; ``reason`` is a short key for counting."""
-
-    def __init__(self, reason: str, detail: str = ""):
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
 
 
 def _ms(t_f: float):

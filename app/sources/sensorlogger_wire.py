@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.sources.samples import MAX_TIME_MS, impossible_rows
+from app.sources.samples import MAX_TIME_MS, DecodeError, impossible_rows
 
 __all__ = ["SensorLoggerError", "WireMessage", "read_message", "count_ignored"]
 
@@ -44,13 +44,11 @@ MAX_IGNORED_NAMES = 50     # distinct unknown names kept in the counter
 _NUM = frozenset((int, float))    # JSON numbers (bool is not one)
 
 
-class SensorLoggerError(ValueError):
+class SensorLoggerError(DecodeError):
     """A message that cannot be used at all; ``reason`` is a short key for counting."""
 
     def __init__(self, reason: str, detail: str = ""):
-        detail = detail if len(detail) <= 80 else detail[:77] + "..."
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
+        super().__init__(reason, detail if len(detail) <= 80 else detail[:77] + "...")
         self.detail = detail
 
 

@@ -594,3 +594,22 @@ def test_a_recording_of_a_sensor_logger_iphone_is_the_same_replayable_log(shared
                           str(tmp_path / "est.csv")], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert len((tmp_path / "est.csv").read_text().splitlines()) > 1500
+
+
+def test_every_push_app_is_routed_capped_and_refuses_a_bad_body_with_its_reason():
+    """The push apps are declared once (``PUSH_APPS``): each has its route, its label, the
+    push's body cap (not the API's 1 MB) and a 400 with the reason for a body that is no
+    message, counted under its own name (an app missing from one of the places the server
+    used to list them by hand was decoded as another's, or answered 500)."""
+    from app.server.phones import PUSH_APPS
+    from app.sources.slot import PHONE_APPS
+    assert set(PUSH_APPS) <= set(PHONE_APPS)
+    with running_server(max_body_bytes=100_000, max_push_bytes=400_000) as srv, _client(srv) as phone:
+        for key, app in PUSH_APPS.items():
+            r = phone.post(app.path, content=b"{not json")
+            assert r.status_code == 400 and r.text, (key, r.status_code, r.text)
+            r = phone.post(app.path, content=b"[" + b" " * 200_000 + b"]")    # over the API's cap
+            assert r.status_code == 400, (key, r.status_code)                # read, not 413
+            assert phone.post(app.path, content=b"x" * 500_000).status_code == 413, key
+            counts = srv.app.state.connect.view(None)["http"]["counts"][key]
+            assert counts["requests"] >= 2 and counts["bad_total"] == 2, (key, counts)
