@@ -8,7 +8,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 ARGS   ?=
 
-.PHONY: run test bench install clean
+.PHONY: run test bench install generate clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -55,6 +55,12 @@ bench: $(VENV)/.installed-bench
 	$(BIN)/python benchmarks/gyro_scale.py
 	$(BIN)/python benchmarks/heading_drift.py
 	$(BIN)/python benchmarks/throughput.py
+
+# the files generated from the parameter definitions (tests/test_config.py and
+# tests/test_docs.py fail when either is out of date)
+generate: $(VENV)/.installed
+	$(BIN)/orientlab params --toml > configs/default.toml
+	$(BIN)/python docs/make_parameters.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache tests/artifacts
