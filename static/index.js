@@ -92,43 +92,49 @@ function span(s) {  // a duration in words: 3.2 s, 4 min, 2 h, 413 d
 const PLATFORM = { android: "Android", ios: "iPhone" };
 const CONVENTION = { android: "Android signs", ios: "Standardise off", "ios-standardised": "Standardise on" };
 
+// Every string from a phone or the network (a phone's model, its label, an app's reason) is
+// text, never markup: the status is built as HTML for its <b> and <br> only.
+function esc(x) {
+  return String(x ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+}
+
 function describe(v) {
   const slot = v.slot, s = v.stream, lines = [];
   const http = v.http.streams.find((x) => x.holder) || null;
   if (slot.holder) {
-    let who = `<b>${slot.holder.app_name}</b>`;
-    if (http && http.platform && http.platform !== "unknown") who += ` · ${PLATFORM[http.platform] || http.platform}`;
-    if (http && http.convention && http.app === "sensorlogger") who += ` (${CONVENTION[http.convention] || http.convention}, ${http.convention_source})`;
-    if (http && (http.model || http.device_model)) who += ` · ${http.model || http.device_model}`;
-    lines.push(`${who} · streaming ${span(slot.holder.for_s)}`);
+    let who = `<b>${esc(slot.holder.app_name)}</b>`;
+    if (http && http.platform && http.platform !== "unknown") who += ` · ${esc(PLATFORM[http.platform] || http.platform)}`;
+    if (http && http.convention && http.app === "sensorlogger") who += ` (${esc(CONVENTION[http.convention] || http.convention)}, ${esc(http.convention_source)})`;
+    if (http && (http.model || http.device_model)) who += ` · ${esc(http.model || http.device_model)}`;
+    lines.push(`${who} · streaming ${esc(span(slot.holder.for_s))}`);
     // what to change for a right pose (a sensor missing for the tilt, a guessed convention)
-    for (const h of (http && http.holder && http.hints) || []) lines.push(`<b>${h}</b>`);
+    for (const h of (http && http.holder && http.hints) || []) lines.push(`<b>${esc(h)}</b>`);
     const bad = http && http.holder ? Object.entries(http.invalid || {}) : [];
-    if (bad.length) lines.push("readings refused: " + bad.map(([k, n]) => `${k} ${n}`).join(", "));
+    if (bad.length) lines.push("readings refused: " + bad.map(([k, n]) => `${esc(k)} ${esc(n)}`).join(", "));
     // silent by the slot's own rule (slot.busy): from then on another phone may take over
-    lines.push(slot.busy ? `last data ${span(slot.holder.silent_s)} ago`
-      : `<b>silent for ${span(slot.holder.silent_s)}</b>` + (slot.locked ? "" : ": another phone may take over"));
+    lines.push(slot.busy ? `last data ${esc(span(slot.holder.silent_s))} ago`
+      : `<b>silent for ${esc(span(slot.holder.silent_s))}</b>` + (slot.locked ? "" : ": another phone may take over"));
   } else {
-    lines.push(s.kind === "phone" ? `last phone: ${s.label} (${s.close_reason || "ended"})` : "no phone: " + (s.kind || "waiting"));
+    lines.push(s.kind === "phone" ? `last phone: ${esc(s.label)} (${esc(s.close_reason || "ended")})` : "no phone: " + esc(s.kind || "waiting"));
   }
   if (http && http.orientation) {
     const o = http.orientation;
-    lines.push("phone's own orientation: " + String(typeof o === "string" ? o : (o.message || o.state)));
+    lines.push("phone's own orientation: " + esc(typeof o === "string" ? o : (o.message || o.state)));
   }
   if (s.kind === "phone" && s.rates_hz) {
     const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));
-    const held = Object.keys(s.withheld || {}).map((k) => `${k} <b>held back</b>`);
-    if (r.length || held.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${k} <b>stopped</b>` : `${k} ${fmt(x)} Hz`).concat(held).join(" · "));
+    const held = Object.keys(s.withheld || {}).map((k) => `${esc(k)} <b>held back</b>`);
+    if (r.length || held.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${esc(k)} <b>stopped</b>` : `${esc(k)} ${esc(fmt(x))} Hz`).concat(held).join(" · "));
   }
   if (s.kind === "phone") {
     const parts = [];
-    if (http) parts.push(`gaps ${http.gaps ?? 0}`, `out of order ${http.out_of_order ?? 0}`, `duplicates ${http.duplicates ?? 0}`);
-    parts.push(`late ${s.late}`, `malformed ${s.malformed}`);
+    if (http) parts.push(`gaps ${esc(http.gaps ?? 0)}`, `out of order ${esc(http.out_of_order ?? 0)}`, `duplicates ${esc(http.duplicates ?? 0)}`);
+    parts.push(`late ${esc(s.late)}`, `malformed ${esc(s.malformed)}`);
     lines.push(parts.join(" · "));
   }
-  if (http && http.clock_offset_s !== undefined && http.clock_offset_s !== null) lines.push(`phone clock − PC clock: ${span(http.clock_offset_s)}`);
+  if (http && http.clock_offset_s !== undefined && http.clock_offset_s !== null) lines.push(`phone clock − PC clock: ${esc(span(http.clock_offset_s))}`);
   if (slot.locked) lines.push("<b>slot locked</b>: no new phone is accepted");
-  if (slot.last_refusal) lines.push(`refused ${slot.refused}×: ${slot.last_refusal.replace(/^orientlab: /, "")}`);
+  if (slot.last_refusal) lines.push(`refused ${esc(slot.refused)}×: ${esc(slot.last_refusal.replace(/^orientlab: /, ""))}`);
   return lines.join("<br>");
 }
 

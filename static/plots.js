@@ -196,8 +196,9 @@
     const card = document.createElement("div");
     card.className = "plot";
     card.id = "plot-" + spec.key;
-    card.innerHTML = `<div class="plot-head"><span class="plot-title">${spec.title}</span><span class="legend"></span></div>` +
+    card.innerHTML = `<div class="plot-head"><span class="plot-title"></span><span class="legend"></span></div>` +
       `<div class="plot-body"><div class="plot-why" hidden></div></div>`;
+    card.querySelector(".plot-title").textContent = spec.title;      // text, never markup
     root.appendChild(card);
     const legend = card.querySelector(".legend"), body = card.querySelector(".plot-body");
     const items = spec.series.map(([label, color, dash, , width, role, name]) => {

@@ -613,3 +613,31 @@ def test_every_push_app_is_routed_capped_and_refuses_a_bad_body_with_its_reason(
             assert phone.post(app.path, content=b"x" * 500_000).status_code == 413, key
             counts = srv.app.state.connect.view(None)["http"]["counts"][key]
             assert counts["requests"] >= 2 and counts["bad_total"] == 2, (key, counts)
+
+
+def test_a_phones_model_is_shown_as_text_never_run_as_markup(tmp_path):
+    """A phone names itself (phyphox's ``model``, Sensor Logger's device): the Connect tab
+    wrote it into the presenter's page as HTML, so a student's phone could run a script there
+    with the presenter's rights (a reviewer's find: it locked the slot). It is text now."""
+    from harness import CHROMIUM, chromium_page
+    from tyrex_phyphox import Trial, push_bodies
+    if CHROMIUM is None:
+        pytest.skip("needs Debian's chromium")
+    pytest.importorskip("playwright.sync_api")
+    evil = '<img id="evil" src="x" onerror="document.title=\'pwned\'"><b>bold</b>'
+    n = 300
+    t = np.arange(n) * 0.01 + 0.01
+    still = {"ACC": np.tile([0.0, 0.0, 9.81], (n, 1)), "GYR": np.zeros((n, 3)),
+             "MAG": np.tile([0.0, 20.0, -40.0], (n, 1)), "ORI": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))}
+    trial = Trial("still", evil[:100], {k: t.copy() for k in still},
+                  {k: v.astype(np.float32) for k, v in still.items()})
+    with running_server(open_access=False, token=TOKEN) as srv, _client(srv) as phone:
+        with chromium_page(f"{srv.url}/?token={TOKEN}", tmp_path / "profile", viewer=False) as (page, _):
+            for b in push_bodies(trial, 0.1).bodies:
+                assert phone.post("/phyphox", content=b).status_code == 200
+            status = page.locator("#phone-status")
+            wait_for(lambda: "<img" in status.inner_text(), 30.0, what="the model on the tab")
+            assert page.locator("#phone-status img, #phone-status #evil").count() == 0
+            page.wait_for_timeout(500)
+            assert page.title() != "pwned"
+            assert evil[:100] in status.inner_text()
