@@ -183,6 +183,13 @@ class HttpPhones:
             st.session.count_late(batch.late)
         return Reply(200, "")
 
+    def count_cut(self, phone_app: str) -> None:
+        """A push whose body never arrived whole (the phone's connection dropped mid-body):
+        counted among the app's bad requests as ``cut_off``."""
+        c = self.counts[phone_app]
+        c.requests += 1
+        c.bad["cut_off"] += 1
+
     def _refused(self, phone_app: str, client: str) -> Reply | None:
         """The answer to a phone the slot turns away (counted), or None."""
         why = self.slot.refusal(phone_app, client)

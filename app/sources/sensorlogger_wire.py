@@ -44,6 +44,12 @@ MAX_IGNORED_NAMES = 50     # distinct unknown names kept in the counter
 _NUM = frozenset((int, float))    # JSON numbers (bool is not one)
 
 
+# the largest messageId taken as one (a phone sending 1000 a second for 285 000 years): a
+# larger one (10**400 from a script) made the session's gap count a 400-digit number and
+# every later message a duplicate
+MAX_MESSAGE_ID = 2 ** 53
+
+
 class SensorLoggerError(DecodeError):
     """A message that cannot be used at all; ``reason`` is a short key for counting."""
 
@@ -189,6 +195,8 @@ def read_message(body: bytes) -> WireMessage:
         else:
             bad_mid = mid is not None
             mid = None
+    if mid is not None and not 0 <= mid <= MAX_MESSAGE_ID:
+        mid, bad_mid = None, True       # no app counts that far: its order cannot be trusted
     r = WireMessage((str(msg.get("deviceId")), str(msg.get("sessionId"))), mid, bad_mid)
     _parse(payload, r)
     return r

@@ -824,3 +824,18 @@ def test_made_up_reading_names_cannot_grow_the_ignored_counter():
     ig = st.status()["ignored"]
     assert len(ig) == MAX_IGNORED_NAMES + 1 and sum(ig.values()) == n
     assert all(len(k) <= 40 for k in ig) and ig["(other)"] == n - MAX_IGNORED_NAMES
+
+
+def test_a_message_id_no_app_reaches_is_counted_and_the_session_goes_on():
+    """A script's messageId of 10**400 was taken: the session's gap count became a 400-digit
+    number and its later messages were dropped as duplicates (a reviewer's find). One beyond
+    2**53 is counted as a bad message id and the message used without it."""
+    st = stream()
+    rows = [rd("accelerometer", T0 + k * 10_000_000, x=0.0, y=0.0, z=9.81) for k in range(5)]
+    st.decode(body(rows[:2], mid=1), 0.0)
+    st.decode(body(rows[2:3], mid=10 ** 400), 0.0)
+    b = st.decode(body(rows[3:], mid=2), 0.0)
+    s = st.status()
+    assert s["invalid"].get("bad_message_id") == 1
+    assert s["gaps"] == 0 and s["duplicates"] == 0, s
+    assert st.messages == 3 and b is not None

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import PlainTextResponse, Response
+from starlette.requests import ClientDisconnect
 
 from app.server.access import phone_push
 from app.sources.phyphox import experiment_xml
@@ -24,8 +25,12 @@ router = APIRouter(tags=["phones"], dependencies=[Depends(phone_push)])
 
 
 async def _push(request: Request, phone_app: str) -> PlainTextResponse:
-    body = await request.body()
     client = request.client.host if request.client else "?"
+    try:
+        body = await request.body()
+    except ClientDisconnect:     # a push cut off mid-body (the Wi-Fi dropped): counted, no trace
+        request.app.state.http_phones.count_cut(phone_app)
+        return PlainTextResponse("the push was cut off", status_code=400)
     reply = await request.app.state.http_phones.push(phone_app, body, client)
     return PlainTextResponse(reply.text, status_code=reply.status)
 
