@@ -22,11 +22,9 @@ async function whoami() {
 async function init() {
   const info = await whoami();
   presenter = info.presenter;
-  let url = `${location.protocol}//${location.hostname}:${info.viewer_port}/`;
-  if (info.viewer_token) {  // the presenter: the viewer's WebSocket carries the token
-    const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${info.viewer_port}/?token=${encodeURIComponent(info.viewer_token)}`;
-    url += `?websocket=${encodeURIComponent(ws)}`;
-  }
+  // no token in the viewer's address (the link is on the projector): its WebSocket carries
+  // the presenter's cookie, which is this host's whatever the port
+  const url = `${location.protocol}//${location.hostname}:${info.viewer_port}/`;
   document.body.classList.toggle("watch-only", !presenter);
   $("viewer").src = url;
   $("viewer-link").href = url;

@@ -47,6 +47,7 @@ button clicks, uploads) from a client without the token.
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import ipaddress
 import logging
@@ -55,6 +56,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass, field
+from http.cookies import SimpleCookie
 from urllib.parse import parse_qs, urlsplit
 
 from fastapi import HTTPException, Request, WebSocket
@@ -316,6 +318,13 @@ def guard_viewer(viewer, access: Access, after_refusal=None) -> None:
             return
         query = parse_qs(urlsplit(req.path).query) if req is not None else {}
         tok = (query.get("token") or [None])[0]
+        if tok is None:
+            # the presenter's cookie (a cookie is the host's, whatever its port): the page's
+            # viewer, and the viewer opened in its own tab, need no token in their address
+            jar = SimpleCookie()
+            with contextlib.suppress(Exception):
+                jar.load(headers.get("Cookie") or "")
+            tok = jar[COOKIE].value if COOKIE in jar else None
         if access.token_ok(tok):
             with access.lock:
                 access.presenters.add(conn.client_id)

@@ -58,6 +58,17 @@ def test_only_the_presenters_browser_can_change_the_session(tmp_path):
             p_slider = p_frame.locator(".mantine-Slider-root").first
             p_slider.scroll_into_view_if_needed()
             assert p_slider.evaluate(SLIDER_BOX) == [True, "1"]
+            # the token is in no address on show: the viewer gets it from the cookie (the
+            # "viewer in its own tab" link carried it, for the class to read off the projector)
+            link = presenter.locator("#viewer-link").get_attribute("href")
+            assert TOKEN not in link and TOKEN not in presenter.locator("#viewer").get_attribute("src")
+            own_tab = presenter.context.new_page()
+            own_tab.goto(link)
+            own_mag = own_tab.get_by_label("Magnetometer", exact=True)
+            own_mag.wait_for(state="visible", timeout=60_000)
+            own_tab.wait_for_timeout(1500)
+            assert own_mag.is_enabled(), "the presenter's viewer in its own tab"
+            own_tab.close()
             p_mag.click(no_wait_after=True, timeout=60_000)
             try:     # the click lands on the checkbox (a loaded machine re-renders it under the mouse)
                 wait_for(lambda: not p_mag.is_checked(), 10.0, 0.2, what="the presenter's box unticked")
