@@ -42,6 +42,9 @@ class Session:
         self.withheld_by: Callable[[], dict[str, str]] | None = None
         # the source's account of why no samples come, when it knows (a paused phone)
         self.silent_hint_by: Callable[[], str | None] | None = None
+        # the longest gap its source expects between two deliveries (s; a push app's batch
+        # period): no longer than that, it is not silent
+        self.expected_gap_s = 0.0
         self.orderer = SampleOrderer(window=window_s)
         self.truth = truth
         self.lines = 0              # readings received (samples and malformed ones)
@@ -133,7 +136,7 @@ class Session:
         if self.kind != "phone" or not self.open:
             return None
         s = self.silent_s
-        return s if s >= SILENT_S else None
+        return s if s >= max(SILENT_S, self.expected_gap_s) else None
 
     def silent_hint(self) -> str | None:
         """Why a silent stream sends nothing, when its source knows (:attr:`silent_hint_by`)."""

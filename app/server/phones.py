@@ -98,6 +98,13 @@ class Stream:
     # the phone's time each recent batch spanned (s): its batch period, roughly
     spans: deque = field(default_factory=lambda: deque(maxlen=5))
 
+    def expected_gap_s(self) -> float:
+        """The longest gap expected between two of its batches: 1.5 of its batch period (the
+        median of the recent batches' spans); 0 before it has one. Another phone may not
+        take over, nor is it called silent, within that (a Sensor Logger set to 5 s batches
+        lost the slot between its own batches)."""
+        return 1.5 * statistics.median(self.spans) if self.spans else 0.0
+
     def end_s(self) -> float:
         """How long it may be silent before it has ended: :data:`PUSH_END_S`, or
         :data:`PUSH_END_PERIODS` of its batch periods (the median of the recent batches'
@@ -247,7 +254,9 @@ class HttpPhones:
             st.session.silent_hint_by = getattr(st.decoder, "silent_hint", None)
         if samples or waiting:
             self._details(st)
-            self.slot.touch(st.key)
+            gap = st.expected_gap_s()
+            self.slot.touch(st.key, gap)
+            st.session.expected_gap_s = gap
         if samples:
             self.engine.feed(st.session, samples, time.perf_counter())
 

@@ -38,6 +38,8 @@ class Holder:
     last_valid: float
     on_release: Callable[[str], None] | None = field(default=None, repr=False)
     who: str = ""               # the phone kept out when released (take() sets it: the key if none)
+    idle_s: float = 0.0         # its own silence allowance, if longer than the slot's (a push
+                                # app sending a batch every few seconds: touch() sets it)
 
 
 class PhoneSlot:
@@ -57,9 +59,14 @@ class PhoneSlot:
 
     # ------------------------------------------------------------------ queries
     def busy(self) -> bool:
-        """A holder that has sent a valid sample within ``idle_s``."""
+        """A holder that has sent a valid sample within ``idle_s`` (or its own allowance,
+        if longer: a phone that sends a batch every 5 s is not silent between them)."""
         h = self.holder
-        return h is not None and self.clock() - h.last_valid < self.idle_s
+        return h is not None and self.clock() - h.last_valid < self.allowance(h)
+
+    def allowance(self, h: Holder) -> float:
+        """How long holder ``h`` may be silent before another phone may take over."""
+        return max(self.idle_s, h.idle_s)
 
     def holds(self, key: str) -> bool:
         return self.holder is not None and self.holder.key == key
@@ -108,15 +115,18 @@ class PhoneSlot:
             self.holder.last_valid = now
             return None
         if self.holder is not None:
-            self._drop(f"silent for {self.idle_s:g} s, taken over by another phone "
+            self._drop(f"silent for {self.allowance(self.holder):g} s, taken over by another phone "
                        f"({PHONE_APPS.get(phone_app, phone_app)})")
         self.holder = Holder(phone_app, key, label, now, now, on_release, who or key)
         return None
 
-    def touch(self, key: str) -> None:
-        """The holder sent a valid sample."""
+    def touch(self, key: str, idle_s: float | None = None) -> None:
+        """The holder sent a valid sample; ``idle_s``: its own silence allowance from now
+        on (its batches' period and more), if it knows one."""
         if self.holds(key):
             self.holder.last_valid = self.clock()
+            if idle_s is not None:
+                self.holder.idle_s = float(idle_s)
 
     def leave(self, key: str) -> None:
         """The holder's stream ended by itself (EOF, stream stopped): the slot is free."""

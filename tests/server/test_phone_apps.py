@@ -641,3 +641,28 @@ def test_a_phones_model_is_shown_as_text_never_run_as_markup(tmp_path):
             page.wait_for_timeout(500)
             assert page.title() != "pwned"
             assert evil[:100] in status.inner_text()
+
+
+def test_a_phone_sending_a_batch_every_few_seconds_keeps_the_slot_between_them():
+    """Sensor Logger's batch period is the user's setting: a phone set to 2 s sends nothing
+    for 2 s at a time. The slot let another phone take over after ``phone_idle_s`` whatever
+    the period, so two phones took turns (a reviewer's find, 5 s batches against 1 s). The
+    holder's allowance is 1.5 of its batch period once its batches show it; the status line
+    does not call it silent meanwhile either."""
+    from sources.test_sensorlogger import T0, body, face_up_ios
+    with running_server(open_access=False, token=TOKEN, phone_idle_s=1.0) as srv, \
+            _client(srv) as a, _client(srv, local="127.0.0.2") as b:
+        for m in range(3):          # three 2 s batches (phone time), the last one now
+            rows = face_up_ios(200, t_start=T0 + m * 2_000_000_000, standardised=True)
+            assert a.post("/sensorlogger", content=body(rows, mid=m + 1)).status_code == 200
+        wait_for(lambda: srv.app.state.slot.holder is not None, 10.0, what="phone A in the slot")
+        time.sleep(1.6)             # past phone_idle_s, within 1.5 batch periods (3 s)
+        r = b.post("/sensorlogger", content=body(face_up_ios(20), mid=1, device="d-2"))
+        assert r.status_code == 499 and "another phone" in r.text, (r.status_code, r.text)
+        assert "no samples for" not in _state(srv)["status"]
+        slot = srv.app.state.slot
+        assert slot.holder.key == "127.0.0.1" and slot.busy()
+        time.sleep(1.8)             # past 1.5 batch periods: silent, B may take over
+        assert not slot.busy()
+        r = b.post("/sensorlogger", content=body(face_up_ios(20), mid=2, device="d-2"))
+        assert r.status_code == 200
