@@ -190,6 +190,17 @@ class HttpPhones:
             st.session.count_late(batch.late)
         return Reply(200, "")
 
+    def refusal(self, phone_app: str, client: str) -> Reply | None:
+        """A push the slot turns away, answered before its body is read (counted as a
+        request and a refusal); None if it may go on (:meth:`push` asks again after the
+        read: the slot may change meanwhile)."""
+        if phone_app not in PUSH_APPS:
+            raise ValueError(f"{phone_app!r} is no push app (PUSH_APPS)")
+        if self.slot.refusal(phone_app, client) is None:
+            return None
+        self.counts[phone_app].requests += 1
+        return self._refused(phone_app, client)
+
     def count_cut(self, phone_app: str) -> None:
         """A push whose body never arrived whole (the phone's connection dropped mid-body):
         counted among the app's bad requests as ``cut_off``."""

@@ -666,3 +666,23 @@ def test_a_phone_sending_a_batch_every_few_seconds_keeps_the_slot_between_them()
         assert not slot.busy()
         r = b.post("/sensorlogger", content=body(face_up_ios(20), mid=2, device="d-2"))
         assert r.status_code == 200
+
+
+def test_a_refused_push_is_answered_before_its_body_is_read():
+    """While a phone streams, another's push is refused: it was read whole first (16 MB a
+    push; a flood of them took 0.3 GB and a core, a reviewer's find). The refusal comes on
+    the request head, before a byte of the body is sent."""
+    import socket
+    from sources.test_sensorlogger import T0, body, face_up_ios
+    with running_server(open_access=False, token=TOKEN) as srv, _client(srv) as a:
+        rows = face_up_ios(100, t_start=T0, standardised=True)
+        assert a.post("/sensorlogger", content=body(rows, mid=1)).status_code == 200
+        wait_for(lambda: srv.app.state.slot.busy(), 10.0, what="phone A streaming")
+        with socket.create_connection(("127.0.0.1", srv.settings.port), timeout=10,
+                                      source_address=("127.0.0.2", 0)) as s:
+            s.sendall(b"POST /sensorlogger HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                      b"Content-Type: application/json\r\nContent-Length: 10000000\r\n\r\n")
+            s.settimeout(5.0)
+            out = s.recv(65536)
+        assert out.startswith(b"HTTP/1.1 499"), out[:200]
+        assert b"another phone" in out

@@ -26,12 +26,16 @@ router = APIRouter(tags=["phones"], dependencies=[Depends(phone_push)])
 
 async def _push(request: Request, phone_app: str) -> PlainTextResponse:
     client = request.client.host if request.client else "?"
+    phones = request.app.state.http_phones
+    refused = phones.refusal(phone_app, client)      # before the body is read: a refused
+    if refused is not None:                          # phone's 16 MB cost nothing but its head
+        return PlainTextResponse(refused.text, status_code=refused.status)
     try:
         body = await request.body()
     except ClientDisconnect:     # a push cut off mid-body (the Wi-Fi dropped): counted, no trace
-        request.app.state.http_phones.count_cut(phone_app)
+        phones.count_cut(phone_app)
         return PlainTextResponse("the push was cut off", status_code=400)
-    reply = await request.app.state.http_phones.push(phone_app, body, client)
+    reply = await phones.push(phone_app, body, client)
     return PlainTextResponse(reply.text, status_code=reply.status)
 
 
