@@ -215,6 +215,7 @@ class HttpPhones:
             return None
         self.counts[phone_app].refused += 1
         self.slot.count_refusal(why)
+        log.warning("refused phone %s (%s): %s", client, PHONE_APPS.get(phone_app, phone_app), why)
         self.engine.core.totals.count_refused()
         app = PUSH_APPS.get(phone_app)
         return Reply(app.refused_status if app else 409, why)
@@ -252,6 +253,7 @@ class HttpPhones:
             label = f"{st.key} ({PHONE_APPS[st.phone_app]})"
             if self.slot.take(st.phone_app, st.key, label, lambda why, s=st: self._end(s, why)) is not None:
                 return              # taken meanwhile by another phone
+            log.info("phone %s connected", label)     # as the TCP receiver says it
             new_session = True
         if new_session or st.session is None or not st.session.open:
             if st.session is not None and st.session.open:
@@ -293,6 +295,7 @@ class HttpPhones:
             if rest:
                 self.engine.feed(st.session, rest, time.perf_counter())
             self.engine.close_session(st.session, reason)
+            log.info("phone %s (%s) left: %s", st.key, PHONE_APPS[st.phone_app], reason)
         self.slot.leave(st.key)
         self.streams.pop((st.phone_app, st.key), None)
         if st.phone_app == "phyphox-poll" and self.poller is not None and reason.startswith("released"):

@@ -643,13 +643,14 @@ def test_a_phones_model_is_shown_as_text_never_run_as_markup(tmp_path):
             assert evil[:100] in status.inner_text()
 
 
-def test_a_phone_sending_a_batch_every_few_seconds_keeps_the_slot_between_them():
+def test_a_phone_sending_a_batch_every_few_seconds_keeps_the_slot_between_them(caplog):
     """Sensor Logger's batch period is the user's setting: a phone set to 2 s sends nothing
     for 2 s at a time. The slot let another phone take over after ``phone_idle_s`` whatever
     the period, so two phones took turns (a reviewer's find, 5 s batches against 1 s). The
     holder's allowance is 1.5 of its batch period once its batches show it; the status line
     does not call it silent meanwhile either."""
     from sources.test_sensorlogger import T0, body, face_up_ios
+    caplog.set_level(logging.INFO, logger="orientlab.phones")
     with running_server(open_access=False, token=TOKEN, phone_idle_s=1.0) as srv, \
             _client(srv) as a, _client(srv, local="127.0.0.2") as b:
         for m in range(3):          # three 2 s batches (phone time), the last one now
@@ -666,6 +667,11 @@ def test_a_phone_sending_a_batch_every_few_seconds_keeps_the_slot_between_them()
         assert not slot.busy()
         r = b.post("/sensorlogger", content=body(face_up_ios(20), mid=2, device="d-2"))
         assert r.status_code == 200
+    # the terminal tells the teacher, as it does for the Sensor Fusion app's phones
+    said = [x.getMessage() for x in caplog.records if x.name == "orientlab.phones"]
+    assert any("127.0.0.1 (Sensor Logger) connected" in m for m in said), said
+    assert any(m.startswith("refused phone 127.0.0.2 (Sensor Logger)") for m in said), said
+    assert any("127.0.0.1 (Sensor Logger) left" in m for m in said), said
 
 
 def test_a_refused_push_is_answered_before_its_body_is_read():
