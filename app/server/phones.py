@@ -86,6 +86,14 @@ PUSH_APPS = {a.key: a for a in (
 )}
 
 
+def _push_app(phone_app: str) -> PushApp:
+    """The push app ``phone_app`` (ValueError for another name: a route without a record)."""
+    try:
+        return PUSH_APPS[phone_app]
+    except KeyError:
+        raise ValueError(f"{phone_app!r} is no push app (PUSH_APPS)") from None
+
+
 @dataclass
 class Stream:
     """One HTTP phone's stream: its decoder and the engine's session."""
@@ -152,8 +160,7 @@ class HttpPhones:
         body is read (the decoder's ``read``: the JSON, and Sensor Logger's readings to
         arrays) on a worker thread, so a long batch does not hold the server up while it is
         read; the stream's state sees it on the event loop (``take``)."""
-        if phone_app not in PUSH_APPS:
-            raise ValueError(f"{phone_app!r} is no push app (PUSH_APPS)")
+        _push_app(phone_app)
         c = self.counts[phone_app]
         c.requests += 1
         now = time.time()
@@ -194,12 +201,11 @@ class HttpPhones:
         """A push the slot turns away, answered before its body is read (counted as a
         request and a refusal); None if it may go on (:meth:`push` asks again after the
         read: the slot may change meanwhile)."""
-        if phone_app not in PUSH_APPS:
-            raise ValueError(f"{phone_app!r} is no push app (PUSH_APPS)")
-        if self.slot.refusal(phone_app, client) is None:
-            return None
-        self.counts[phone_app].requests += 1
-        return self._refused(phone_app, client)
+        _push_app(phone_app)
+        reply = self._refused(phone_app, client)
+        if reply is not None:
+            self.counts[phone_app].requests += 1
+        return reply
 
     def count_cut(self, phone_app: str) -> None:
         """A push whose body never arrived whole (the phone's connection dropped mid-body):
@@ -217,8 +223,7 @@ class HttpPhones:
         self.slot.count_refusal(why)
         log.warning("refused phone %s (%s): %s", client, PHONE_APPS.get(phone_app, phone_app), why)
         self.engine.core.totals.count_refused()
-        app = PUSH_APPS.get(phone_app)
-        return Reply(app.refused_status if app else 409, why)
+        return Reply(_push_app(phone_app).refused_status, why)
 
     def _stream(self, phone_app: str, client: str) -> Stream:
         st = self.streams.get((phone_app, client))
@@ -236,7 +241,7 @@ class HttpPhones:
         return Reply(400, str(e)[:200])
 
     def _decoder(self, phone_app: str) -> PushDecoder:
-        d = PUSH_APPS[phone_app].decoder()
+        d = _push_app(phone_app).decoder()
         conv = self.conventions.get(phone_app)
         if conv:
             d.set_convention(conv)

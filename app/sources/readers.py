@@ -40,7 +40,7 @@ from typing import Any, BinaryIO, Iterable, Iterator
 
 import numpy as np
 
-from app.sources.samples import MOTION_TAGS, QUAT_NORM2, VALUE_LIMITS, impossible_rows
+from app.sources.samples import MOTION_TAGS, VALUE_LIMITS, impossible_rows, quaternion_rows
 from app.sources.sensorfusion import TAG_ARITY, LineSplitter, MalformedLine, parse_line
 from app.sources.ordering import RATE_HISTORY, Rows, SampleOrderer, samples_to_rows
 
@@ -521,12 +521,8 @@ def _applog_whole(path: Path, window: float = LOG_WINDOW) -> LogData | None:
         imp = None
         if name in VALUE_LIMITS:
             imp = impossible_rows(name, vals[:, :3])
-        elif name == "ORI":       # no unit quaternion (quaternion_reading's rule)
-            with np.errstate(invalid="ignore", over="ignore"):
-                n2 = np.einsum("ij,ij->i", vals, vals)
-            imp = ~((n2 > QUAT_NORM2[0]) & (n2 < QUAT_NORM2[1]))
-            if vals.shape[1] == 4:    # w >= 0, as quaternion_reading gives it
-                vals = np.where(vals[:, :1] < 0.0, -vals, vals)
+        elif name == "ORI":       # quaternion_reading's rule: a unit quaternion, w >= 0
+            vals, imp = quaternion_rows(vals)
         if imp is not None:
             if imp.any():
                 reasons.setdefault("impossible", []).extend(rows[imp].tolist())

@@ -81,6 +81,17 @@ def quaternion_reading(values) -> tuple[float, float, float, float] | None:
     return (-q[0], -q[1], -q[2], -q[3]) if q[0] < 0.0 else q
 
 
+def quaternion_rows(q):
+    """Vectorised :func:`quaternion_reading` for (N, 4) readings: the rows with w >= 0, and
+    which are no unit quaternion (bool (N,); NaN rows False, as missing)."""
+    import numpy as np
+    q = np.asarray(q, dtype=float)
+    with np.errstate(invalid="ignore", over="ignore"):
+        n2 = np.einsum("ij,ij->i", q, q)
+        bad = ~((n2 > QUAT_NORM2[0]) & (n2 < QUAT_NORM2[1])) & ~np.isnan(n2)
+    return np.where(q[:, :1] < 0.0, -q, q), bad
+
+
 def impossible_rows(tag: str, v):
     """Vectorised :func:`impossible` for an (N, 3) array (bool (N,)); NaN rows False."""
     import numpy as np

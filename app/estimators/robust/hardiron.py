@@ -256,6 +256,19 @@ def _feed(s, p, mag, elapsed, w):
 
 
 @compiled
+def centred_sphere(s, p, strength):
+    """The fit has seen the field from every side as a homogeneous one of ``strength`` (µT):
+    half a window of turning, σ at the sensor's noise, no offset beyond 3σ (the test
+    :func:`_judge` calls "none"), and the sphere's radius that strength to
+    ``hard_iron_tol``. A new place, not a magnet on the phone (heading._field_check)."""
+    sd = s[S.hi_std]
+    return (p[PRM.hard_iron_window] > 0.0
+            and s[S.hi_W] >= 0.5 * p[PRM.hard_iron_window] and sd <= p[PRM.hard_iron_max_std]
+            and norm3((s[S.hi_o], s[S.hi_o + 1], s[S.hi_o + 2])) < 3.0 * sd
+            and abs(s[S.hi_r] - strength) <= p[PRM.hard_iron_tol] * strength)
+
+
+@compiled
 def _judge(s, p, status, ref):
     """The status of a fit just solved (see the module's doc): start over when no sphere
     fits, none when the offset is within 3σ of zero, applied when it fits the earth's

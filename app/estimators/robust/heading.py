@@ -48,7 +48,7 @@ from app.estimators.base import (F_MAG, F_MAG_NIS, F_MAG_VAL, R_DIP, R_NEW_FIELD
                                 R_OFFSET, R_RECOVER, R_TURN, R_USED)
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, heading_drift_update
-from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, hard_iron
+from app.estimators.robust.hardiron import HI_APPLIED, HI_NONE, HI_TRACKING, centred_sphere, hard_iron
 from app.estimators.robust.params import PRM
 from app.estimators.robust.state import (DT_MAX, KF_WORK, S, attitude_matrix, inject, lp_coef, rotate3,
                                          turned_forward, update_is_due)
@@ -204,14 +204,9 @@ def _field_check(s, p, n, dip, dt, rate, turn, f):
     # candidate's strength centred on zero (half a window of turning, σ at the sensor's
     # noise, no offset beyond 3σ). A magnet put on a phone that lay still shows an offset,
     # and waits for mag_new_field_time (and the offset's verdict) as before.
-    new_time = p[PRM.mag_new_field_time]
-    if s[S.ref_turned] < p[PRM.mag_first_field_time] and p[PRM.hard_iron_window] > 0.0:
-        sd = s[S.hi_std]
-        on = np.sqrt(s[S.hi_o] ** 2 + s[S.hi_o + 1] ** 2 + s[S.hi_o + 2] ** 2)
-        if (s[S.hi_W] >= 0.5 * p[PRM.hard_iron_window] and sd <= p[PRM.hard_iron_max_std]
-                and on < 3.0 * sd
-                and abs(s[S.hi_r] - s[S.cand_norm]) <= p[PRM.hard_iron_tol] * s[S.cand_norm]):
-            new_time = p[PRM.mag_first_field_time]
+    new_time = (p[PRM.mag_first_field_time]
+                if s[S.ref_turned] < p[PRM.mag_first_field_time] and centred_sphere(s, p, s[S.cand_norm])
+                else p[PRM.mag_new_field_time])
     if s[S.disturbed] != 0.0 and s[S.cand_time] >= new_time and not explained:
         # a new homogeneous field: the phone moved to another place (or a magnet stays on it)
         s[S.ref_norm] = s[S.cand_norm]
