@@ -14,6 +14,7 @@ import contextlib
 import dataclasses
 import math
 import random
+import resource
 import shutil
 import socket
 import threading
@@ -22,6 +23,9 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from collections import Counter
+
+import httpx
+import pytest
 
 from app.server.run import make_server
 from app.sources.sensorfusion import MalformedLine, decode_lines, parse_line
@@ -506,3 +510,59 @@ def view_xy(p, position, look_at, fov, aspect):
     z = d @ f
     t = np.tan(fov / 2.0)
     return 0.5 + 0.5 * (d @ right) / (z * t * aspect), 0.5 - 0.5 * (d @ up) / (z * t)
+
+
+# ------------------------------------------------------------- attacks on the HTTP port
+
+ATTACK_SOURCES = [f"127.0.0.{i}" for i in range(2, 10)]   # a laptop with a few addresses
+PRESENTER_POLL_S = 0.2    # the presenter's poll interval (poll_presenter)
+
+
+def raise_nofile(need: int) -> None:
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < need:
+        new = need if hard == resource.RLIM_INFINITY else min(need, hard)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < need:
+        pytest.skip(f"RLIMIT_NOFILE {soft} < {need}: cannot hold the connections")
+
+
+def sources_usable() -> None:
+    """127.0.0.2-9 are loopback addresses on Linux; elsewhere skip."""
+    try:
+        with socket.socket() as s:
+            s.bind((ATTACK_SOURCES[-1], 0))
+    except OSError:
+        pytest.skip("cannot bind 127.0.0.x source addresses on this system")
+
+
+def poll_presenter(srv, seconds: float) -> dict:
+    """The presenter's requests for ``seconds``: health on a keep-alive connection, the
+    page on a new connection each time (each given 10 s: served or not is the question
+    here, how fast is benchmarks/health_latency.py's)."""
+    ok = total = 0
+    worst = 0.0
+    failures: dict[str, int] = {}
+    t_end = time.monotonic() + seconds
+    with httpx.Client(base_url=srv.url, timeout=10.0) as keep:
+        while time.monotonic() < t_end:
+            t0 = time.monotonic()
+            for path, client in (("/api/health", keep), ("/", None)):
+                total += 1
+                t1 = time.monotonic()
+                try:
+                    if client is None:
+                        with httpx.Client(base_url=srv.url, timeout=10.0) as fresh:
+                            r = fresh.get(path)
+                    else:
+                        r = client.get(path)
+                    if r.status_code == 200:
+                        ok += 1
+                    else:
+                        failures[str(r.status_code)] = failures.get(str(r.status_code), 0) + 1
+                except httpx.HTTPError as e:
+                    failures[type(e).__name__] = failures.get(type(e).__name__, 0) + 1
+                worst = max(worst, time.monotonic() - t1)
+            time.sleep(max(0.0, PRESENTER_POLL_S - (time.monotonic() - t0)))
+    return {"ok": ok, "total": total, "worst_s": round(worst, 3), "failures": failures}

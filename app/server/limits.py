@@ -14,10 +14,14 @@
   not sent a complete request head in time is closed; slow-loris), a **cap per client
   address** (``max_connections_per_ip``) and a **connection cap** (``max_connections``).
   A connection over a cap takes the place of an idle one (sent nothing yet, then a slow
-  request head, then keep-alive), from the address holding the most connections; only
-  when none is idle is it closed at once. So idle sockets held by one laptop (issue 21:
-  250 of them locked everyone out) cost that laptop its own connections, never the
-  presenter's request. uvicorn's own ``limit_concurrency`` answers 503 only after
+  request head, then keep-alive), from the address holding the most connections. So
+  idle sockets held by one laptop (issue 21: 250 of them locked everyone out) cost that
+  laptop its own connections, never the presenter's request. At the connection cap with
+  none idle, a newcomer takes a busy connection (WebSocket, trickling body) of an
+  address holding at least two more than its own: a few laptops holding open WebSockets
+  cannot lock the presenter out either. A request body must come at
+  ``min_body_bytes_per_s`` (1000 B/s) or faster, and an answer the client leaves unread
+  for ``write_stall_s`` (30 s) is closed. uvicorn's own ``limit_concurrency`` answers 503 only after
   reading a request (and counts idle connections), its ``timeout_keep_alive`` only
   starts after a first response.
 - :class:`RateLimitFilter`: the same log line at most ``burst`` times per ``period``
@@ -181,23 +185,39 @@ def install_error_handlers(app: FastAPI) -> None:
 
 def guarded_protocol(max_connections: int, header_timeout_s: float,
                      first_byte_timeout_s: float | None = None,
-                     max_per_ip: int | None = None):
+                     max_per_ip: int | None = None,
+                     min_body_bytes_per_s: float = 0.0,
+                     write_stall_s: float = 0.0):
     """uvicorn's h11 protocol class with a connection cap, a cap per client address, a
     first-byte timeout and a header timeout (see the module doc).
 
     A connection over a cap does not simply bounce (that let idle sockets lock everyone
     out, issue 21): it takes the place of an *idle* connection (one that sent nothing
     yet first, then one whose request head is still coming, then a keep-alive one
-    between requests), taken from the address holding the most connections (for the
-    per-address cap: from its own address); only when none is idle is it closed at
-    once. A connection serving a request, or a WebSocket, is never taken."""
+    between requests), taken from the address holding the most connections, and only
+    from one holding more than the newcomer's (for the per-address cap: from its own
+    address). When none is idle at the connection cap, the
+    newcomer takes a busy connection (a body still arriving, then a WebSocket, then a
+    request being answered) of the address holding the most connections, provided it
+    holds at least two more than the newcomer's own address: a few addresses holding
+    WebSockets or trickling bodies cannot fill the table and lock the presenter out (a
+    browser holds a handful). Only when no address holds that many is it closed at once.
+
+    ``min_body_bytes_per_s``: a request body must come at least this fast, judged over
+    each ``header_timeout_s`` (a body sent a byte at a time is closed; one the server is
+    not reading yet is not judged). ``write_stall_s``: a response the client has not read
+    from for this long (the socket's buffer full the whole time) is closed. 0 turns
+    either off."""
     from uvicorn.protocols.http.h11_impl import H11Protocol
 
     first_byte_s = header_timeout_s if first_byte_timeout_s is None \
         else min(float(first_byte_timeout_s), header_timeout_s)
     by_addr: dict = {}        # client address -> {protocol: None}, oldest first
     count = [0]               # connections counted (HTTP, and WebSockets upgraded from them)
-    stats = {"refused": 0, "evicted": 0, "silent_closed": 0, "head_timeouts": 0}
+    stats = {"refused": 0, "evicted": 0, "silent_closed": 0, "head_timeouts": 0,
+             "shared": 0, "slow_bodies": 0, "write_stalls": 0}
+    body_period_s = float(header_timeout_s)
+    min_body_bytes = float(min_body_bytes_per_s) * body_period_s
 
     def _rank(p) -> int | None:
         """Eviction order (lower first); None: not to be taken (busy, or a WebSocket)."""
@@ -212,10 +232,15 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             return 2                        # keep-alive, between two requests
         return None
 
-    def _victim(addr=None):
-        """The idle connection to close for a newcomer (see above), or None."""
+    def _victim(addr=None, newcomer=None):
+        """The idle connection to close for a newcomer (see above), or None: of its own
+        address ``addr``, or (at the connection cap) of an address holding more than the
+        newcomer's address ``newcomer`` (a flood of newcomers from a few addresses must not
+        take the presenter's connection in the moment before its request arrives)."""
+        own = len(by_addr.get(newcomer, ()))
         addrs = [addr] if addr is not None else \
-            sorted(by_addr, key=lambda a: len(by_addr[a]), reverse=True)
+            [a for a in sorted(by_addr, key=lambda a: len(by_addr[a]), reverse=True)
+             if len(by_addr[a]) > own]
         best = None
         for a in addrs:
             for p in by_addr.get(a, ()):
@@ -226,6 +251,23 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                     best = (r, p)
         return None if best is None else best[1]
 
+    def _busy_rank(p) -> int:
+        """Which of a busy address's connections a newcomer takes first (lower first)."""
+        cyc = p.cycle
+        if not p._upgraded and cyc is not None and not cyc.response_complete and cyc.more_body:
+            return 0                        # a request body still arriving
+        return 1 if p._upgraded else 2      # a WebSocket; a request being answered
+
+    def _fair_victim(addr):
+        """At the connection cap with none idle: a busy connection of the address holding
+        the most, if it holds at least two more than ``addr`` (see above), else None."""
+        if not by_addr:
+            return None
+        hog = max(by_addr, key=lambda a: len(by_addr[a]))
+        if hog == addr or len(by_addr[hog]) < len(by_addr.get(addr, ())) + 2:
+            return None
+        return min(by_addr[hog], key=_busy_rank)     # oldest first among equals
+
     class GuardedH11Protocol(H11Protocol):
         _head_timer = None
         _head_cycle = None      # the request cycle current when the timer started
@@ -234,6 +276,10 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
         _counted = False
         _got_bytes = False
         _upgraded = False
+        _body_timer = None      # judges a request body's pace (min_body_bytes_per_s)
+        _body_cycle = None
+        _body_bytes = 0         # bytes received since the last judgement
+        _write_timer = None     # a response the client does not read (write_stall_s)
 
         guard_stats = stats     # for tests and the log
 
@@ -246,10 +292,18 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                     return self._refuse(f"{max_per_ip} connections from {self._addr}")
                 victim._drop(evicted=True)
             if count[0] >= max_connections:
-                victim = _victim()
+                victim = _victim(newcomer=self._addr)
                 if victim is None:
-                    return self._refuse(f"{count[0]} connections open (cap {max_connections})")
-                victim._drop(evicted=True)
+                    victim = _fair_victim(self._addr)
+                    if victim is None:
+                        return self._refuse(f"{count[0]} connections open (cap {max_connections})")
+                    stats["shared"] += 1
+                    _limited_log("HTTP connection cap (%d) reached: closed a busy connection "
+                                 "of %s, which holds %d", max_connections, victim._addr,
+                                 len(by_addr.get(victim._addr, ())))
+                    victim._drop(evicted=True, hard=True)
+                else:
+                    victim._drop(evicted=True)
             by_addr.setdefault(self._addr, {})[self] = None
             count[0] += 1
             self._counted = True
@@ -271,9 +325,10 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                     if not conns:
                         del by_addr[self._addr]
 
-        def _drop(self, evicted: bool = False) -> None:
-            """Close this (idle) connection now; it stops counting at once."""
-            silent = not self._got_bytes or self.cycle is None
+        def _drop(self, evicted: bool = False, hard: bool = False) -> None:
+            """Close this connection now; it stops counting at once. ``hard``: reset it
+            (a busy one: nothing it has in flight is waited for)."""
+            silent = hard or not self._got_bytes or self.cycle is None
             self._release()
             self._disarm()
             if evicted:
@@ -292,12 +347,11 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             self._head_timer = self.loop.call_later(header_timeout_s, self._head_timeout)
 
         def _disarm(self) -> None:
-            if self._head_timer is not None:
-                self._head_timer.cancel()
-                self._head_timer = None
-            if self._first_timer is not None:
-                self._first_timer.cancel()
-                self._first_timer = None
+            for name in ("_head_timer", "_first_timer", "_body_timer", "_write_timer"):
+                timer = getattr(self, name)
+                if timer is not None:
+                    timer.cancel()
+                    setattr(self, name, None)
 
         def _silent_timeout(self) -> None:
             self._first_timer = None
@@ -312,12 +366,34 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                 stats["head_timeouts"] += 1
                 self._drop()
 
+        def _arm_body(self) -> None:
+            self._body_cycle = self.cycle
+            self._body_bytes = 0
+            self._body_timer = self.loop.call_later(body_period_s, self._body_check)
+
+        def _body_check(self) -> None:
+            """Every ``body_period_s`` while a request body is arriving: too few bytes
+            (the server reading all the while) closes the connection."""
+            self._body_timer = None
+            cyc = self.cycle
+            if cyc is not self._body_cycle or cyc is None or cyc.response_complete \
+                    or not cyc.more_body or self.transport.is_closing():
+                return
+            if self._body_bytes < min_body_bytes and not self.flow.read_paused:
+                stats["slow_bodies"] += 1
+                _limited_log("HTTP request body from %s too slow (%d bytes in %.0f s): closed",
+                             self._addr, self._body_bytes, body_period_s)
+                self._drop()
+                return
+            self._arm_body()
+
         def data_received(self, data: bytes) -> None:
             if not self._got_bytes and data:
                 self._got_bytes = True
                 if self._first_timer is not None:
                     self._first_timer.cancel()
                     self._first_timer = None
+            self._body_bytes += len(data)
             super().data_received(data)
 
         def handle_events(self) -> None:
@@ -325,6 +401,33 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             if self._head_timer is not None and self.cycle is not self._head_cycle:
                 self._head_timer.cancel()       # a request head arrived in time
                 self._head_timer = None
+            cyc = self.cycle
+            if min_body_bytes > 0 and cyc is not None and cyc is not self._body_cycle \
+                    and cyc.more_body and not cyc.response_complete and not self._upgraded:
+                if self._body_timer is not None:
+                    self._body_timer.cancel()
+                self._arm_body()                # a new request: its body's pace is judged
+
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            if write_stall_s > 0 and self._write_timer is None:
+                self._write_timer = self.loop.call_later(write_stall_s, self._write_stalled)
+
+        def resume_writing(self) -> None:
+            if self._write_timer is not None:
+                self._write_timer.cancel()
+                self._write_timer = None
+            super().resume_writing()
+
+        def _write_stalled(self) -> None:
+            self._write_timer = None
+            if self.flow.write_paused and not self.transport.is_closing():
+                stats["write_stalls"] += 1
+                _limited_log("HTTP client %s has not read its answer for %.0f s: closed",
+                             self._addr, write_stall_s)
+                self._release()
+                self._disarm()
+                self.transport.abort()
 
         def handle_websocket_upgrade(self, event) -> None:
             self._disarm()          # the WebSocket protocol owns the connection now

@@ -45,12 +45,16 @@ def make_server(settings: Settings, log_level: str = "warning") -> uvicorn.Serve
                             timeout_graceful_shutdown=0.5, ws_ping_interval=None,
                             # bounded resources (app/server/limits.py): a connection cap
                             # and one per address (a newcomer takes an idle connection's
-                            # place), a first-byte and a header timeout, idle keep-alive
-                            # connections closed
+                            # place, or a busy one of an address holding many), a
+                            # first-byte and a header timeout, a minimum pace for request
+                            # bodies, answers the client does not read and idle
+                            # keep-alive connections closed
                             http=guarded_protocol(settings.max_connections,
                                                   settings.header_timeout_s,
                                                   settings.first_byte_timeout_s,
-                                                  settings.max_connections_per_ip),
+                                                  settings.max_connections_per_ip,
+                                                  settings.min_body_bytes_per_s,
+                                                  settings.write_stall_s),
                             # uvicorn answers 503 when its connection table (idle ones
                             # included, and those closing) reaches this: above the cap
                             # the guard keeps, so it only bounds requests in flight

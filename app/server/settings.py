@@ -58,6 +58,10 @@ class Settings:
     max_connections_per_ip: int = 32  # HTTP connections (and WebSockets) of one address: a
                                      # browser opens ~6 per host and one per WebSocket
     keep_alive_s: int = 5            # an idle HTTP connection is closed after this
+    min_body_bytes_per_s: float = 1000.0   # a request body slower than this (judged over
+                                     # header_timeout_s) is closed; 0: off
+    write_stall_s: float = 30.0      # an answer the client does not read for this long is
+                                     # closed; 0: off
     phone_hello_s: float = 3.0       # a phone must send a valid sample within this
     # receiver
     max_line_bytes: int = 65536      # a longer line without newline closes the connection

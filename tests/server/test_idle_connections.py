@@ -16,7 +16,6 @@ every ~0.2 s; at least 95 % of the requests must be answered.
 from __future__ import annotations
 
 import json
-import resource
 import socket
 import subprocess
 import sys
@@ -26,12 +25,11 @@ import httpx
 import pytest
 import websockets.sync.client
 
-from harness import Phone, log_lines, running_server, wait_for
+from harness import (ATTACK_SOURCES as SOURCES, Phone, log_lines, poll_presenter, raise_nofile,
+                     running_server, sources_usable, wait_for)
 
 IDLE = 250               # idle connections held
 HOLD_S = 30.0            # for this long
-POLL_S = 0.2             # the presenter's poll interval
-SOURCES = [f"127.0.0.{i}" for i in range(2, 10)]
 
 # The attacker: hold N connections that send nothing, re-open each as soon as the
 # server closes it, for D seconds; print what happened as one JSON line. Bounded: it
@@ -106,25 +104,6 @@ print(json.dumps(st), flush=True)
 """
 
 
-def _raise_nofile(need: int) -> None:
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft != resource.RLIM_INFINITY and soft < need:
-        new = need if hard == resource.RLIM_INFINITY else min(need, hard)
-        resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
-    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft != resource.RLIM_INFINITY and soft < need:
-        pytest.skip(f"RLIMIT_NOFILE {soft} < {need}: cannot hold the connections")
-
-
-def _sources_usable() -> None:
-    """127.0.0.2-9 are loopback addresses on Linux; elsewhere skip."""
-    try:
-        with socket.socket() as s:
-            s.bind((SOURCES[-1], 0))
-    except OSError:
-        pytest.skip("cannot bind 127.0.0.x source addresses on this system")
-
-
 class Holder:
     """The attacker's subprocess (see :data:`HOLDER`)."""
 
@@ -149,41 +128,10 @@ class Holder:
             self.proc.communicate()
 
 
-def _poll_presenter(srv, seconds: float) -> dict:
-    """The presenter's requests for ``seconds``: health on a keep-alive connection, the
-    page on a new connection each time (each given 10 s: served or not is the question
-    here, how fast is benchmarks/health_latency.py's)."""
-    ok = total = 0
-    worst = 0.0
-    failures: dict[str, int] = {}
-    t_end = time.monotonic() + seconds
-    with httpx.Client(base_url=srv.url, timeout=10.0) as keep:
-        while time.monotonic() < t_end:
-            t0 = time.monotonic()
-            for path, client in (("/api/health", keep), ("/", None)):
-                total += 1
-                t1 = time.monotonic()
-                try:
-                    if client is None:
-                        with httpx.Client(base_url=srv.url, timeout=10.0) as fresh:
-                            r = fresh.get(path)
-                    else:
-                        r = client.get(path)
-                    if r.status_code == 200:
-                        ok += 1
-                    else:
-                        failures[str(r.status_code)] = failures.get(str(r.status_code), 0) + 1
-                except httpx.HTTPError as e:
-                    failures[type(e).__name__] = failures.get(type(e).__name__, 0) + 1
-                worst = max(worst, time.monotonic() - t1)
-            time.sleep(max(0.0, POLL_S - (time.monotonic() - t0)))
-    return {"ok": ok, "total": total, "worst_s": round(worst, 3), "failures": failures}
-
-
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory):
-    _sources_usable()
-    _raise_nofile(IDLE + 512)
+    sources_usable()
+    raise_nofile(IDLE + 512)
     with running_server(preset_dir=tmp_path_factory.mktemp("presets")) as s:
         yield s
 
@@ -194,7 +142,7 @@ def test_idle_connections_do_not_lock_the_presenter_out(srv):
     holder = Holder(srv.settings.port)
     try:
         time.sleep(1.0)                        # let the attacker fill the table first
-        polled = _poll_presenter(srv, HOLD_S - 2.0)
+        polled = poll_presenter(srv, HOLD_S - 2.0)
         held = holder.result()
     finally:
         holder.stop()
