@@ -34,11 +34,8 @@ def no_rejection_changes(base: str) -> dict[str, Any]:
     return out
 
 
-def ready_made(primary: str) -> dict[str, tuple[str, dict[str, Any]]]:
-    """The variants the page offers with one click: ``{name: (base, params)}``."""
-    out = {f"{primary}-no-rejection": (primary, no_rejection_changes(primary))}
-    out["lab-approx"] = ("lab", {"time_update": "approx"})
-    return out
+#: the ready-made variants the page and ``POST /api/estimators {"preset": ...}`` offer
+PRESETS = ("no-rejection", "lab-approx")
 
 
 class VariantService:
@@ -61,10 +58,16 @@ class VariantService:
             raise ToolError(fld, getattr(e, "reason", str(e))) from None
         return dict(params or {})
 
-    def no_rejection(self) -> tuple[str, str, dict[str, Any]]:
-        """The primary with every gate off: ``(name, base, params)``."""
-        base = self.core.ensemble.base_of(self.core.ensemble.primary)
-        return f"{base}-no-rejection", base, no_rejection_changes(base)
+    def preset(self, key: str) -> tuple[str, str, dict[str, Any]]:
+        """A ready-made variant (:data:`PRESETS`) as ``(name, base, params)``:
+        ``no-rejection`` the primary with every gate off, ``lab-approx`` the lab filter
+        with the approximate time update; ToolError for another key."""
+        if key == "no-rejection":
+            base = self.core.ensemble.base_of(self.core.ensemble.primary)
+            return f"{base}-no-rejection", base, no_rejection_changes(base)
+        if key == "lab-approx":
+            return "lab-approx", "lab", {"time_update": "approx"}
+        raise ToolError("preset", f"one of {', '.join(PRESETS)}")
 
     def check_remove(self, name: str) -> str:
         """``name`` if it is a variant on the ensemble, else ToolError (404 or 409)."""

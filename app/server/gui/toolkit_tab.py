@@ -399,10 +399,7 @@ class ToolkitTab:
     def _add_variant(self, ev, preset: str) -> None:
         async def run():
             try:
-                if preset == "no-rejection":
-                    name, base, params = self.tk.variants.no_rejection()
-                else:
-                    name, base, params = "lab-approx", "lab", {"time_update": "approx"}
+                name, base, params = self.tk.variants.preset(preset)
                 checked = self.tk.variants.check_add(name, base, params)
                 change = Change(add=[Variant(name, base, checked)])
             except ToolError as e:

@@ -34,12 +34,7 @@ async def add(body: Any = Body(..., examples=[{"name": "lab-approx", "base": "la
     if unknown:
         raise ToolError(sorted(unknown)[0], "unknown key (known: name, base, params, preset)")
     if "preset" in body:
-        if body["preset"] == "no-rejection":
-            name, base, params = tk.variants.no_rejection()
-        elif body["preset"] == "lab-approx":
-            name, base, params = "lab-approx", "lab", {"time_update": "approx"}
-        else:
-            raise ToolError("preset", "one of no-rejection, lab-approx")
+        name, base, params = tk.variants.preset(body["preset"])
         name = body.get("name", name)
     else:
         for k in ("name", "base"):
