@@ -71,6 +71,9 @@ def gyr_scale_param():
 
 
 DEG = 180.0 / math.pi
+# m/s²: the specific force a phone at rest reads, up (acc ≈ Q(q)ᵀ [0, 0, GRAVITY]); the
+# one value of g in orientlab (an app's own unit "g" is converted where it is read)
+GRAVITY = 9.81
 
 
 def short(value: Any, limit: int = 60) -> str:

@@ -48,10 +48,11 @@ def warm_one(name: str, live: bool = True, batch: bool = True) -> None:
     (``batch``: arrays with and without magnetometer and ORI) take, so numba compiles
     (or loads) them."""
     from app import quaternion as qm
+    from app.params import GRAVITY
     from app.estimators import make_estimator
 
     est = make_estimator(name)
-    g, a, m = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 9.81]), np.array([0.0, 20.0, -45.0])
+    g, a, m = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, GRAVITY]), np.array([0.0, 20.0, -45.0])
     o = np.array([1.0, 0.0, 0.0, 0.0])
     n = 40
     rows = lambda v: np.tile(v, (n, 1))      # noqa: E731

@@ -30,7 +30,7 @@ import numpy as np
 
 from app import quaternion as qm
 from app.jitcache import compiled
-from app.params import CommonParams, DEG, ParamError, gyr_scale_param, param
+from app.params import GRAVITY, CommonParams, DEG, ParamError, gyr_scale_param, param
 from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC,
                    F_ACC_NIS, F_ACC_VAL, F_MAG, F_MAG_NIS, F_MAG_VAL, R_FIELD, R_INIT, R_NIS, R_NORM, R_USED,
                    R_WAIT, Diagnostics, Estimator, align_step, begin_row, vec3)
@@ -56,7 +56,7 @@ class LabParams(CommonParams):
                                   doc="full Rm (row-major 3x3) from calibration; overrides mag_std")
     q_rw_noise: float = param(0.3, unit="1/√s", lo=1e-6, hi=10.0, log=True,
                               doc="random-walk noise density of q without gyroscope (P += σ² T I)")
-    g0: tuple = param((0.0, 0.0, 9.81), unit="m/s²", lo=-20.0, hi=20.0, tunable=False,
+    g0: tuple = param((0.0, 0.0, GRAVITY), unit="m/s²", lo=-20.0, hi=20.0, tunable=False,
                       doc="nominal gravity (specific force at rest) in world coordinates")
     m0: tuple | None = param(None, unit="µT", length=3, lo=-200.0, hi=200.0, optional=True,
                              tunable=False, doc="nominal field in world coordinates; None: "

@@ -49,6 +49,7 @@ from app.config import load_config
 from app.live import Change, LiveCore, PatchError, Session, Snapshot
 from app.live.views import Latency
 from app.live.ensemble import TAG_OF_KIND
+from app.params import GRAVITY
 from app.sources.samples import Sample
 
 log = logging.getLogger("orientlab.engine")
@@ -192,7 +193,7 @@ class Engine:
         fed = []
         for k in range(4):
             t = 10 * k
-            fed += [Sample(t, "GYR", (0.01, 0.0, 0.0)), Sample(t + 2, "ACC", (0.0, 0.0, 9.81)),
+            fed += [Sample(t, "GYR", (0.01, 0.0, 0.0)), Sample(t + 2, "ACC", (0.0, 0.0, GRAVITY)),
                     Sample(t + 4, "MAG", (0.0, 20.0, -45.0)), Sample(t + 6, "ORI", (1.0, 0.0, 0.0, 0.0))]
         core = self.core
         s = Session("warm-up", "warm-up", 0.0)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from app.params import GRAVITY
+
 # tags whose values are vectors the estimators use
 MOTION_TAGS = ("ACC", "GYR", "MAG", "ORI")
 
@@ -28,7 +30,6 @@ class DecodeError(ValueError):
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason = reason
 
-G0 = 9.81
 # Physically impossible readings, one definition for the live stream and every file
 # reader (app.sources.readers): a vector whose norm is above its limit is no reading of a phone
 # (a phone gyro saturates near 35 rad/s, an accelerometer near 16 g, a magnetometer near
@@ -36,7 +37,7 @@ G0 = 9.81
 # refused and counted (reason "impossible"), like a line that does not parse.
 VALUE_LIMITS: dict[str, float] = {
     "GYR": 100.0,          # rad/s
-    "ACC": 20.0 * G0,      # m/s² (20 g)
+    "ACC": 20.0 * GRAVITY,      # m/s² (20 g)
     "MAG": 2000.0,         # µT (2 mT)
 }
 VALUE_LIMITS["RAWGYR"] = VALUE_LIMITS["GYR"]

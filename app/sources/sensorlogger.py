@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from app.params import GRAVITY
 from app.quaternion import Q_many, quat_conj_many, quat_from_rotvec_many, quat_mul_many
 from app.sources.ordering import STOPPED_S
 from app.sources.samples import Sample, impossible_rows
@@ -67,7 +68,6 @@ __all__ = ["SensorLoggerError", "Batch", "SensorLoggerStream", "OrientationCheck
            "CONVENTIONS", "G_STD"]
 
 G_STD = 9.80665           # the app's g (iOS raw accelerometer unit)
-G_REST = 9.81
 # A session's first samples wait at most this long (s, the phone's time) for the evidence of
 # the accelerometer's sign: a filter aligned on the wrong sign starts upside down
 START_HOLD_S = 2.0
@@ -215,7 +215,7 @@ class OrientationCheck:
         ia, oka = _nearest(t_ori, t_acc, 25_000_000)
         im, okm = _nearest(t_ori, t_mag, 50_000_000)
         fa = f[ia]
-        ok = oka & okm & (np.abs(np.linalg.norm(fa, axis=1) - G_REST) < 0.4)
+        ok = oka & okm & (np.abs(np.linalg.norm(fa, axis=1) - GRAVITY) < 0.4)
         if len(t_gyr):
             ig, okg = _nearest(t_ori, t_gyr, 25_000_000)
             ok &= okg & (np.linalg.norm(w[ig], axis=1) < 0.15)
@@ -535,9 +535,9 @@ class SensorLoggerStream:
         if self._conv_strong or self.platform == "android" or not len(t_acc) or not len(t_mag):
             return
         if t_gyr is None:
-            ok = np.linalg.norm(f_android, axis=1) > 0.5 * G_REST
+            ok = np.linalg.norm(f_android, axis=1) > 0.5 * GRAVITY
         else:
-            ok = np.abs(np.linalg.norm(f_android, axis=1) - G_REST) < 0.4
+            ok = np.abs(np.linalg.norm(f_android, axis=1) - GRAVITY) < 0.4
         im, okm = _nearest(t_acc, t_mag, 50_000_000)
         ok &= okm
         if t_gyr is not None and len(t_gyr):

@@ -39,14 +39,14 @@ from typing import Iterator
 
 import numpy as np
 
-from app.sources.sensorfusion import format_line
+from app.params import GRAVITY
 from app.quaternion import quat_from_rotvec_many, quat_mul_many, rotate_inv_many
+from app.sources.sensorfusion import format_line
 
 
 SCENES = ("still", "turn_x", "turn_y", "turn_z", "shake", "magnet", "gyro_dropout")
 SCENE_DURATION_S = {"still": 4.0, "turn_x": 6.0, "turn_y": 6.0, "turn_z": 6.0, "shake": 4.0,
                     "magnet": 6.0, "gyro_dropout": 6.0}
-G = 9.81
 
 # A GYR, ACC or MAG sample is the mean over its period of this many evenly spaced values (the
 # midpoint rule): the error of the mean is below 0.1 % of the signal's change over a period
@@ -177,7 +177,7 @@ class Simulation:
         offsets = period * (np.arange(SUBSAMPLES) + 0.5) / SUBSAMPLES
         tt = (t[:, None] - offsets[None, :]).reshape(-1)
         q, w, a_lin, b = self.motion(tt)
-        f = rotate_inv_many(q, a_lin + np.array([0.0, 0.0, G]))
+        f = rotate_inv_many(q, a_lin + np.array([0.0, 0.0, GRAVITY]))
         m = rotate_inv_many(q, self._m_world + b)
         mean = lambda x: x.reshape(n, SUBSAMPLES, 3).mean(axis=1)  # noqa: E731
         return mean(w), mean(f), mean(m)

@@ -28,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from app import quaternion as qm
-from app.params import dump_toml
+from app.params import GRAVITY, dump_toml
 from app.toolkit.capture import Capture, check_seconds, check_streaming
 from app.toolkit.errors import ToolError
 from app.toolkit.jobs import JobQueue
@@ -37,7 +37,6 @@ from app.toolkit.jobs import JobQueue
 UNITS = {"acc": ("m/s²", "(m/s²)²"), "gyr": ("rad/s", "(rad/s)²"), "mag": ("µT", "µT²")}
 TITLES = {"acc": "accelerometer", "gyr": "gyroscope", "mag": "magnetometer"}
 AXES = "xyz"
-STANDARD_GRAVITY = 9.81
 CAL_MIN_S, CAL_MAX_S = 1.0, 600.0     # a live calibration's seconds
 
 
@@ -255,8 +254,8 @@ def _stationarity_warnings(st: CalibrationStats, lim: StationaryLimits) -> list[
             w.append(f"accelerometer spread {np.max(a.std):.3g} m/s² > {lim.acc_std:g}: "
                      "the phone moved")
         norm = float(np.linalg.norm(a.mean))
-        if abs(norm - STANDARD_GRAVITY) > lim.acc_norm_tol:
-            w.append(f"|mean acc| = {norm:.3g} m/s², far from {STANDARD_GRAVITY}: "
+        if abs(norm - GRAVITY) > lim.acc_norm_tol:
+            w.append(f"|mean acc| = {norm:.3g} m/s², far from {GRAVITY}: "
                      "accelerating or miscalibrated")
     m = st.sensors.get("mag")
     if m is not None and np.max(m.std) > lim.mag_std:

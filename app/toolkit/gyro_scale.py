@@ -42,7 +42,8 @@ from typing import Any, Callable
 import numpy as np
 
 from app import quaternion as qm
-from app.estimators.robust.params import GRAVITY, RobustParams
+from app.estimators.robust.params import RobustParams
+from app.params import GRAVITY
 from app.params import dump_toml, fields_of
 from app.toolkit.errors import ToolError
 from app.toolkit.jobs import JobQueue

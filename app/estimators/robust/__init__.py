@@ -51,13 +51,13 @@ from app.estimators.robust.estimator import RobustEKF
 from app.estimators.robust.hardiron import HI_STATUS, hard_iron, hard_iron_reset, strength_deviations
 from app.estimators.robust.heading import heading_innovation, heading_jacobian, mag_update
 from app.estimators.robust.kernel import robust_run, robust_step
-from app.estimators.robust.params import (DERIVED, GRAVITY, NPARAM, PRM, RobustParams, derived, layout,
+from app.estimators.robust.params import (DERIVED, NPARAM, PRM, RobustParams, derived, layout,
                                           param_vector)
 from app.estimators.robust.state import (DT_MAX, NSTATE, S, STATE, STATE_NAN, inject, lp_coef, new_state,
                                          rotate3, update_is_due)
 from app.estimators.robust.tilt import acc_update, tilt_innovation, tilt_jacobian
 
-__all__ = ["HI_STATUS", "hard_iron", "hard_iron_reset", "strength_deviations", "BIAS_UPD_S", "DERIVED", "DT_MAX", "GRAVITY", "H_BIAS", "NPARAM", "NSTATE", "PRM", "RobustEKF",
+__all__ = ["HI_STATUS", "hard_iron", "hard_iron_reset", "strength_deviations", "BIAS_UPD_S", "DERIVED", "DT_MAX", "H_BIAS", "NPARAM", "NSTATE", "PRM", "RobustEKF",
            "RobustParams", "S", "STATE", "STATE_NAN", "acc_update", "derived", "heading_drift_update",
            "heading_innovation", "heading_jacobian", "inject", "layout", "lp_coef", "mag_update",
            "motion_bias_update", "new_state", "param_vector", "rest_update", "robust_run", "robust_step",

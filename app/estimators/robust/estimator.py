@@ -13,7 +13,8 @@ from app.estimators.base import Diagnostics, Estimator, vec3
 from app.estimators.robust.hardiron import HI_STATUS
 from app.estimators.robust.heading import deviation_density, evidence_density
 from app.estimators.robust.kernel import robust_run, robust_step
-from app.estimators.robust.params import GRAVITY, RobustParams, param_vector
+from app.estimators.robust.params import RobustParams, param_vector
+from app.params import GRAVITY
 from app.estimators.robust.state import S, new_state
 
 

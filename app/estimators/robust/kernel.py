@@ -38,7 +38,8 @@ from app.estimators.base import (ALIGN_ACC, ALIGN_ACC_MAG, ALIGN_NO_ACC, F_ACC, 
 from app.estimators.robust.bias import rest_update
 from app.estimators.robust.hardiron import hard_iron_reset
 from app.estimators.robust.heading import mag_update
-from app.estimators.robust.params import GRAVITY, PRM
+from app.estimators.robust.params import PRM
+from app.params import GRAVITY
 from app.estimators.robust.state import DT_MAX, S, attitude_matrix, exp3, lp_coef
 from app.estimators.robust.tilt import acc_update
 from app.jitcache import compiled

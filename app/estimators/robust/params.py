@@ -18,7 +18,6 @@ import numpy as np
 
 from app.params import CommonParams, DEG, gyr_scale_param, param
 
-GRAVITY = 9.81
 
 
 @dataclass(frozen=True)

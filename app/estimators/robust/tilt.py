@@ -48,7 +48,8 @@ from app.estimators.base import (F_ACC, F_ACC_NIS, F_ACC_VAL, R_ACCEL, R_NIS, R_
                                  R_USED)
 from app.estimators.kalman import correct
 from app.estimators.robust.bias import BIAS_UPD_S, motion_bias_update
-from app.estimators.robust.params import GRAVITY, PRM
+from app.estimators.robust.params import PRM
+from app.params import GRAVITY
 from app.estimators.robust.state import (KF_WORK, S, inject, lp_coef, rotate3, turned_forward,
                                          update_is_due)
 from app.jitcache import compiled

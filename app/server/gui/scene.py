@@ -31,6 +31,7 @@ import numpy as np
 
 from app.estimators import Diagnostics, Reason
 from app.live import Snapshot
+from app.params import GRAVITY
 from app.quaternion import Q, quat_from_matrix
 from app.server import viser_adapter as va
 
@@ -437,7 +438,7 @@ class Scene:
                 self._cone_scale[i] = scale
 
     def _draw_arrows(self, R: np.ndarray, s: Snapshot) -> None:
-        g0 = np.asarray(s.diag.g0 or (0.0, 0.0, 9.81), float)
+        g0 = np.asarray(s.diag.g0 or (0.0, 0.0, GRAVITY), float)
         gn = float(np.linalg.norm(g0))
         self._set_expected("grav", self.grav_expected, g0 / gn * ARROW_LEN)
         if s.acc is not None:
