@@ -387,7 +387,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if not args.quiet:
         for line in input_summary(counts) + flag_summary(flags_total):
             print(f"{PROG}: {line}", file=err)
-    if est.name == "phone" and not has_ori and n_rows:
+    if est.reference and not has_ori and n_rows:
         # said even with --quiet: every row is the identity, which is no estimate
         print(f"{PROG}: the recording has no ORI (the phone's own orientation): 'phone' has "
               f"nothing to show, every row is the identity", file=err)

@@ -452,6 +452,9 @@ class Estimator:
     name: ClassVar[str] = "base"
     title: ClassVar[str] = ""
     Params: ClassVar[type]
+    # the phone's own estimate, shown as it is: the reference the filters are compared
+    # with (the error "to phone"), not a filter to tune or to change in a what-if
+    reference: ClassVar[bool] = False
 
     def __init__(self, params=None, **changes: Any):
         p = params if params is not None else self.Params()

@@ -88,6 +88,7 @@ def phone_run(s, q, use, max_gap, gyr_hold, T, G, A, M, O, Qout, Fout):
 class PhoneOrientation(Estimator):
     name = "phone"
     title = "Phone's own estimate (ORI)"
+    reference = True
     Params = CommonParams
 
     def _on_params(self) -> None:

@@ -175,6 +175,10 @@ class EnsembleSchema:
     def base_of(self, name: str) -> str:
         return self.instances[name].base
 
+    def is_reference(self, name: str) -> bool:
+        """Whether ``name`` is the phone's own estimate (``Estimator.reference``)."""
+        return type(self.instances[name].estimator).reference
+
     def uid_of(self, name: str) -> int:
         return self.instances[name].uid
 
@@ -284,6 +288,10 @@ class Ensemble:
     def base_of(self, name: str) -> str:
         return self.instances[name].base
 
+    def is_reference(self, name: str) -> bool:
+        """Whether ``name`` is the phone's own estimate (``Estimator.reference``)."""
+        return type(self.instances[name].estimator).reference
+
     def check_new(self, name: str, base: str, params: dict[str, Any] | None = None):
         """Validate a new instance; returns its parameter set. Raises EnsembleError or
         ParamError (field named), nothing changed."""
@@ -351,11 +359,17 @@ class Ensemble:
             inst._good, inst._good_at = None, -np.inf
         self.set_stopped(frozenset())
 
+    def _reference(self) -> Instance | None:
+        """The builtin instance holding the phone's own estimate (the reference), if any."""
+        return next((i for i in self.instances.values()
+                     if i.builtin and type(i.estimator).reference), None)
+
     @property
     def phone_q(self) -> np.ndarray | None:
-        """The phone's own estimate (ORI), as the builtin ``phone`` validates and holds it;
+        """The phone's own estimate (ORI), as the builtin reference (``phone``) validates and
+        holds it;
         None before the stream's first good ORI."""
-        inst = self.instances.get("phone")
+        inst = self._reference()
         est = None if inst is None else inst.estimator
         return est.q if est is not None and est.initialized else None
 
@@ -370,14 +384,14 @@ class Ensemble:
         M = np.empty((n, 3))
         O = np.empty((n, 4))
         split_rows(kind, values, G, A, M, O)
-        phone = self.instances.get("phone")
+        phone = self._reference()
         qs: dict[str, np.ndarray] = {}
         fls: dict[str, np.ndarray] = {}
         now = time.perf_counter()
         for name, inst in self.instances.items():
             qs[name], fls[name] = self._run(inst, now, t, G, A, M, O, kind, values)
         if phone is not None and n:     # none before the first good ORI, nor once it expired
-            pq = qs["phone"]
+            pq = qs[phone.name]
             phone_q = np.where(not_estimated(pq)[:, None], np.nan, pq)
         else:
             phone_q = np.full((n, 4), np.nan)

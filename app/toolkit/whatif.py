@@ -40,7 +40,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from app.estimators import REJECTIONS, Reason, make_estimator
+from app.estimators import REJECTIONS, Reason, estimator_class, make_estimator
 from app.estimators.base import F_ACC, F_MAG
 from app.params import ParamError, to_dict
 from app.quaternion import IDENTITY, error_angles, not_estimated, q2euler_many
@@ -270,7 +270,7 @@ def first_suggestion(specs: dict[str, tuple[str, dict[str, Any]]],
     with a magnetometer (the heading then follows the gyroscope alone and drifts with its
     bias): ``(estimator, parameter, value)``."""
     name = primary if primary in specs else next(
-        (n for n, (b, _) in specs.items() if b != "phone"), primary)
+        (n for n, (b, _) in specs.items() if not estimator_class(b).reference), primary)
     params = specs.get(name, ("", {}))[1]
     if params.get("use_mag", True):
         return name, "use_mag", False
@@ -317,7 +317,7 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
     results: dict[str, Any] = {}
     cpu = 0.0
     for name, (base, params) in specs.items():
-        if base == "phone":   # the reference itself: its estimate is the held ORI
+        if estimator_class(base).reference:   # the reference itself: its estimate is the held ORI
             results[name] = {"base": base, "reference": True, "changed": False,
                              "before": _phone_entry(phone, tq, idx), "after": None}
             continue

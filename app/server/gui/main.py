@@ -445,7 +445,8 @@ class Gui:
             out[sensor] = held[0] if held is not None and held[1] > now else None
         return Indicators(rest=snap.rest, acc=out["acc"], mag=out["mag"],
                           aligning=not snap.initialized and snap.t is not None,
-                          waiting_for="waiting for the phone's ORI" if primary == "phone"
+                          waiting_for="waiting for the phone's ORI"
+                          if eng.core.ensemble.is_reference(primary)
                           else "aligning…")
 
     def refresh_text(self, readouts: bool = True) -> None:

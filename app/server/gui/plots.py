@@ -341,7 +341,7 @@ class PlotFeed:
                               None if not math.isfinite(b) else round(b - t0, _DEC_X)])
         band = lambda b: None if b is None else [round(float(b[0]), 1), round(float(b[1]), 1)]  # noqa: E731
         gate = lambda g: None if not g or not math.isfinite(float(g)) else float(_sig([g])[0])  # noqa: E731
-        ori = " (it needs the phone's Orientation sensor, ORI)" if core.ensemble.base_of(primary) == "phone" else ""
+        ori = " (it needs the phone's Orientation sensor, ORI)" if core.ensemble.is_reference(primary) else ""
         live = core.session
         gone = live.stopped() if live is not None else frozenset()
         held = live.withheld if live is not None else {}

@@ -660,7 +660,7 @@ class ToolkitTab:
         phone = b.phone_q
         rows = ["| estimator | yaw pitch roll [deg] | to phone | magnetometer |", "|---|---|---|---|"]
         for n in b.names:
-            if b.base_of(n) == "phone":
+            if b.is_reference(n):
                 continue
             est = b.estimator(n)
             e = np.degrees(q2euler_many(est.q[None, :])[0])

@@ -67,7 +67,7 @@ class WhatIfPanel:
     def estimators(self) -> tuple[str, ...]:
         """The estimators a change can go to (the phone's own estimate is the reference)."""
         b = self.core.ensemble
-        return tuple(n for n in b.names if b.base_of(n) != "phone") or tuple(b.names)
+        return tuple(n for n in b.names if not b.is_reference(n)) or tuple(b.names)
 
     def _param_labels(self, est: str) -> tuple[str, ...]:
         """``est``'s tunable parameters with a single value (a switch, a choice, a number)
