@@ -55,6 +55,7 @@ import secrets
 import socket
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from http.cookies import SimpleCookie
 from urllib.parse import parse_qs, urlsplit
@@ -135,6 +136,19 @@ class Access:
     # this machine's names and addresses, and when they were looked up (own_names)
     _own: tuple = field(default=(float("-inf"), frozenset()), repr=False)
     _own_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    # changing requests refused, by reason (GET /api/stats "access_refused"; each logged)
+    refused: Counter = field(default_factory=Counter, repr=False)
+
+    def refuse(self, request: Request, reason: str, detail: str) -> HTTPException:
+        """Count and log a refused request (``reason``: host, origin, no_token,
+        wrong_token); the 403 to raise. The log line names the route and the client's
+        address, never the token tried."""
+        with self.lock:
+            self.refused[reason] += 1
+        client = request.client.host if request.client else "?"
+        log.warning("refused %s %s from %s: %s", request.method, request.url.path[:80], client,
+                    reason.replace("_", " "))
+        return HTTPException(403, detail)
 
     @classmethod
     def from_settings(cls, settings) -> "Access":
@@ -246,16 +260,17 @@ async def require_presenter(request: Request) -> None:
     acc: Access = request.app.state.access
     local = request.scope.get("server")
     if not acc.host_ok(request.headers.get("host"), local[0] if local else None):
-        raise HTTPException(403, "refused: this request names another host (Host is not "
-                                 "an address of this server)")
+        raise acc.refuse(request, "host", "refused: this request names another host (Host "
+                                          "is not an address of this server)")
     if not acc.origin_ok(request.headers.get("origin"), request.headers.get("host"), local,
                          request.url.scheme):
-        raise HTTPException(403, "refused: this request comes from another site (Origin "
-                                 "is not this server)")
+        raise acc.refuse(request, "origin", "refused: this request comes from another site "
+                                            "(Origin is not this server)")
     if not acc.is_presenter(request):
-        raise HTTPException(403, "refused: only the presenter may change the session "
-                                 "(open the presenter's link printed at start, or send "
-                                 "the token as X-Orientlab-Token)")
+        raise acc.refuse(request, "wrong_token" if acc.token_of(request) else "no_token",
+                         "refused: only the presenter may change the session (open the "
+                         "presenter's link printed at start, or send the token as "
+                         "X-Orientlab-Token)")
 
 
 async def phone_push(request: Request) -> None:

@@ -72,8 +72,12 @@ def _raw_http(port: int, data: bytes, timeout: float = 10.0) -> bytes:
 
 # ---------------------------------------------------------------- presenter control
 
-def test_changing_calls_without_the_token_are_403_and_change_nothing(srv, api):
-    """Attack: any host PATCHes every parameter, resets, saves presets."""
+def test_changing_calls_without_the_token_are_403_and_change_nothing(srv, api, caplog):
+    """Attack: any host PATCHes every parameter, resets, saves presets. Each refusal is
+    counted by its reason (GET /api/stats) and said in the terminal, with the route and
+    the client's address, never the token tried."""
+    caplog.set_level(logging.WARNING, logger="orientlab.access")
+    refused0 = api.get("/api/stats").json()["access_refused"]
     before = api.get("/api/params").json()
     for method, path, body in (("PATCH", "/api/params", {"use_mag": False}),
                                ("POST", "/api/reset", None),
@@ -82,9 +86,16 @@ def test_changing_calls_without_the_token_are_403_and_change_nothing(srv, api):
                                ("POST", "/api/source/resume", None)):
         r = api.request(method, path, json=body)
         assert r.status_code == 403, (path, r.status_code, r.text[:200])
-        r = api.request(method, path, json=body, headers={"X-Orientlab-Token": "wrong"})
+        r = api.request(method, path, json=body, headers={"X-Orientlab-Token": "guessed-wrong"})
         assert r.status_code == 403, path
     assert api.get("/api/params").json() == before
+    refused = api.get("/api/stats").json()["access_refused"]
+    for reason in ("no_token", "wrong_token"):
+        assert refused.get(reason, 0) - refused0.get(reason, 0) == 5, (reason, refused)
+    said = [r.getMessage() for r in caplog.records if r.name == "orientlab.access"]
+    assert any("refused PATCH /api/params from 127.0.0.1: wrong token" in m for m in said), said
+    assert any("refused POST /api/reset from 127.0.0.1: no token" in m for m in said), said
+    assert not any("guessed-wrong" in m for m in said)
     assert "stolen" not in api.get("/api/presets").json()
     # the token (header, bearer, or the cookie the presenter's link sets) allows changes
     assert api.patch("/api/params", json={"use_mag": False}, headers=AUTH).status_code == 200

@@ -27,7 +27,10 @@ async def stats(request: Request, reset: bool = False, engine: Engine = Depends(
     ``reset=true`` starts a new measurement (the presenter only)."""
     if reset:
         await require_presenter(request)
-    return engine.stats(reset)
+    access = request.app.state.access
+    with access.lock:
+        refused = dict(access.refused)
+    return {**engine.stats(reset), "access_refused": refused}
 
 
 @router.post("/api/source/resume", dependencies=[Depends(require_presenter)])
