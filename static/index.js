@@ -132,7 +132,10 @@ function describe(v) {
   }
   if (http && http.clock_offset_s !== undefined && http.clock_offset_s !== null) lines.push(`phone clock − PC clock: ${esc(span(http.clock_offset_s))}`);
   if (slot.locked) lines.push("<b>slot locked</b>: no new phone is accepted");
-  if (slot.last_refusal) lines.push(`refused ${esc(slot.refused)}×: ${esc(slot.last_refusal.replace(/^orientlab: /, ""))}`);
+  // the phones turned away in the last minute, each once: which one waits, and why
+  const away = slot.turned_away || [];
+  for (const t of away) lines.push(`turned away: ${esc(t.app_name)} from ${esc(t.who)} · ${esc(t.times)}×, ${esc(span(t.ago_s))} ago: ${esc(String(t.why || "").replace(/^orientlab: /, ""))}`);
+  if (slot.last_refusal && !away.length) lines.push(`refused ${esc(slot.refused)}× in all; the last: ${esc(slot.last_refusal.replace(/^orientlab: /, ""))}`);
   return lines.join("<br>");
 }
 

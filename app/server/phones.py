@@ -220,7 +220,7 @@ class HttpPhones:
         if why is None:
             return None
         self.counts[phone_app].refused += 1
-        self.slot.count_refusal(why)
+        self.slot.count_refusal(why, phone_app, client)
         log.warning("refused phone %s (%s): %s", client, PHONE_APPS.get(phone_app, phone_app), why)
         self.engine.core.totals.count_refused()
         return Reply(_push_app(phone_app).refused_status, why)

@@ -179,11 +179,12 @@ class SensorFusionServer:
         while getattr(eng, "queued", 0) > MAX_BACKLOG // 2 and session is eng.core.session:
             await asyncio.sleep(0.002)
 
-    def _refuse(self, writer, label: str, why: str, counted: bool = False) -> None:
+    def _refuse(self, writer, label: str, why: str, counted: bool = False,
+                host: str = "") -> None:
         """Turn a phone away; the slot counts it for the Connect tab (``take`` already has)."""
         self.engine.core.totals.count_refused()
         if not counted:
-            self.slot.count_refusal(why)
+            self.slot.count_refusal(why, PHONE_APP, host or label)
         log.warning("refused phone %s: %s", label, why)
         writer.close()
 
@@ -196,7 +197,7 @@ class SensorFusionServer:
         if why is not None:
             if self.slot.locked:
                 self.counts["refused_locked"] += 1
-            return self._refuse(writer, label, why)
+            return self._refuse(writer, label, why, host=host)
         splitter = LineSplitter(self.settings.max_line_bytes)
         self._writers.add(writer)
         try:

@@ -27,6 +27,8 @@ from typing import Callable
 #: the apps that can hold the slot, with the words shown for them
 PHONE_APPS = {"sensorfusion": "Sensor Fusion app", "sensorlogger": "Sensor Logger",
         "phyphox": "phyphox", "phyphox-poll": "phyphox (remote access)"}
+TURNED_AWAY_S = 60.0     # a phone turned away is listed in the status for this long
+TURNED_AWAY_KEPT = 8     # at most this many (the latest)
 
 
 @dataclass
@@ -55,6 +57,8 @@ class PhoneSlot:
         self.refused = 0                # requests refused (busy, locked or released)
         self.released = 0               # holders released by the presenter
         self.last_refusal = ""
+        # the phones turned away lately, each once: (app, address) -> [times, last, why]
+        self._turned_away: dict[tuple[str, str], list] = {}
         self._banned: dict[str, float] = {}    # key -> until (monotonic)
 
     # ------------------------------------------------------------------ queries
@@ -94,11 +98,31 @@ class PhoneSlot:
         return None
 
     # ------------------------------------------------------------------ changes
-    def count_refusal(self, why: str) -> None:
-        """A phone was turned away with ``why`` (by whichever receiver): the slot's status
-        counts it and shows the last reason (the Connect tab's "refused N×")."""
+    def count_refusal(self, why: str, phone_app: str = "", who: str = "") -> None:
+        """A phone (``phone_app`` from address ``who``) was turned away with ``why`` (by
+        whichever receiver): the slot's status counts it, shows the last reason (the Connect
+        tab's "refused N×") and lists the phones turned away lately (``turned_away``), so
+        the presenter sees which phone waits and why."""
         self.refused += 1
         self.last_refusal = why
+        if not who:
+            return
+        key = (phone_app, who)
+        rec = self._turned_away.pop(key, None) or [0, 0.0, ""]
+        rec[0] += 1
+        rec[1], rec[2] = self.clock(), why
+        self._turned_away[key] = rec          # the newest last
+        while len(self._turned_away) > TURNED_AWAY_KEPT:
+            del self._turned_away[next(iter(self._turned_away))]
+
+    def turned_away(self) -> list[dict]:
+        """The phones turned away within :data:`TURNED_AWAY_S`, the latest first: app,
+        address, how many times, how long ago and the last reason."""
+        now = self.clock()
+        return [{"app": a, "app_name": PHONE_APPS.get(a, a), "who": who, "times": n,
+                 "ago_s": round(now - t, 1), "why": why}
+                for (a, who), (n, t, why) in reversed(self._turned_away.items())
+                if now - t < TURNED_AWAY_S]
 
     def take(self, phone_app: str, key: str, label: str,
              on_release: Callable[[str], None] | None = None, who: str = "") -> str | None:
@@ -108,7 +132,7 @@ class PhoneSlot:
         another port: its address)."""
         why = self.refusal(phone_app, key, who)
         if why is not None:
-            self.count_refusal(why)
+            self.count_refusal(why, phone_app, who or key)
             return why
         now = self.clock()
         if self.holds(key):
@@ -162,4 +186,4 @@ class PhoneSlot:
                     "for_s": round(now - h.since, 1),
                     "silent_s": round(now - h.last_valid, 1)},
                 "busy": self.busy(), "refused": self.refused, "released": self.released,
-                "last_refusal": self.last_refusal or None}
+                "last_refusal": self.last_refusal or None, "turned_away": self.turned_away()}

@@ -498,6 +498,37 @@ def test_connect_tab_says_silent_by_the_slots_own_rule(tmp_path):
                 assert "another phone may take over" in status.inner_text()
 
 
+def test_connect_tab_names_each_phone_turned_away(tmp_path):
+    """While a phone streams, a student's Sensor Logger phone pushing from another address
+    is refused; the presenter's Connect tab says which phone was turned away, from where,
+    how often and why (it said only "refused N×" with the last reason, however many phones
+    were waiting). A watcher's API answer does not carry the phone's address."""
+    from harness import CHROMIUM, chromium_page
+    if CHROMIUM is None:
+        pytest.skip("needs Debian's chromium")
+    pytest.importorskip("playwright.sync_api")
+    msg = {"messageId": 1, "sessionId": "a", "deviceId": "b",
+           "payload": [{"name": "gyroscope", "time": 1760000000013001000,
+                        "values": {"x": 0.0, "y": 0.0, "z": 0.0}}]}
+    with running_server(open_access=False, token=TOKEN) as srv, \
+            _client(srv, "127.0.0.3") as student, Phone(srv.phone_port) as ph:
+        ph.send_lines([f"{10 * k}\tACC\t0\t0\t9.81" for k in range(20)])
+        wait_for(lambda: srv.app.state.slot.holder is not None, 10, what="the phone holds the slot")
+        with chromium_page(f"{srv.url}/?token={TOKEN}", tmp_path / "profile", viewer=False) as (page, _):
+            status = page.locator("#phone-status")
+            for k in range(2):
+                ph.send_lines([f"{200 + 10 * k}\tACC\t0\t0\t9.81"])     # still streaming
+                r = student.post("/sensorlogger", content=json.dumps(msg).encode())
+                assert r.status_code == 499, r.text
+            wait_for(lambda: "turned away" in status.inner_text(), 30.0, what="the tab naming it")
+            text = status.inner_text()
+            assert "turned away: Sensor Logger from 127.0.0.3 · 2×" in text, text
+            assert "another phone (Sensor Fusion app) is streaming" in text, text
+        watcher = httpx.get(srv.url + "/api/phone").json()["slot"]["turned_away"]
+        assert [t["who"] for t in watcher] == ["a phone"], watcher
+        assert watcher[0]["app"] == "sensorlogger" and watcher[0]["times"] == 2
+
+
 def test_connect_tab_says_what_to_change_for_a_right_pose(tmp_path):
     """An iPhone with Standardise on and no Magnetometer ticked showed upside down, and the
     page said only "assumed" in small print. The Connect tab now says the convention is a

@@ -18,6 +18,8 @@ def slot_status(request: Request) -> dict:
         out["streaming"] = "a phone" if out["streaming"] else None
         if out["slot"]["holder"] is not None:
             out["slot"]["holder"]["label"] = "a phone"
+        for t in out["slot"]["turned_away"]:
+            t["who"] = "a phone"
     return out
 
 
