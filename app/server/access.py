@@ -65,6 +65,7 @@ from fastapi import HTTPException, Request, WebSocket
 log = logging.getLogger("orientlab.access")
 
 COOKIE = "orientlab_token"
+PRESENTER_HOSTS_KEPT = 4     # the presenter's latest addresses kept (Access.presenter_host)
 HEADER = "x-orientlab-token"
 
 
@@ -138,6 +139,9 @@ class Access:
     _own_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     # changing requests refused, by reason (GET /api/stats "access_refused"; each logged)
     refused: Counter = field(default_factory=Counter, repr=False)
+    # the addresses the presenter's token came from lately, the latest last: the connection
+    # guard never takes their connections for another address's (app.server.limits)
+    _presenter_hosts: dict = field(default_factory=dict, repr=False)
 
     def refuse(self, request: Request, reason: str, detail: str) -> HTTPException:
         """Count and log a refused request (``reason``: host, origin, no_token,
@@ -239,7 +243,20 @@ class Access:
         return tok or conn.query_params.get("token") or conn.cookies.get(COOKIE)
 
     def is_presenter(self, conn: Request | WebSocket) -> bool:
-        return self.token_ok(self.token_of(conn))
+        ok = self.token_ok(self.token_of(conn))
+        if ok and not self.open and conn.client is not None:
+            host = conn.client.host
+            with self.lock:
+                self._presenter_hosts.pop(host, None)
+                self._presenter_hosts[host] = None
+                while len(self._presenter_hosts) > PRESENTER_HOSTS_KEPT:
+                    del self._presenter_hosts[next(iter(self._presenter_hosts))]
+        return ok
+
+    def presenter_host(self, host: str) -> bool:
+        """Whether the presenter's token came from this address lately (never with
+        ``--open``, where everyone may change the session)."""
+        return host in self._presenter_hosts
 
     def presenter_link(self, base: str) -> str:
         return base if self.open else f"{base}?token={self.token}"

@@ -19,7 +19,8 @@
   laptop its own connections, never the presenter's request. At the connection cap with
   none idle, a newcomer takes a busy connection (WebSocket, trickling body) of an
   address holding at least two more than its own: a few laptops holding open WebSockets
-  cannot lock the presenter out either. A request body must come at
+  cannot lock the presenter out either; the presenter's own address (its token seen,
+  ``Access.presenter_host``) is never taken from. A request body must come at
   ``min_body_bytes_per_s`` (1000 B/s) or faster, and an answer the client leaves unread
   for ``write_stall_s`` (30 s) is closed. uvicorn's own ``limit_concurrency`` answers 503 only after
   reading a request (and counts idle connections), its ``timeout_keep_alive`` only
@@ -35,6 +36,7 @@ import logging
 import re
 import threading
 import time
+from typing import Callable
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -187,7 +189,8 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                      first_byte_timeout_s: float | None = None,
                      max_per_ip: int | None = None,
                      min_body_bytes_per_s: float = 0.0,
-                     write_stall_s: float = 0.0):
+                     write_stall_s: float = 0.0,
+                     protected: Callable[[str], bool] | None = None):
     """uvicorn's h11 protocol class with a connection cap, a cap per client address, a
     first-byte timeout and a header timeout (see the module doc).
 
@@ -207,7 +210,8 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
     each ``header_timeout_s`` (a body sent a byte at a time is closed; one the server is
     not reading yet is not judged). ``write_stall_s``: a response the client has not read
     from for this long (the socket's buffer full the whole time) is closed. 0 turns
-    either off."""
+    either off. ``protected(address)``: an address whose connections are never taken for
+    another address's at the connection cap (the presenter's)."""
     from uvicorn.protocols.http.h11_impl import H11Protocol
 
     first_byte_s = header_timeout_s if first_byte_timeout_s is None \
@@ -240,7 +244,7 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
         own = len(by_addr.get(newcomer, ()))
         addrs = [addr] if addr is not None else \
             [a for a in sorted(by_addr, key=lambda a: len(by_addr[a]), reverse=True)
-             if len(by_addr[a]) > own]
+             if len(by_addr[a]) > own and not _protected(a)]
         best = None
         for a in addrs:
             for p in by_addr.get(a, ()):
@@ -250,6 +254,12 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                 if r is not None and (best is None or r < best[0]):
                     best = (r, p)
         return None if best is None else best[1]
+
+    def _protected(a) -> bool:
+        try:
+            return bool(protected and protected(a))
+        except Exception:   # the guard must not fail on its helper
+            return False
 
     def _busy_rank(p) -> int:
         """Which of a busy address's connections a newcomer takes first (lower first)."""
@@ -261,9 +271,10 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
     def _fair_victim(addr):
         """At the connection cap with none idle: a busy connection of the address holding
         the most, if it holds at least two more than ``addr`` (see above), else None."""
-        if not by_addr:
+        candidates = [a for a in by_addr if not _protected(a)]
+        if not candidates:
             return None
-        hog = max(by_addr, key=lambda a: len(by_addr[a]))
+        hog = max(candidates, key=lambda a: len(by_addr[a]))
         if hog == addr or len(by_addr[hog]) < len(by_addr.get(addr, ())) + 2:
             return None
         return min(by_addr[hog], key=_busy_rank)     # oldest first among equals

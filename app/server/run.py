@@ -54,7 +54,8 @@ def make_server(settings: Settings, log_level: str = "warning") -> uvicorn.Serve
                                                   settings.first_byte_timeout_s,
                                                   settings.max_connections_per_ip,
                                                   settings.min_body_bytes_per_s,
-                                                  settings.write_stall_s),
+                                                  settings.write_stall_s,
+                                                  app.state.access.presenter_host),
                             # uvicorn answers 503 when its connection table (idle ones
                             # included, and those closing) reaches this: above the cap
                             # the guard keeps, so it only bounds requests in flight

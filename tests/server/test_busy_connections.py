@@ -238,3 +238,42 @@ def test_a_download_the_client_does_not_read_is_closed(srv):
     with httpx.Client(base_url=srv.url, timeout=30.0) as c:
         r = c.get("/api/recordings/big/log")      # a client that reads gets it whole
         assert r.status_code == 200 and len(r.content) == 48_000_000 // 21 * 21
+
+
+def test_the_presenters_connections_are_never_taken_for_another_address(tmp_path):
+    """The presenter's address (its token seen) holds the most connections, 20 open
+    WebSockets, when eight other addresses fill the table: their newcomers take each
+    other's busy connections, never the presenter's. (Without the exemption the presenter's
+    address, holding the most, was the first a newcomer took from.)"""
+    import websockets.sync.client
+    from websockets.exceptions import ConnectionClosed
+    sources_usable()
+    raise_nofile(PER_ADDRESS * len(SOURCES) + 512)
+    token = "busy-test-token"
+    with running_server(open_access=False, token=token, preset_dir=tmp_path, header_timeout_s=4.0,
+                        max_connections=100) as srv:
+        with httpx.Client(base_url=srv.url, timeout=10.0) as c:
+            assert c.get("/api/info", headers={"X-Orientlab-Token": token}).json()["presenter"]
+        socks = [websockets.sync.client.connect(f"{srv.ws_url}/ws/state", open_timeout=10)
+                 for _ in range(20)]
+        try:
+            proc = subprocess.Popen([sys.executable, "-c", HOGGER, str(srv.settings.port),
+                                     str(PER_ADDRESS), "12", ",".join(SOURCES)],
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            out, err = proc.communicate(timeout=60.0)
+            assert proc.returncode == 0, err[-2000:]
+            held = json.loads(out.strip().splitlines()[-1])
+            assert held["max_open"] >= 100 and _stats(srv)["shared"] > 0, (held, _stats(srv))
+            closed = 0
+            for ws in socks:
+                try:
+                    while True:               # what it was sent (the first state), then
+                        ws.recv(timeout=0.2)
+                except TimeoutError:
+                    pass                      # open: nothing new to say (no phone streams)
+                except ConnectionClosed:
+                    closed += 1
+            assert closed == 0, f"{closed} of the presenter's 20 WebSockets were taken"
+        finally:
+            for ws in socks:
+                ws.close()
