@@ -21,7 +21,7 @@ from __future__ import annotations
 import copy
 from dataclasses import asdict, dataclass
 from enum import IntEnum
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
@@ -441,6 +441,12 @@ def vec3(x) -> tuple[float, float, float] | None:
     return a, b, c
 
 
+def _attr(obj: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
 class Estimator:
     """Base class: the common interface of every orientation estimator.
 
@@ -455,6 +461,10 @@ class Estimator:
     # the phone's own estimate, shown as it is: the reference the filters are compared
     # with (the error "to phone"), not a filter to tune or to change in a what-if
     reference: ClassVar[bool] = False
+    # the attributes that are the mutable state (``a.b``: ``b`` of attribute ``a``), as
+    # vqf keeps its state apart from its parameters and the coefficients derived from them
+    # (``_on_params``): :meth:`state_arrays` / :meth:`restore_arrays`
+    STATE: ClassVar[tuple[str, ...]] = ("_last_t", "_last_f")
 
     def __init__(self, params=None, **changes: Any):
         p = params if params is not None else self.Params()
@@ -507,6 +517,30 @@ class Estimator:
 
     def load_state(self, state: Any) -> None:
         self.__dict__.update(copy.deepcopy(state))
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The mutable state (:attr:`STATE`) as named arrays, copied: what a recording
+        keeps to re-run warm (``np.savez``, no pickle). The parameters and what derives from
+        them are not in it: they come from the parameter set."""
+        return {name: np.array(_attr(self, name), dtype=float) for name in self.STATE}
+
+    def restore_arrays(self, arrays: Mapping[str, Any]) -> None:
+        """Take up the state :meth:`state_arrays` gave (of an estimator of this kind): the
+        next rows go on from it as that estimator's would have. ValueError naming the array
+        that is missing or of another shape; nothing is changed then."""
+        new = {}
+        for name in self.STATE:
+            if name not in arrays:
+                raise ValueError(f"{self.name}: the saved state has no {name!r}")
+            cur = _attr(self, name)
+            a = np.asarray(arrays[name], dtype=float)
+            if a.shape != np.shape(cur):
+                raise ValueError(f"{self.name}: the saved {name!r} has shape {a.shape}, "
+                                 f"not {np.shape(cur)}")
+            new[name] = a.copy() if isinstance(cur, np.ndarray) else type(cur)(a)
+        for name, v in new.items():
+            obj, _, last = name.rpartition(".")
+            setattr(_attr(self, obj) if obj else self, last, v)
 
     # ----------------------------------------------------------- processing
     def step(self, t: float, gyr=None, acc=None, mag=None, ori=None) -> StepFlags:

@@ -433,6 +433,9 @@ class ComplementaryDNRF(Estimator):
             ma.resize(w)
             st[n_slot], st[i_slot] = ma.n, ma.i
 
+    STATE = Estimator.STATE + ("R", "_s", "_acc_ma.buf", "_acc_ma.n", "_acc_ma.i",
+                               "_mag_ma.buf", "_mag_ma.n", "_mag_ma.i")   # derived: _pv
+
     def _reset_state(self) -> None:
         # the whole mutable state in arrays the compiled rows update in place: the scalars
         # (slots C_*), R and the two pre-filters' buffers (their fill and next slot in C_*)

@@ -287,6 +287,8 @@ class LabEKF(Estimator):
         v[LP_SCALE:LP_SCALE + 3] = 1.0 / (1.0 + np.asarray(p.gyr_scale, dtype=float))
         self._pv = v
 
+    STATE = Estimator.STATE + ("_s", "_x", "_P")   # derived: _Rw, _Ra, _Rm, _g0, _bias, _pv
+
     def _reset_state(self) -> None:
         # the whole mutable state in three arrays the compiled row updates in place (slots
         # L_*; read through the properties below)

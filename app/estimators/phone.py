@@ -95,6 +95,8 @@ class PhoneOrientation(Estimator):
         p = self._params
         self._use = np.array([p.use_gyr, p.use_acc, p.use_mag], dtype=bool)
 
+    STATE = Estimator.STATE + ("_s", "_q")     # derived from the parameters: _use
+
     def _reset_state(self) -> None:
         # the row bookkeeping (slots B_*), init and the time of the ORI shown; q apart
         self._s = np.full(B_N + 2, np.nan)

@@ -505,6 +505,40 @@ def test_save_state_and_load_state_mid_stream_equals_one_run(name):
     np.testing.assert_array_equal(np.vstack([first.flags, second.flags]), whole.flags)
 
 
+@pytest.mark.parametrize("name", NAMES)
+def test_the_state_as_arrays_restored_mid_stream_equals_one_run(name, tmp_path):
+    """vqf's test, through the file a recording keeps: the state as named arrays
+    (``state_arrays``, written with ``np.savez`` and read back without pickle) taken up by
+    a new instance mid-stream (``restore_arrays``) goes on bit for bit as the one run. The
+    parameters are not in it: a new instance derives its coefficients from its own."""
+    rows, _ = sim_rows(("still", "turn_x", "magnet", "turn_z"), seed=12)
+    whole = run(make_estimator(name), rows)
+    est = make_estimator(name)
+    k = len(rows) // 2
+    first = est.run(rows.t[:k], rows.gyr[:k], rows.acc[:k], rows.mag[:k], rows.ori[:k])
+    np.savez(tmp_path / "state.npz", **est.state_arrays())
+    with np.load(tmp_path / "state.npz", allow_pickle=False) as z:
+        saved = {key: z[key] for key in z.files}
+    assert set(saved) == set(type(est).STATE)
+    other = make_estimator(name)
+    other.restore_arrays(saved)
+    second = other.run(rows.t[k:], rows.gyr[k:], rows.acc[k:], rows.mag[k:], rows.ori[k:])
+    np.testing.assert_array_equal(np.vstack([first.q, second.q]), whole.q)
+    np.testing.assert_array_equal(np.vstack([first.flags, second.flags]), whole.flags)
+    # a state of another shape or a missing array is refused, nothing taken
+    bad = dict(saved)
+    key = max(bad, key=lambda x: np.size(bad[x]))
+    bad[key] = np.zeros(np.size(bad[key]) + 1)
+    fresh = make_estimator(name)
+    before = fresh.state_arrays()
+    with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+        fresh.restore_arrays(bad)
+    with pytest.raises(ValueError, match="has no"):
+        fresh.restore_arrays({})
+    for x, v in fresh.state_arrays().items():
+        np.testing.assert_array_equal(v, before[x])
+
+
 # the Diagnostics fields each estimator fills (after a stream with every sensor); every
 # other field is None
 DIAG_FIELDS = {

@@ -26,6 +26,8 @@ class RobustEKF(Estimator):
     def _on_params(self) -> None:
         self._p = param_vector(self._params)
 
+    STATE = Estimator.STATE + ("_s", "_P")     # derived from the parameters: _p
+
     def _reset_state(self) -> None:
         self._s = new_state()
         self._P = np.eye(6) * 1e-4
