@@ -281,15 +281,18 @@ def flag_summary(flags: dict) -> list[str]:
     return out
 
 
-def load_settings(config_path: str | None) -> tuple[dict[str, Any], list]:
+def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[str, Any]]:
     """``--config``: a preset (TOML), or a recording's events file (``NAME.events.jsonl``:
-    the settings it began with). Returns the checked config and the magnetometer
+    the settings it began with). Returns the checked config, the magnetometer
     calibration to apply to the field's rows, as it changed over time
-    (:func:`app.toolkit.recording.magcal_changes`; a preset's ``[magcal]`` from the start).
+    (:func:`app.toolkit.recording.magcal_changes`; a preset's ``[magcal]`` from the start),
+    and for a recording ``{"warm_s", "state"}``: how far into its stream it began and the
+    live filters' state then (``NAME.state.npz``, per instance; {} if none).
     CliError on a refused file or value."""
     from app.config import config_from
-    from app.toolkit.recording import (EVENTS_SUFFIX, magcal_changes, read_events, settings_of,
-                                       warm_note, warm_start_s)
+    from app.toolkit.recording import (EVENTS_SUFFIX, STATE_SUFFIX, RecordingError,
+                                       magcal_changes, read_events, read_state, settings_of,
+                                       warm_start_s)
     try:
         if config_path is not None and str(config_path).endswith(EVENTS_SUFFIX):
             if not Path(config_path).is_file():
@@ -305,18 +308,46 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list]:
                         if k not in ("magcal", "magcal_from_t")}
             seq = [tuned(e) for e in events if e.get("kind") in ("start", "params")]
             changed = sum(1 for a, b in zip(seq, seq[1:]) if a != b)
-            notes = [warm_note(warm_start_s(events))]
+            notes = []
+            state_path = str(config_path)[:-len(EVENTS_SUFFIX)] + STATE_SUFFIX
+            try:
+                state = read_state(state_path)
+            except RecordingError as e:
+                state = {}
+                notes.append(f"its state file cannot be read ({e}): the re-run starts cold")
             if changed:
                 notes.append(f"the settings changed {changed}× during the recording: these are "
                              "the ones it began with (the magnetometer calibration follows its "
                              "changes)")
             for note in filter(None, notes):
                 print(f"{PROG}: {config_path}: {note}", file=sys.stderr)
-            return config, magcal_changes(events)
+            return config, magcal_changes(events), {"warm_s": warm_start_s(events),
+                                                    "state": state, "path": str(config_path)}
         config = load_config(config_path)
     except ConfigError as e:
         raise CliError(str(e)) from None
-    return config, [(None, config["magcal"])] if config.get("magcal") else []
+    return config, [(None, config["magcal"])] if config.get("magcal") else [], {}
+
+
+def take_up_state(est, recording: dict[str, Any]) -> None:
+    """A recording begun into its stream: ``est`` goes on from the live filter's state as
+    it began (its instance of the same name), and says so; else it says the re-run starts
+    cold (:func:`app.toolkit.recording.warm_note`)."""
+    from app.toolkit.recording import warm_note
+    if not recording:
+        return
+    warm = False
+    saved = (recording.get("state") or {}).get(est.name)
+    if saved is not None:
+        try:
+            est.restore_arrays(saved)
+            warm = True
+        except ValueError as e:
+            print(f"{PROG}: {recording['path']}: the saved state does not fit ({e})",
+                  file=sys.stderr)
+    note = warm_note(recording.get("warm_s") or 0.0, warm)
+    if note:
+        print(f"{PROG}: {recording['path']}: {note}", file=sys.stderr)
 
 
 def configured(name: str | None, config: dict[str, Any], sets: list[str] | None):
@@ -336,8 +367,9 @@ def configured(name: str | None, config: dict[str, Any], sets: list[str] | None)
 def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
-    config, magcal = load_settings(args.config)
+    config, magcal, recording = load_settings(args.config)
     est = configured(args.filter, config, args.set)
+    take_up_state(est, recording)
     if magcal:
         from app.toolkit.magcal import correct_rows
     if args.chunk < 1:

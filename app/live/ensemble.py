@@ -359,6 +359,12 @@ class Ensemble:
             inst._good, inst._good_at = None, -np.inf
         self.set_stopped(frozenset())
 
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Every instance's state (:meth:`Estimator.state_arrays`) as ``instance/attribute``
+        arrays: what a recording begun into its stream keeps to re-run from it."""
+        return {f"{n}/{k}": v for n, inst in self.instances.items()
+                for k, v in inst.estimator.state_arrays().items()}
+
     def _reference(self) -> Instance | None:
         """The builtin instance holding the phone's own estimate (the reference), if any."""
         return next((i for i in self.instances.values()

@@ -81,6 +81,10 @@ class Session:
             self.close_reason = reason
         return self.orderer.flush()
 
+    def held(self) -> list[Sample]:
+        """What the reorder buffer holds, in the order it will release it (a copy)."""
+        return self.orderer.held()
+
     def quiet(self) -> bool:
         """Open, with samples buffered, and nothing received for :data:`QUIET_S` or more."""
         return self.open and self.orderer.buffered > 0 and self.silent_s >= QUIET_S

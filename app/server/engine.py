@@ -254,6 +254,13 @@ class Engine:
             self.inbox.put_nowait(("samples", s, samples,
                                    time.perf_counter() if t_arrival is None else t_arrival))
 
+    def queued_samples(self, s: Session) -> list[Sample]:
+        """The samples of stream ``s`` queued for the filter task, not yet filtered (in the
+        order they will be). Reads the inbox's deque (``asyncio.Queue._queue``, CPython's
+        since 3.4); on the loop only."""
+        items = getattr(self.inbox, "_queue", ()) if self.inbox is not None else ()
+        return [x for it in list(items) if it[0] == "samples" and it[1] is s for x in it[2]]
+
     def pause_background(self) -> None:
         self.background_allowed.clear()
 

@@ -61,6 +61,8 @@ class Toolkit:
         engine.change_listeners.append(magcal.on_change)
         engine.preset_parts.append(magcal.preset_part)
         recording.record_parts.append(magcal.record_part)
+        recording.queued = engine.queued_samples        # a recording begun into its stream
+        recording.undo_later_stages = magcal.uncorrect
         magcal.listeners.append(recording.note_params)
         files = recording.files
         return cls(engine=engine, settings=settings, injection=injection, recording=recording,

@@ -177,6 +177,15 @@ class SampleOrderer:
         """Time (s, reference clock) of the last released sample."""
         return None if self._released is None else self._released / 1000.0
 
+    def held(self) -> list[Sample]:
+        """What the buffer holds, in the order it will release it (a copy; nothing is
+        released): the buffer in time order, then what waits for the reference clock or
+        aside after a time jump."""
+        out = [s for _, _, s in sorted(self._heap, key=lambda x: (x[0], x[1]))]
+        out.extend(self._pending)
+        out.extend(s for aside in self._aside.values() for _, _, s in aside)
+        return out
+
     def _rates(self) -> dict[str, float]:
         out = {}
         for tag, times in self._recent.items():

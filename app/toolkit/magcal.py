@@ -316,6 +316,19 @@ def correct_samples(cal: MagCalibration | None, samples: list) -> list:
             for s in samples]
 
 
+def uncorrect_samples(cal: MagCalibration | None, samples: list) -> list:
+    """:func:`correct_samples` undone: the raw field of corrected MAG samples."""
+    if cal is None or cal.model == "identity":
+        return samples
+    from app.sources.samples import Sample
+    inv = np.linalg.inv(cal.matrix)
+
+    def raw(values):
+        v = inv @ np.asarray(values[:3], dtype=float) + cal.offset
+        return tuple(float(x) for x in v) + tuple(values[3:])
+    return [Sample(s.time_ms, "MAG", raw(s.values)) if s.tag == "MAG" else s for s in samples]
+
+
 def correct_rows(t: np.ndarray, mag: np.ndarray,
                  changes: list[tuple[float | None, dict | None]]) -> np.ndarray:
     """Rows of raw field (N, 3) corrected by the calibration in force at each row's time
@@ -368,6 +381,10 @@ class MagCalService:
         self._last_mag_ms: int | None = None         # the newest MAG sample through here
         self._since_ms: int | None = None            # the calibration's first MAG is after it
         core.sample_stages.append(self.stage)
+
+    def uncorrect(self, samples: list) -> list:
+        """Samples this stage has corrected, as they came to it (the raw field)."""
+        return uncorrect_samples(self.applied, samples)
 
     def stage(self, session, samples: list) -> list:
         """The sample stage: the raw field collected, then the correction applied."""

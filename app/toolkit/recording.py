@@ -64,7 +64,10 @@ LOG_SUFFIX = ".txt"
 ESTIMATES_SUFFIX = ".estimates.csv.gz"
 PLAIN_ESTIMATES_SUFFIX = ".estimates.csv"      # recordings made before the gzip
 EVENTS_SUFFIX = ".events.jsonl"
-SIBLING_SUFFIXES = (ESTIMATES_SUFFIX, PLAIN_ESTIMATES_SUFFIX, EVENTS_SUFFIX)
+# the live filters' state as a recording begun into its stream began (Recorder.write_state)
+STATE_SUFFIX = ".state.npz"
+SIBLING_SUFFIXES = (ESTIMATES_SUFFIX, PLAIN_ESTIMATES_SUFFIX, EVENTS_SUFFIX, STATE_SUFFIX)
+MAX_STATE_BYTES = 1 << 20     # a state file is a few kB: a larger one is not read
 CHECK_EVERY_S = 1.0      # the duration cap and the free space are checked this often
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}\Z")   # \Z: "$" also matches before a final "\n"
 ESTIMATE_COLUMNS = ("estimator", "tag")  # + OUTPUT_COLUMNS
@@ -463,6 +466,21 @@ class Recorder:
             self._maybe_flush()
             self.check()
 
+    def write_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """The live filters' state as the segment begins (``NAME.state.npz``: the arrays of
+        :meth:`app.live.ensemble.Ensemble.state_arrays`, ``instance/attribute``; no pickle),
+        for a re-run that goes on from it (:func:`read_state`)."""
+        seg = self.segment
+        if seg is None or not arrays:
+            return
+        path = self.folder / (seg.name + STATE_SUFFIX)
+
+        def write():
+            with open(path, "wb") as fh:
+                np.savez(fh, **arrays)
+            self._seg_bytes += _size(path)
+        self._guard(write, path)
+
     def write_estimates(self, name: str, t: np.ndarray, tags: list[str] | str,
                         q: np.ndarray, flags: np.ndarray | None = None) -> None:
         """Estimates of estimator ``name`` after the samples at times ``t`` (s) with
@@ -609,8 +627,30 @@ def recording_files(folder: str | Path, name: str) -> dict[str, Path | None]:
         # the folder by its name only: a watcher may read this (never the presenter's paths)
         raise RecordingError(f"no recording named {name!r} in the folder {folder.name or str(folder)!r}")
     ev = folder / (name + EVENTS_SUFFIX)
+    st = folder / (name + STATE_SUFFIX)
     return {"log": log, "estimates": estimates_file(folder, name),
-            "events": ev if ev.is_file() else None}
+            "events": ev if ev.is_file() else None, "state": st if st.is_file() else None}
+
+
+def read_state(path: str | Path | None) -> dict[str, dict[str, np.ndarray]]:
+    """The live filters' state a recording began with (:meth:`Recorder.write_state`), per
+    instance: ``{instance: {attribute: array}}``; {} when there is none. RecordingError
+    for a file that is not one (too large, not an npz, objects in it)."""
+    if path is None or not Path(path).is_file():
+        return {}
+    path = Path(path)
+    if _size(path) > MAX_STATE_BYTES:
+        raise RecordingError(f"{path.name}: larger than {MAX_STATE_BYTES} bytes: not a state file")
+    out: dict[str, dict[str, np.ndarray]] = {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            for key in z.files:
+                inst, sep, attr = key.partition("/")
+                if sep:
+                    out.setdefault(inst, {})[attr] = np.asarray(z[key], dtype=float)
+    except (OSError, ValueError) as e:
+        raise RecordingError(f"{path.name}: not a state file ({e})") from None
+    return out
 
 
 def estimates_file(folder: str | Path, name: str) -> Path | None:
@@ -672,10 +712,16 @@ def warm_start_s(events: list[dict[str, Any]]) -> float:
 WARM_NOTE_S = 0.5    # a recording begun later than this into its stream is said to be warm
 
 
-def warm_note(warm_s: float) -> str | None:
-    """What a re-run of a recording begun ``warm_s`` into its stream should say, or None."""
+def warm_note(warm_s: float, warm: bool = False) -> str | None:
+    """What a re-run of a recording begun ``warm_s`` into its stream should say, or None.
+    ``warm``: the re-run goes on from the live filters' state as the recording began (its
+    state file was read)."""
     if warm_s <= WARM_NOTE_S:
         return None
+    if warm:
+        return (f"the recording began {warm_s:.1f} s into its stream: the re-run goes on from "
+                "the live filters' state at its first line (gyroscope bias and field as they "
+                "had learned them)")
     return (f"the recording began {warm_s:.1f} s into its stream: a re-run starts cold at its "
             "first line, where the live filters had been running; it differs from what they "
             "showed until it has learned the gyroscope's bias and the field again (the heading "

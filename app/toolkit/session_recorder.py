@@ -56,6 +56,11 @@ class RecordingService:
         # what only a recording notes beside them (not a preset's: where a magnetometer
         # calibration took over, MagCalService.record_part)
         self.record_parts: list[Callable[[], dict]] = []
+        # the samples of a stream the filters have not stepped yet (queued for them, the
+        # reorder buffer's), and what undoes the sample stages after this one (the
+        # magnetometer calibration's): wired by the server (Toolkit.build)
+        self.queued: Callable[[Any], list] | None = None
+        self.undo_later_stages: Callable[[list], list] | None = None
         self.recorder: Recorder | None = None
         self.last: dict[str, Any] | None = None      # the last recording's summary
         self._session = None                         # the stream being recorded
@@ -149,8 +154,12 @@ class RecordingService:
         try:
             rec = Recorder(self.folder, name, limits=self.limits)
             s = self.core.session
+            at = self._warm()
+            state = self.core.ensemble.state_arrays() if at["warm_s"] > 0 else {}
             rec.start(self.params_in_force(), label="" if s is None else _source(s),
-                      phone=None if s is None else s.describe(), at=self._warm())
+                      phone=None if s is None else s.describe(), at={**at, "state": bool(state)})
+            if state:
+                self._begin_warm(rec, s, state)
         except RecordingError as e:
             msg = str(e)
             status = 409 if "exists" in msg else 507 if msg.startswith("free space") else 422
@@ -158,6 +167,17 @@ class RecordingService:
         self.recorder = rec
         self._session = self.core.session
         return rec.summary()
+
+    def _begin_warm(self, rec: Recorder, s, state: dict[str, np.ndarray]) -> None:
+        """A recording begun into its stream: the filters' state now, and first in the log
+        the samples that reached the server before Record but that the filters have not
+        stepped yet (queued, in the reorder buffer), as they came to this stage. A re-run
+        from the state then steps what the live filters stepped after it."""
+        pending = (list(self.queued(s)) if self.queued is not None else []) + s.held()
+        if pending and self.undo_later_stages is not None:
+            pending = self.undo_later_stages(pending)
+        rec.write_samples(pending)
+        rec.write_state(state)
 
     def _warm(self) -> dict[str, Any]:
         """Where the stream on show is as a recording begins: its time ``t`` (s, the last

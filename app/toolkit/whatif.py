@@ -17,13 +17,16 @@ run it returns
   pitch and roll (degrees, the manual's ``q2euler``);
 - ``change_deg``: how far the patch moves the estimate (the angle between before and
   after; the only figure when the log has neither truth nor ORI);
-- ``live``: the error of what the live filter showed over the same rows (the recording's
-  estimates file), and ``note``: why the re-run differs from it, when it does by more than
-  :data:`AGREE_DEG` / :data:`AGREE_REL`. The re-run starts cold at the recording's first
-  sample (gyroscope bias and field learned again) while the live filter had run before:
-  on the demo (gyroscope bias ~3°/s) a recording begun mid-motion re-runs at ~9° RMS where
-  the live filter showed ~1°; begun at rest, the two agree. ``notes`` (top level): what the
-  error is measured against, in words (the page shows them under the table).
+- ``live``: the error of what the live filter showed, at the rows the recording's estimates
+  file has an estimate for, and ``note``: why the re-run differs from it there, when it
+  does by more than :data:`AGREE_DEG` / :data:`AGREE_REL`. A recording begun into its
+  stream keeps the live filters' state as it began (``NAME.state.npz``): each run goes on
+  from it, so with the parameters it was recorded with the re-run is what the live filter
+  showed. One without (an older recording, a log dropped in) starts cold at its first
+  sample (gyroscope bias and field learned again): on the demo (gyroscope bias ~3°/s) one
+  begun mid-motion re-ran at ~9° RMS where the live filter showed ~1°. ``notes`` (top
+  level): what the error is measured against, in words (the page shows them under the
+  table).
 
 An estimator is described by a *spec* ``(base, params)``: ``base`` the estimator class
 name (``robust``, ``lab``, ...) and ``params`` its parameter dict, so variants
@@ -95,6 +98,23 @@ def truth_at(t: np.ndarray, truth: dict[str, np.ndarray] | None) -> np.ndarray |
     return out
 
 
+LIVE_MATCH_S = 0.0005    # a live estimate is at a row's time when this close (ms clocks)
+
+
+def live_at(t: np.ndarray, live: dict[str, np.ndarray] | None) -> np.ndarray | None:
+    """The live filter's recorded estimates (``{"t", "q"}``) at the rows of times ``t``
+    that have one (NaN elsewhere): a recording keeps them at a lower rate than its samples
+    (``recording_estimates_hz``), and one held over the rows between would be charged with
+    the motion since it (a degree at a brisk turn)."""
+    q = truth_at(t, live)
+    if q is None:
+        return None
+    tt = np.sort(np.asarray(live["t"], dtype=float))
+    i = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 1)
+    q[np.abs(t - tt[i]) > LIVE_MATCH_S] = np.nan
+    return q
+
+
 def _stats_deg(x: np.ndarray) -> dict[str, float | None]:
     x = x[np.isfinite(x)]
     if x.size == 0:
@@ -129,8 +149,18 @@ def _decimate(n: int, max_points: int) -> np.ndarray:
 
 def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | None,
              ref_kind: str | None, truth: np.ndarray | None, idx: np.ndarray,
-             phone_ref: np.ndarray | None) -> tuple[dict[str, Any], float]:
+             phone_ref: np.ndarray | None,
+             state: dict[str, np.ndarray] | None = None) -> tuple[dict[str, Any], float]:
+    """One estimator over the recording; ``state``: the live filter's as the recording
+    began (it goes on from it; one that does not fit is left out: a cold start)."""
     est = make_estimator(base, params)
+    warm = False
+    if state is not None:
+        try:
+            est.restore_arrays(state)
+            warm = True
+        except ValueError:
+            pass
     t0 = time.perf_counter()
     res = run_in_chunks(est, rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)   # the loop keeps its turns
     spent = time.perf_counter() - t0
@@ -139,6 +169,7 @@ def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | 
         "rejected": {"acc": rejected_share(res.flags, F_ACC),
                      "mag": rejected_share(res.flags, F_MAG)},
         "seconds_cpu": spent,
+        "warm": warm,
     }
     err_series = None
     for key, r in (("error_to_phone_deg", phone_ref), ("error_to_truth_deg", truth)):
@@ -224,8 +255,9 @@ def _why_differs(before: dict[str, Any], live: dict[str, Any], ref_kind: str | N
                  q_rerun: np.ndarray, q_live: np.ndarray, start: int,
                  t: np.ndarray) -> str | None:
     """Why the re-run's error (parameters in force now, from a cold start at the
-    recording's first row) differs from the live filter's over the same rows, or None
-    when they agree (within :data:`AGREE_DEG` or :data:`AGREE_REL`)."""
+    recording's first row or from the live filter's state then: ``before["warm"]``)
+    differs from the live filter's over the same rows, or None when they agree (within
+    :data:`AGREE_DEG` or :data:`AGREE_REL`)."""
     key = _key(ref_kind)
     if key is None or before.get(key) is None or live.get(key) is None:
         return None
@@ -242,10 +274,14 @@ def _why_differs(before: dict[str, Any], live: dict[str, Any], ref_kind: str | N
     rest = ok & ~first
     rms = (lambda m: float(np.sqrt(np.mean(d[m] ** 2))) if m.any() else float("nan"))
     what = "better" if b < lv else "worse"
-    return (f"re-run {b:.1f}°, live {lv:.1f}°: the re-run starts cold at the recording's first "
-            f"sample (gyroscope bias and field learned again), the live filter had been running "
-            f"before it; {what} by {abs(b - lv):.1f}°. The two estimates differ by "
-            f"{rms(first):.1f}° RMS in the first {t_rel[-1] / 3.0:.0f} s, {rms(rest):.1f}° after")
+    why = ("the re-run goes on from the live filter's state at the recording's first sample, "
+           "with the parameters in force now: they were changed since, or during the "
+           "recording") if before.get("warm") else \
+        ("the re-run starts cold at the recording's first sample (gyroscope bias and field "
+         "learned again), the live filter had been running before it")
+    return (f"re-run {b:.1f}°, live {lv:.1f}°: {why}; {what} by {abs(b - lv):.1f}°. The two "
+            f"estimates differ by {rms(first):.1f}° RMS in the first {t_rel[-1] / 3.0:.0f} s, "
+            f"{rms(rest):.1f}° after")
 
 
 def _notes(ref_kind: str | None, have_live: bool) -> list[str]:
@@ -260,7 +296,7 @@ def _notes(ref_kind: str | None, have_live: bool) -> list[str]:
            "how far the change moves each estimate (RMS)"]
     if have_live:
         out.append("live: the error of what the live filters showed during the recording, "
-                   "over the same rows")
+                   "at the rows it kept their estimates for")
     return out
 
 
@@ -281,12 +317,15 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
           patch: dict[str, dict[str, Any]] | None = None,
           truth: dict[str, np.ndarray] | None = None,
           max_points: int = MAX_POINTS,
-          recorded: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
+          recorded: dict[str, dict[str, np.ndarray]] | None = None,
+          state: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
     """Re-run a recording (a path or a read :class:`LogData`) through every estimator
     of ``specs`` (``{name: (base, params)}``), before and after ``patch``
     (``{name: {key: value}}``); see the module doc for what comes back. ``recorded``:
     the recording's estimates file (:func:`app.toolkit.recording.read_estimates`), what the
     live filters showed: each estimator's ``live`` error over the same rows beside the re-run's.
+    ``state``: the live filters' state as the recording began, per instance
+    (:func:`app.toolkit.recording.read_state`): each run, before and after, goes on from it.
     WhatIfError for a patch naming an unknown estimator or a refused value (nothing run)."""
     patch = patch or {}
     for name, changes in patch.items():
@@ -324,25 +363,30 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
         if n == 0:
             results[name] = {"base": base, "before": None, "after": None, "changed": False}
             continue
-        before, s1 = _one_run(base, params, rec, None, ref_kind, tq, idx, phone)
+        saved = (state or {}).get(name)
+        before, s1 = _one_run(base, params, rec, None, ref_kind, tq, idx, phone, saved)
         cpu += s1
         q_before, start = before.pop("_q"), before.pop("_start")
         entry = {"base": base, "before": before, "changed": name in after_params,
                  "patch": patch.get(name) or {}, "after": None, "change_deg": None,
                  "live": None, "note": None}
         if name in after_params:
-            after, s2 = _one_run(base, after_params[name], rec, None, ref_kind, tq, idx, phone)
+            after, s2 = _one_run(base, after_params[name], rec, None, ref_kind, tq, idx, phone,
+                                 saved)
             cpu += s2
             q_after, start_a = after.pop("_q"), after.pop("_start")
             entry["after"] = after
             s0 = max(start, start_a)
             entry["change_deg"] = _stats_deg(error_angles(q_before[s0:], q_after[s0:])[0]) \
                 if s0 < n else None
-        live = truth_at(rec.t, (recorded or {}).get(name))
-        if live is not None and np.isfinite(live).all(axis=1).any():
+        live = live_at(rec.t, (recorded or {}).get(name))
+        has = None if live is None else np.isfinite(live).all(axis=1)
+        if has is not None and has.any():
             entry["live"] = _score(live, start, phone, tq)
-            entry["note"] = _why_differs(before, entry["live"], ref_kind, q_before, live, start,
-                                         rec.t)
+            # the re-run scored on the same rows as the live filter, for the comparison
+            same = _score(np.where(has[:, None], q_before, np.nan), start, phone, tq)
+            entry["note"] = _why_differs({**same, "warm": before["warm"]}, entry["live"],
+                                         ref_kind, q_before, live, start, rec.t)
         results[name] = entry
     return {"rows": n, "duration_s": duration, "read_s": read_s, "estimate_s": cpu,
             "realtime_ratio": (duration / cpu) if cpu > 0 else None,
@@ -404,7 +448,8 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recording import read_estimates, read_events, warm_note, warm_start_s
+        from app.toolkit.recording import (RecordingError, read_estimates, read_events, read_state,
+                                           warm_note, warm_start_s)
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")
@@ -416,11 +461,17 @@ class WhatIfService:
                 recorded = read_estimates(files["estimates"], warn=False)   # (may be in progress)
             events = read_events(files.get("events"))
             rec = with_recorded_magcal(self._read_cached(files["log"]), events)
-            out = rerun(rec, specs, patch, (recorded or {}).get("truth"), recorded=recorded)
+            try:
+                state = read_state(files.get("state"))
+            except RecordingError:
+                state = {}
+            out = rerun(rec, specs, patch, (recorded or {}).get("truth"), recorded=recorded,
+                        state=state)
             if rec.counts.get("magcal"):
                 out["notes"].append("the magnetometer calibration in force while recording "
                                     "is applied to the log's raw field, as it was live")
-            warm = warm_note(warm_start_s(events))
+            warm = warm_note(warm_start_s(events), any(
+                (e.get("before") or {}).get("warm") for e in out["estimators"].values()))
             if warm:
                 out["notes"].append(warm)
             return out

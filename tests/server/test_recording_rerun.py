@@ -1,8 +1,9 @@
 """A recording made on the real server from a real phone log (a TCP client playing the
 Sensor Fusion app), re-run with ``orientlab estimate --config NAME.events.jsonl``:
 recorded before the phone streams, the re-run gives the live estimates; recorded while
-it streams, the events say how long the filters had run (``warm_s``) and the re-run says
-that it starts cold."""
+it streams, the events say how long the filters had run (``warm_s``), the recording keeps
+their state then (``NAME.state.npz``) and the re-run goes on from it: it gives the live
+estimates too. Without that file it starts cold, and says so."""
 
 from __future__ import annotations
 
@@ -86,7 +87,14 @@ def test_recorded_before_the_phone_streams_a_rerun_gives_the_live_estimates(shar
         assert api.post("/api/recordings/stop").status_code == 200
         start = read_events(folder / "warm.events.jsonl")[0]
         assert SPLIT_S - 1.0 < start["warm_s"] < SPLIT_S + 1.0, start
+        assert start["state"] is True and (folder / "warm.state.npz").is_file()
         err, said = _rerun_error(folder, "warm", tmp_path, capsys)
-        print(f"warm: max {err.max():.2f}° at first, {err[-20:].max():.2f}° at the end")
-        assert "into its stream" in said
+        print(f"warm: {err.size} rows, max {err.max():.4f}°")
+        assert "goes on from the live filters' state" in said, said
+        assert err.size > 100 and err.max() < AGREE_DEG
+        # without its state file the re-run starts cold, and says so
+        (folder / "warm.state.npz").unlink()
+        err, said = _rerun_error(folder, "warm", tmp_path, capsys)
+        print(f"warm, cold re-run: max {err.max():.2f}° at first, {err[-20:].max():.2f}° at the end")
+        assert "starts cold" in said
         assert err.max() > 1.0      # (what the note is for: here 88°, and 20° at the end)

@@ -161,21 +161,29 @@ def test_whatif_reruns_the_field_the_live_filters_got(recorded):
     assert ok.sum() > 50 and np.max(np.abs(d[ok])) < AGREE_DEG
 
 
-def test_a_recording_begun_into_its_stream_says_a_rerun_starts_cold(recorded, tmp_path, capsys):
-    """A recording begun while the filters had been running on the stream cannot be
-    reproduced from its first line: its start event says how long (``warm_s``), and the
-    What-if and ``orientlab estimate --config`` say so. One begun with its stream says
-    nothing of the kind."""
+def test_a_recording_begun_into_its_stream_reruns_from_the_live_state(recorded, tmp_path,
+                                                                    capsys):
+    """A recording begun while the filters had been running on the stream says how long
+    (``warm_s``) and keeps their state then; the What-if and ``orientlab estimate
+    --config`` go on from it and say so. Without the state file they say the re-run starts
+    cold. One begun with its stream says nothing of the kind."""
     from toolkit.test_whatif_first_try import demo_recording
     folder = tmp_path / "rec"
     core, recs = demo_recording(folder, "warm", warm_s=6.0, seconds=4.0)
     start = read_events(folder / "warm.events.jsonl")[0]
     assert start["kind"] == "start" and 5.5 < start["warm_s"] < 6.5 and start["t"] is not None
+    assert start["state"] is True
     out = asyncio.run(WhatIfService(core, recs.files).rerun("warm", None))
-    assert any("into its stream" in n for n in out["notes"]), out["notes"]
+    assert any("goes on from the live filters' state" in n for n in out["notes"]), out["notes"]
     assert main(["estimate", str(folder / "warm.txt"), "--out", str(tmp_path / "o.csv"), "-q",
                  "--config", str(folder / "warm.events.jsonl")]) == 0
-    assert "into its stream" in capsys.readouterr().err
+    assert "goes on from the live filters' state" in capsys.readouterr().err
+    (folder / "warm.state.npz").unlink()
+    out = asyncio.run(WhatIfService(core, recs.files).rerun("warm", None))
+    assert any("starts cold" in n for n in out["notes"]), out["notes"]
+    assert main(["estimate", str(folder / "warm.txt"), "--out", str(tmp_path / "o.csv"), "-q",
+                 "--config", str(folder / "warm.events.jsonl")]) == 0
+    assert "starts cold" in capsys.readouterr().err
     # the cold one
     cold, core, recs = recorded
     start = read_events(cold / "lesson.events.jsonl")[0]
@@ -215,3 +223,41 @@ def test_a_recording_whose_primary_was_a_variant_gives_its_estimators_settings()
         "primary": "robust-no-rejection"}}]
     cfg = config_from(settings_of(events), "rec.events.jsonl")
     assert cfg["primary"] == "robust" and cfg["robust"]["gyr_noise"] == 0.006
+
+
+def test_a_warm_recording_with_a_calibration_in_force_reruns_to_the_live_estimates(tmp_path):
+    """Begun 5 s into the stream with a calibration in force: the samples the reorder
+    buffer held at Record (their field already corrected by the stage after the
+    recorder's) go into the log raw, as every other line, and the re-run from the saved
+    state gives the live estimates. (Written corrected, the re-run corrected them twice.)"""
+    path = SHARED / "data" / "sensorfusion-app" / LOG
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    folder = tmp_path / "rec"
+    core = LiveCore(None)
+    parts: list = []
+    recs = RecordingService(core, folder, parts)
+    magcal = MagCalService(core, FIRST)
+    parts.append(magcal.preset_part)
+    recs.record_parts.append(magcal.record_part)
+    recs.undo_later_stages = magcal.uncorrect              # as the server wires it
+    samples = _samples(path)
+    t0 = samples[0].time_ms
+    session = core.open_session("phone", "test phone")
+    core.start(session)
+    started = held = False
+    for k in range(0, len(samples), 20):
+        chunk = samples[k:k + 20]
+        if not started and chunk[0].time_ms >= t0 + 5000:
+            held = any(s.tag == "MAG" for s in session.held())
+            recs.start("lesson")
+            started = True
+        core.process(session, core.feed(session, chunk))
+    recs.stop()
+    assert started and held, "no field sample was in the reorder buffer at Record"
+    assert read_events(folder / "lesson.events.jsonl")[0]["state"] is True
+    t_live, q_live = _live(folder)
+    t, q = _cli(folder, tmp_path, "--config", str(folder / "lesson.events.jsonl"))
+    err = _err(t_live, q_live, t, q)
+    print(f"{err.size} rows, max {err.max():.4f}°")
+    assert err.size > 100 and err.max() < AGREE_DEG
