@@ -29,7 +29,7 @@ from harness import (ATTACK_SOURCES as SOURCES, poll_presenter, raise_nofile, ru
                      sources_usable, wait_for)
 
 PER_ADDRESS = 30          # busy connections per attacking address (the cap is 32)
-HOLD_S = 25.0
+HOLD_S = 15.0
 
 # The attacker: per address, PER_ADDRESS // 2 WebSockets on /ws/state (read and thrown
 # away) and as many POST /sensorlogger with a 1 MB Content-Length sent a byte every 2 s;
