@@ -69,6 +69,16 @@ PRESENTER_HOSTS_KEPT = 4     # the presenter's latest addresses kept (Access.pre
 HEADER = "x-orientlab-token"
 
 
+def printable(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters, each one a terminal would act on (ESC, a
+    backspace, a right-to-left override: a path a client chose) written as an escape."""
+    text = text[:limit]
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+                   for c in text)
+
+
 def _host_of(url_or_host: str | None) -> str | None:
     """The lower-case host name of an ``Origin`` (``http://a.b:8000``) or a ``Host``
     header (``a.b:8000``, ``[::1]:8000``)."""
@@ -150,8 +160,8 @@ class Access:
         with self.lock:
             self.refused[reason] += 1
         client = request.client.host if request.client else "?"
-        log.warning("refused %s %s from %s: %s", request.method, request.url.path[:80], client,
-                    reason.replace("_", " "))
+        log.warning("refused %s %s from %s: %s", request.method, printable(request.url.path, 80),
+                    client, reason.replace("_", " "))
         return HTTPException(403, detail)
 
     @classmethod

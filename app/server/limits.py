@@ -236,24 +236,56 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             return 2                        # keep-alive, between two requests
         return None
 
-    def _victim(addr=None, newcomer=None):
-        """The idle connection to close for a newcomer (see above), or None: of its own
-        address ``addr``, or (at the connection cap) of an address holding more than the
-        newcomer's address ``newcomer`` (a flood of newcomers from a few addresses must not
-        take the presenter's connection in the moment before its request arrives)."""
-        own = len(by_addr.get(newcomer, ()))
-        addrs = [addr] if addr is not None else \
-            [a for a in sorted(by_addr, key=lambda a: len(by_addr[a]), reverse=True)
-             if len(by_addr[a]) > own and not _protected(a)]
+    def _idle_of(addrs, ranks=(0, 1, 2)):
+        """The idle connection of ``addrs`` (in that order) to close first, by its
+        :func:`_rank` in the order ``ranks`` gives (by default one that sent nothing yet,
+        then a slow request head, then a keep-alive one); None if none."""
         best = None
         for a in addrs:
             for p in by_addr.get(a, ()):
                 r = _rank(p)
-                if r == 0:
+                if r is None or r not in ranks:
+                    continue
+                k = ranks.index(r)
+                if k == 0:
                     return p
-                if r is not None and (best is None or r < best[0]):
-                    best = (r, p)
+                if best is None or k < best[0]:
+                    best = (k, p)
         return None if best is None else best[1]
+
+    def _victim(addr):
+        """At the per-address cap: an idle connection of that address, or None."""
+        return _idle_of([addr])
+
+    def _cap_victim(newcomer):
+        """At the connection cap: ``(connection to close, busy)`` for a newcomer from
+        address ``newcomer``, or ``(None, False)``. In order: an idle connection of an
+        address holding more than the newcomer's (the most first); one of its own; a
+        keep-alive one of any address (closing it costs nobody a request); a busy one of
+        the address holding the most (:func:`_fair_victim`); and, for the presenter only,
+        any idle one. No address the presenter's token came from is taken from. (An idle
+        connection of an address holding no more than the newcomer's is taken only as the
+        last two: a flood of newcomers from a few addresses must not take a student's or
+        the presenter's connection in the moment before its request arrives.)"""
+        own = len(by_addr.get(newcomer, ()))
+        others = [a for a in sorted(by_addr, key=lambda a: len(by_addr[a]), reverse=True)
+                  if a != newcomer and not _protected(a)]
+        bigger = [a for a in others if len(by_addr[a]) > own]
+        # its own: a keep-alive one first (a browser's fresh one is about to ask)
+        for pick in (lambda: _idle_of(bigger), lambda: _idle_of([newcomer], ranks=(2, 1, 0)),
+                     lambda: _idle_of(others, ranks=(2,))):
+            p = pick()
+            if p is not None:
+                return p, False
+        presenter = _protected(newcomer)
+        p = _fair_victim(newcomer, presenter)
+        if p is not None:
+            return p, True
+        if presenter:
+            p = _idle_of(others)
+            if p is not None:
+                return p, False
+        return None, False
 
     def _protected(a) -> bool:
         try:
@@ -268,14 +300,15 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             return 0                        # a request body still arriving
         return 1 if p._upgraded else 2      # a WebSocket; a request being answered
 
-    def _fair_victim(addr):
+    def _fair_victim(addr, presenter: bool = False):
         """At the connection cap with none idle: a busy connection of the address holding
-        the most, if it holds at least two more than ``addr`` (see above), else None."""
-        candidates = [a for a in by_addr if not _protected(a)]
+        the most, if it holds at least two more than ``addr`` (any, for the presenter; see
+        above), else None."""
+        candidates = [a for a in by_addr if a != addr and not _protected(a)]
         if not candidates:
             return None
         hog = max(candidates, key=lambda a: len(by_addr[a]))
-        if hog == addr or len(by_addr[hog]) < len(by_addr.get(addr, ())) + 2:
+        if not presenter and len(by_addr[hog]) < len(by_addr.get(addr, ())) + 2:
             return None
         return min(by_addr[hog], key=_busy_rank)     # oldest first among equals
 
@@ -291,6 +324,9 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
         _body_cycle = None
         _body_bytes = 0         # bytes received since the last judgement
         _write_timer = None     # a response the client does not read (write_stall_s)
+        _stall_size = 0         # unsent bytes when that timer was set
+        _drained = False        # the client read since (the buffer fell below its low mark)
+        _body_paused = False    # the server paused reading in this judging period
 
         guard_stats = stats     # for tests and the log
 
@@ -303,11 +339,10 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                     return self._refuse(f"{max_per_ip} connections from {self._addr}")
                 victim._drop(evicted=True)
             if count[0] >= max_connections:
-                victim = _victim(newcomer=self._addr)
+                victim, busy = _cap_victim(self._addr)
                 if victim is None:
-                    victim = _fair_victim(self._addr)
-                    if victim is None:
-                        return self._refuse(f"{count[0]} connections open (cap {max_connections})")
+                    return self._refuse(f"{count[0]} connections open (cap {max_connections})")
+                if busy:
                     stats["shared"] += 1
                     _limited_log("HTTP connection cap (%d) reached: closed a busy connection "
                                  "of %s, which holds %d", max_connections, victim._addr,
@@ -344,11 +379,11 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             self._disarm()
             if evicted:
                 stats["evicted"] += 1
-            if self.transport.is_closing():
-                return
-            if silent:
-                self.transport.abort()      # nothing to flush: a reset, no TIME_WAIT here
-            else:
+            if silent or self.transport.get_write_buffer_size():
+                # nothing to flush (a reset, no TIME_WAIT here), or an answer its client
+                # is not reading: close() would wait for it for ever, the socket uncounted
+                self.transport.abort()
+            elif not self.transport.is_closing():
                 self.transport.close()
 
         def _arm(self) -> None:
@@ -380,6 +415,7 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
         def _arm_body(self) -> None:
             self._body_cycle = self.cycle
             self._body_bytes = 0
+            self._body_paused = self.flow.read_paused
             self._body_timer = self.loop.call_later(body_period_s, self._body_check)
 
         def _body_check(self) -> None:
@@ -390,7 +426,8 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             if cyc is not self._body_cycle or cyc is None or cyc.response_complete \
                     or not cyc.more_body or self.transport.is_closing():
                 return
-            if self._body_bytes < min_body_bytes and not self.flow.read_paused:
+            if self._body_bytes < min_body_bytes and not self.flow.read_paused \
+                    and not self._body_paused:
                 stats["slow_bodies"] += 1
                 _limited_log("HTTP request body from %s too slow (%d bytes in %.0f s): closed",
                              self._addr, self._body_bytes, body_period_s)
@@ -412,6 +449,8 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             if self._head_timer is not None and self.cycle is not self._head_cycle:
                 self._head_timer.cancel()       # a request head arrived in time
                 self._head_timer = None
+            if self.flow.read_paused:
+                self._body_paused = True        # not the client's slowness: not judged
             cyc = self.cycle
             if min_body_bytes > 0 and cyc is not None and cyc is not self._body_cycle \
                     and cyc.more_body and not cyc.response_complete and not self._upgraded:
@@ -419,26 +458,38 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
                     self._body_timer.cancel()
                 self._arm_body()                # a new request: its body's pace is judged
 
-        def pause_writing(self) -> None:
-            super().pause_writing()
+        def _arm_stall(self) -> None:
+            """Judge, ``write_stall_s`` from now, whether the client reads what it is sent."""
             if write_stall_s > 0 and self._write_timer is None:
+                self._stall_size = self.transport.get_write_buffer_size()
+                self._drained = False
                 self._write_timer = self.loop.call_later(write_stall_s, self._write_stalled)
 
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            self._arm_stall()
+
         def resume_writing(self) -> None:
-            if self._write_timer is not None:
-                self._write_timer.cancel()
-                self._write_timer = None
+            self._drained = True            # the client read some: progress
             super().resume_writing()
 
         def _write_stalled(self) -> None:
+            """Unsent bytes and no progress for ``write_stall_s`` (no drain below the low
+            mark, the buffer no smaller), whether the answer is still being written or was
+            complete and its connection is closing: closed, uncounted at once."""
             self._write_timer = None
-            if self.flow.write_paused and not self.transport.is_closing():
-                stats["write_stalls"] += 1
-                _limited_log("HTTP client %s has not read its answer for %.0f s: closed",
-                             self._addr, write_stall_s)
-                self._release()
-                self._disarm()
-                self.transport.abort()
+            size = self.transport.get_write_buffer_size()
+            if not size:
+                return
+            if self._drained or size < self._stall_size:
+                self._arm_stall()           # the client reads: judge the next period
+                return
+            stats["write_stalls"] += 1
+            _limited_log("HTTP client %s has not read its answer for %.0f s: closed",
+                         self._addr, write_stall_s)
+            self._release()
+            self._disarm()
+            self.transport.abort()
 
         def handle_websocket_upgrade(self, event) -> None:
             self._disarm()          # the WebSocket protocol owns the connection now
@@ -458,6 +509,8 @@ def guarded_protocol(max_connections: int, header_timeout_s: float,
             if not self.transport.is_closing():
                 self._arm()         # the next request head must come in time too
             super().on_response_complete()
+            if self.transport.get_write_buffer_size():
+                self._arm_stall()   # an answer not yet read: it must be, in time
 
         def connection_lost(self, exc) -> None:
             self._release()

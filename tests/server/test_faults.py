@@ -21,6 +21,7 @@ import websockets
 import websockets.sync.client
 from viser import _messages as vm
 
+from app.server.limits import reset_log_limits
 from app.server.viser_adapter import gui_input_handles
 
 from harness import (ALL_AXES, Phone, ViserClient, running_server, turns_log_lines, turns_session,
@@ -96,6 +97,13 @@ def test_changing_calls_without_the_token_are_403_and_change_nothing(srv, api, c
     assert any("refused PATCH /api/params from 127.0.0.1: wrong token" in m for m in said), said
     assert any("refused POST /api/reset from 127.0.0.1: no token" in m for m in said), said
     assert not any("guessed-wrong" in m for m in said)
+    # a path a client chose cannot drive the teacher's terminal (clear it, paint a line)
+    caplog.clear()
+    reset_log_limits()          # the log's rate limit saw the ten refusals above
+    assert api.delete("/api/estimators/x%1b%5b2J%1b%5b31mFAKE%08%E2%80%AE").status_code == 403
+    said = [r.getMessage() for r in caplog.records if r.name == "orientlab.access"]
+    assert said and "\\x1b[2J" in said[-1] and "\\u202e" in said[-1], said
+    assert not any(c in said[-1] for c in "\x1b\x08\u202e"), said
     assert "stolen" not in api.get("/api/presets").json()
     # the token (header, bearer, or the cookie the presenter's link sets) allows changes
     assert api.patch("/api/params", json={"use_mag": False}, headers=AUTH).status_code == 200
