@@ -209,20 +209,31 @@ def test_a_body_sent_slowly_but_steadily_is_served(srv):
     assert head.startswith(b"HTTP/1.1 200"), head
 
 
-def test_a_download_the_client_does_not_read_is_closed(srv):
-    """A 48 MB recording asked for and never read: the server's buffer fills and after
-    ``write_stall_s`` (3 s here) the connection is closed, its memory given back; the
-    client that then reads gets less than the whole file."""
+def _unread_get(srv, path: str, headers: str = "") -> socket.socket:
+    """GET ``path`` on a socket with a 4 kB receive buffer that never reads; returns it once
+    the server has reset the connection for it (``write_stalls`` counted)."""
     stalls0 = _stats(srv)["write_stalls"]
     s = socket.socket()
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     s.settimeout(10)
     try:
         s.connect(("127.0.0.1", srv.settings.port))
-        s.sendall(f"GET /api/recordings/big/log HTTP/1.1\r\nHost: 127.0.0.1:{srv.settings.port}"
-                  "\r\n\r\n".encode())
+        s.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{srv.settings.port}\r\n{headers}"
+                  "\r\n".encode())
         wait_for(lambda: _stats(srv)["write_stalls"] > stalls0, timeout=30.0,
-                 what="the unread download closed")
+                 what="the unread answer's connection reset")
+    except BaseException:
+        s.close()
+        raise
+    return s
+
+
+def test_a_download_the_client_does_not_read_is_closed(srv):
+    """A 48 MB recording asked for and never read: the server's buffer fills and after
+    ``write_stall_s`` (3 s here) the connection is closed, its memory given back; the
+    client that then reads gets less than the whole file."""
+    s = _unread_get(srv, "/api/recordings/big/log")
+    try:
         got = 0
         try:
             while True:
@@ -300,18 +311,7 @@ def test_a_complete_answer_left_unread_is_closed_too(srv, monkeypatch):
         transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 8192)
         made(self, transport)
     monkeypatch.setattr(cls, "connection_made", small_send_buffer)
-    stalls0 = _stats(srv)["write_stalls"]
-    s = socket.socket()
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    s.settimeout(10)
-    try:
-        s.connect(("127.0.0.1", srv.settings.port))
-        s.sendall(f"GET /static/vendor/uPlot.iife.min.js HTTP/1.1\r\nHost: 127.0.0.1:"
-                  f"{srv.settings.port}\r\nConnection: close\r\n\r\n".encode())
-        wait_for(lambda: _stats(srv)["write_stalls"] > stalls0, timeout=30.0,
-                 what="the unread answer's connection reset")
-    finally:
-        s.close()
+    _unread_get(srv, "/static/vendor/uPlot.iife.min.js", "Connection: close\r\n").close()
 
 
 def _ws_from(ip: str, port: int):
