@@ -290,9 +290,8 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
     live filters' state then (``NAME.state.npz``, per instance; {} if none).
     CliError on a refused file or value."""
     from app.config import config_from
-    from app.toolkit.recording import (EVENTS_SUFFIX, STATE_SUFFIX, RecordingError,
-                                       magcal_changes, read_events, read_state, settings_of,
-                                       warm_start_s)
+    from app.toolkit.recording import (EVENTS_SUFFIX, STATE_SUFFIX, magcal_changes, read_events,
+                                       recorded_state, settings_of, warm_start_s)
     try:
         if config_path is not None and str(config_path).endswith(EVENTS_SUFFIX):
             if not Path(config_path).is_file():
@@ -309,19 +308,16 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
             seq = [tuned(e) for e in events if e.get("kind") in ("start", "params")]
             changed = sum(1 for a, b in zip(seq, seq[1:]) if a != b)
             notes = []
-            state_path = str(config_path)[:-len(EVENTS_SUFFIX)] + STATE_SUFFIX
-            try:
-                state = read_state(state_path)
-            except RecordingError as e:
-                state = {}
-                notes.append(f"its state file cannot be read ({e}): the re-run starts cold")
+            state_path = Path(str(config_path)[:-len(EVENTS_SUFFIX)] + STATE_SUFFIX)
+            state, why = recorded_state({"state": state_path if state_path.is_file() else None},
+                                        events)
             if changed:
                 notes.append(f"the settings changed {changed}× during the recording: these are "
                              "the ones it began with (the magnetometer calibration follows its "
                              "changes)")
             for note in filter(None, notes):
                 print(f"{PROG}: {config_path}: {note}", file=sys.stderr)
-            return config, magcal_changes(events), {"warm_s": warm_start_s(events),
+            return config, magcal_changes(events), {"warm_s": warm_start_s(events), "why": why,
                                                     "state": state, "path": str(config_path)}
         config = load_config(config_path)
     except ConfigError as e:
@@ -329,25 +325,25 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
     return config, [(None, config["magcal"])] if config.get("magcal") else [], {}
 
 
-def take_up_state(est, recording: dict[str, Any]) -> None:
-    """A recording begun into its stream: ``est`` goes on from the live filter's state as
-    it began (its instance of the same name), and says so; else it says the re-run starts
-    cold (:func:`app.toolkit.recording.warm_note`)."""
-    from app.toolkit.recording import warm_note
+def take_up_state(est, recording: dict[str, Any]):
+    """A recording begun into its stream: ``est``'s like, going on from the live filter's
+    state as it began (its instance of the same name; ``est``'s parameters set after, as a
+    live change), and it says so; else ``est``, and it says why the re-run starts cold
+    (:func:`app.toolkit.recording.warm_note`)."""
+    from app.params import to_dict
+    from app.toolkit.recording import warm_estimator, warm_note
     if not recording:
-        return
-    warm = False
+        return est
     saved = (recording.get("state") or {}).get(est.name)
+    warm = False
     if saved is not None:
-        try:
-            est.restore_arrays(saved)
-            warm = True
-        except ValueError as e:
-            print(f"{PROG}: {recording['path']}: the saved state does not fit ({e})",
-                  file=sys.stderr)
-    note = warm_note(recording.get("warm_s") or 0.0, warm)
+        est, warm = warm_estimator(est.name, to_dict(est.params), saved)
+    why = recording.get("why") or (None if warm or saved is None else
+                                   "the saved state does not fit this estimator")
+    note = warm_note(recording.get("warm_s") or 0.0, warm, why)
     if note:
         print(f"{PROG}: {recording['path']}: {note}", file=sys.stderr)
+    return est
 
 
 def configured(name: str | None, config: dict[str, Any], sets: list[str] | None):
@@ -368,8 +364,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
     config, magcal, recording = load_settings(args.config)
-    est = configured(args.filter, config, args.set)
-    take_up_state(est, recording)
+    est = take_up_state(configured(args.filter, config, args.set), recording)
     if magcal:
         from app.toolkit.magcal import correct_rows
     if args.chunk < 1:

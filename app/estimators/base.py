@@ -441,6 +441,11 @@ def vec3(x) -> tuple[float, float, float] | None:
     return a, b, c
 
 
+def index_ok(x: Any, n: int, lo: int = 0) -> bool:
+    """``x`` a whole number in ``lo .. n - 1`` (a slot the compiled code indexes with)."""
+    return bool(np.isfinite(x) and float(x) == int(x) and lo <= int(x) < n)
+
+
 def _attr(obj: Any, dotted: str) -> Any:
     for part in dotted.split("."):
         obj = getattr(obj, part)
@@ -538,9 +543,28 @@ class Estimator:
                 raise ValueError(f"{self.name}: the saved {name!r} has shape {a.shape}, "
                                  f"not {np.shape(cur)}")
             new[name] = a.copy() if isinstance(cur, np.ndarray) else type(cur)(a)
-        for name, v in new.items():
+        old = {name: _attr(self, name) for name in self.STATE}
+        self._set_state(new)
+        why = self._state_error()
+        if why is not None:          # a file's state is not trusted: nothing taken
+            self._set_state(old)
+            raise ValueError(f"{self.name}: the saved state is not one it can have: {why}")
+
+    def _set_state(self, values: Mapping[str, Any]) -> None:
+        for name, v in values.items():
             obj, _, last = name.rpartition(".")
             setattr(_attr(self, obj) if obj else self, last, v)
+
+    def _state_error(self) -> str | None:
+        """Why the state (just restored) is not one this estimator can have, or None. The
+        compiled rows index arrays with some slots: a value out of range must never reach
+        them. Subclasses add their own slots (and call this)."""
+        f = np.asarray(self._last_f)
+        for col, n in ((F_GYR, len(Reason)), (F_ACC, len(Reason)), (F_MAG, len(Reason)),
+                       (F_TIME, len(TimeIssue))):
+            if not index_ok(f[col], n):
+                return f"flag column {col} holds {f[col]!r}"
+        return None
 
     # ----------------------------------------------------------- processing
     def step(self, t: float, gyr=None, acc=None, mag=None, ori=None) -> StepFlags:

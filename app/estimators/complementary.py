@@ -83,7 +83,7 @@ from app.quaternion import wrap_angle
 from app.params import CommonParams, ParamError, param
 from app.estimators.base import (ALIGN_WAIT_S, B_N, B_SEEN, B_T, B_W, B_W_T, F_ACC, F_ACC_VAL, F_GYR, F_MAG,
                    F_MAG_VAL, R_INIT, R_USED, R_WAIT, Diagnostics, Estimator,
-                   begin_row)
+                   index_ok, begin_row)
 
 TWO_PI = 2.0 * np.pi
 GIMBAL_EPS = 1e-12   # cos(pitch) below this is gimbal lock (eq. 22)
@@ -433,8 +433,18 @@ class ComplementaryDNRF(Estimator):
             ma.resize(w)
             st[n_slot], st[i_slot] = ma.n, ma.i
 
-    STATE = Estimator.STATE + ("R", "_s", "_acc_ma.buf", "_acc_ma.n", "_acc_ma.i",
-                               "_mag_ma.buf", "_mag_ma.n", "_mag_ma.i")   # derived: _pv
+    # the moving averages' fill and next slot are in _s (C_*_N, C_*_I): the compiled row
+    # keeps them there; MovingAverage.n/.i are read from them on a parameter change
+    STATE = Estimator.STATE + ("R", "_s", "_acc_ma.buf", "_mag_ma.buf")   # derived: _pv
+
+    def _state_error(self) -> str | None:
+        w = int(self._params.ma_window)
+        for ma, n_slot, i_slot in ((self._acc_ma, C_ACC_N, C_ACC_I),
+                                   (self._mag_ma, C_MAG_N, C_MAG_I)):
+            n, i = self._s[n_slot], self._s[i_slot]
+            if not (index_ok(n, w + 1) and index_ok(i, w)) or ma.buf.shape != (w, 3):
+                return f"moving-average slots n={n!r}, i={i!r} for a window of {w}"
+        return super()._state_error()
 
     def _reset_state(self) -> None:
         # the whole mutable state in arrays the compiled rows update in place: the scalars

@@ -59,6 +59,7 @@ class LiveCore:
         self._reset_stream_state()
 
     def _reset_stream_state(self) -> None:
+        self.stepping: Session | None = None      # the stream whose samples they stepped
         self.t_sent: float | None = None          # time of the last processed sample (s)
         self.t_first: float | None = None         # the stream's first motion sample (s)
         self.last_vec: list[np.ndarray | None] = [None, None, None]   # gyr, acc, mag
@@ -96,6 +97,7 @@ class LiveCore:
         """A new stream is on: every instance starts afresh (a new clock)."""
         self.ensemble.reset()
         self._reset_stream_state()
+        self.stepping = s           # the stream the estimators' state belongs to
 
     def process(self, s: Session, samples: list[Sample]) -> Records | None:
         """Step every instance on the samples of the stream on show (others: None)."""

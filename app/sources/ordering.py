@@ -178,10 +178,13 @@ class SampleOrderer:
         return None if self._released is None else self._released / 1000.0
 
     def held(self) -> list[Sample]:
-        """What the buffer holds, in the order it will release it (a copy; nothing is
-        released): the buffer in time order, then what waits for the reference clock or
-        aside after a time jump."""
-        out = [s for _, _, s in sorted(self._heap, key=lambda x: (x[0], x[1]))]
+        """What the buffer holds, in the order it will release it, each on its own
+        sensor's clock as it came in (a copy; nothing is released): the buffer in time
+        order, then what waits for the reference clock or aside after a time jump."""
+        out = []
+        for t, _, s in sorted(self._heap, key=lambda x: (x[0], x[1])):
+            off = self._offsets_ms.get(s.tag, 0)
+            out.append(s if not off else Sample(s.time_ms + off, s.tag, s.values))
         out.extend(self._pending)
         out.extend(s for aside in self._aside.values() for _, _, s in aside)
         return out

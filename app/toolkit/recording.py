@@ -1,11 +1,13 @@
 """Record a live session: the raw stream as a Sensor Fusion app log, and beside it the
 estimates and the parameters in force.
 
-A recording named ``NAME`` in the recordings folder is three files:
+A recording named ``NAME`` in the recordings folder is three files, and a fourth for one
+begun while the filters were running on its stream:
 
 ``NAME.txt``
-    The stream exactly as it arrived, in the app's log format (the phone's lines,
-    byte for byte, one per line, ``\\n`` ended): readable by ``orientlab estimate``,
+    The stream as it arrived, in the app's log format (the phone's lines, one per line,
+    ``\\n`` ended; one begun into its stream starts with the samples that had arrived but
+    were not filtered yet, in the order the filters take them): readable by ``orientlab estimate``,
     ``orientlab calibrate``, ``--source`` and the manual's MATLAB tools. Marks (a virtual
     magnet or shake injected from the page, a parameter change) are ``TXT`` lines of the
     same format (``<time_ms>\\tTXT\\torientlab: ...``); every reader skips them for the
@@ -25,7 +27,13 @@ A recording named ``NAME`` in the recordings folder is three files:
     One JSON object per line: ``{"kind": "start", "params": {...}}`` with every
     estimator's parameters in force, then ``{"kind": "params", "t": ..., "params": ...}``
     at every change, ``{"kind": "inject", ...}``, and ``{"kind": "end", "reason": ...,
-    "seconds": ..., "samples": ...}``. ``t`` is stream time (s), ``wall`` Unix time.
+    "seconds": ..., "samples": ...}``. ``t`` is stream time (s), ``wall`` Unix time. The
+    ``start`` event's ``t``/``warm_s`` say where the stream was, ``state`` whether the
+    filters' state was kept.
+``NAME.state.npz``
+    Every filter's state as the recording began (:meth:`Recorder.write_state`), when they
+    had filtered some of the stream already: a re-run goes on from it
+    (:func:`recorded_state`, :func:`warm_estimator`).
 
 A stream ends the segment: if the phone disconnects while recording, the files are
 closed cleanly (``end`` says why); when a stream starts again, the recording goes on in
@@ -49,6 +57,7 @@ import os
 import re
 import shutil
 import time
+import zipfile
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -266,7 +275,8 @@ class Recorder:
                                  f"{e.strerror or e}") from None
         if not os.access(self.folder, os.W_OK):
             raise RecordingError(f"the recordings folder {self.folder} is not writable")
-        if (self.folder / (self.base + LOG_SUFFIX)).exists():
+        # (a state file left by a removed recording would be taken for this one's)
+        if any((self.folder / (self.base + sfx)).exists() for sfx in (LOG_SUFFIX, STATE_SUFFIX)):
             raise RecordingError(f"a recording named {self.base!r} exists already")
         low = self._low_space()
         if low:
@@ -643,14 +653,49 @@ def read_state(path: str | Path | None) -> dict[str, dict[str, np.ndarray]]:
         raise RecordingError(f"{path.name}: larger than {MAX_STATE_BYTES} bytes: not a state file")
     out: dict[str, dict[str, np.ndarray]] = {}
     try:
+        with zipfile.ZipFile(path) as zf:     # what it holds unpacked, before unpacking it
+            if sum(i.file_size for i in zf.infolist()) > MAX_STATE_BYTES:
+                raise ValueError(f"it unpacks to more than {MAX_STATE_BYTES} bytes")
         with np.load(path, allow_pickle=False) as z:
             for key in z.files:
                 inst, sep, attr = key.partition("/")
                 if sep:
                     out.setdefault(inst, {})[attr] = np.asarray(z[key], dtype=float)
-    except (OSError, ValueError) as e:
-        raise RecordingError(f"{path.name}: not a state file ({e})") from None
+    except Exception as e:   # whatever a damaged file raises (zip, npy, EOF): not used
+        raise RecordingError(f"{path.name}: not a state file ({type(e).__name__}: "
+                             f"{str(e)[:120]})") from None
     return out
+
+
+def recorded_state(files: dict[str, Path | None], events: list[dict[str, Any]]
+                   ) -> tuple[dict[str, tuple[str, dict[str, Any], dict[str, np.ndarray]]],
+                              str | None]:
+    """The live filters' state a recording began with, when its ``start`` event says it
+    kept one and the file is that one (each instance's ``_last_t`` at the event's ``t``):
+    ``({instance: (its estimator, its parameters then, its state)}, None)``. Else ``({}, why)``: why a
+    re-run starts cold, or None when the recording began with its stream (none to keep)."""
+    start = next((e for e in events if e.get("kind") == "start"), None) or {}
+    path = files.get("state")
+    if not start.get("state"):
+        return {}, (f"{path.name} is not this recording's (its start event names none): "
+                    "not used" if path is not None else None)
+    if path is None:
+        return {}, "its state file is missing"
+    try:
+        state = read_state(path)
+    except RecordingError as e:
+        return {}, str(e)
+    t, params = start.get("t"), start.get("params") or {}
+    out = {}
+    for inst, arrays in state.items():
+        lt = arrays.get("_last_t")
+        if t is None or lt is None or np.ndim(lt) or abs(float(lt) - float(t)) > 1e-6:
+            return {}, f"{path.name} is not the state this recording began with: not used"
+        p = params.get(inst)
+        if isinstance(p, dict):
+            out[inst] = (str(p.get("base", inst)),
+                         {k: v for k, v in p.items() if k != "base" and v is not None}, arrays)
+    return out, None
 
 
 def estimates_file(folder: str | Path, name: str) -> Path | None:
@@ -699,6 +744,25 @@ def settings_of(events: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def warm_estimator(base: str, params: dict[str, Any], saved) -> Any:
+    """A new ``base`` estimator with ``params``, going on from a recording's saved state
+    (``saved``: a :func:`recorded_state` entry, or None) as the live one would have: made
+    with the parameters it was recorded with, its state taken up, then ``params`` set (a
+    live change's order: a changed window resized, a changed reference field applied).
+    Returns ``(estimator, warm)``; cold (``warm`` False) when the state does not fit."""
+    from app.estimators import make_estimator
+    from app.params import ParamError
+    if saved is not None and saved[0] == base:
+        try:
+            est = make_estimator(base, saved[1])
+            est.restore_arrays(saved[2])
+            est.set_params(**params)
+            return est, True
+        except (ValueError, ParamError):
+            pass
+    return make_estimator(base, params), False
+
+
 def warm_start_s(events: list[dict[str, Any]]) -> float:
     """How long the live filters had run on the stream when the recording began (its
     ``start`` event's ``warm_s``; 0 when it does not say)."""
@@ -712,10 +776,13 @@ def warm_start_s(events: list[dict[str, Any]]) -> float:
 WARM_NOTE_S = 0.5    # a recording begun later than this into its stream is said to be warm
 
 
-def warm_note(warm_s: float, warm: bool = False) -> str | None:
+def warm_note(warm_s: float, warm: bool = False, why: str | None = None) -> str | None:
     """What a re-run of a recording begun ``warm_s`` into its stream should say, or None.
     ``warm``: the re-run goes on from the live filters' state as the recording began (its
-    state file was read)."""
+    state file was read); ``why``: why not (:func:`recorded_state`)."""
+    if why is not None and not warm:
+        return (f"{why}; the re-run starts cold at the recording's first line" if warm_s <= WARM_NOTE_S
+                else f"{why}; " + warm_note(warm_s))
     if warm_s <= WARM_NOTE_S:
         return None
     if warm:

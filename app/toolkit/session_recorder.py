@@ -158,8 +158,8 @@ class RecordingService:
             state = self.core.ensemble.state_arrays() if at["warm_s"] > 0 else {}
             rec.start(self.params_in_force(), label="" if s is None else _source(s),
                       phone=None if s is None else s.describe(), at={**at, "state": bool(state)})
-            if state:
-                self._begin_warm(rec, s, state)
+            if s is not None and s.open:
+                self._begin(rec, s, state)
         except RecordingError as e:
             msg = str(e)
             status = 409 if "exists" in msg else 507 if msg.startswith("free space") else 422
@@ -168,11 +168,12 @@ class RecordingService:
         self._session = self.core.session
         return rec.summary()
 
-    def _begin_warm(self, rec: Recorder, s, state: dict[str, np.ndarray]) -> None:
-        """A recording begun into its stream: the filters' state now, and first in the log
-        the samples that reached the server before Record but that the filters have not
-        stepped yet (queued, in the reorder buffer), as they came to this stage. A re-run
-        from the state then steps what the live filters stepped after it."""
+    def _begin(self, rec: Recorder, s, state: dict[str, np.ndarray]) -> None:
+        """A recording begun while a stream is on: first in the log the samples that
+        reached the server before Record but that the filters have not stepped yet (queued,
+        in the reorder buffer), as they came to this stage; and, when the filters have
+        stepped some of the stream already (``state``), their state now. A re-run (from
+        that state) then steps what the live filters stepped after it."""
         pending = (list(self.queued(s)) if self.queued is not None else []) + s.held()
         if pending and self.undo_later_stages is not None:
             pending = self.undo_later_stages(pending)
@@ -186,7 +187,9 @@ class RecordingService:
         live estimates when ``warm_s`` is 0."""
         c = self.core
         s = c.session
-        if s is None or not s.open or c.t_sent is None or c.t_first is None:
+        # (a stream just opened whose filters have not been reset for it yet: cold)
+        if s is None or not s.open or c.t_sent is None or c.t_first is None \
+                or c.stepping is not s:
             return {"t": None, "warm_s": 0.0}
         return {"t": c.t_sent, "warm_s": round(max(0.0, c.t_sent - c.t_first), 3)}
 

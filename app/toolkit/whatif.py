@@ -18,7 +18,7 @@ run it returns
 - ``change_deg``: how far the patch moves the estimate (the angle between before and
   after; the only figure when the log has neither truth nor ORI);
 - ``live``: the error of what the live filter showed, at the rows the recording's estimates
-  file has an estimate for, and ``note``: why the re-run differs from it there, when it
+  file has an estimate for (``live.rerun``: the re-run's "before" at those rows), and ``note``: why the re-run differs from it there, when it
   does by more than :data:`AGREE_DEG` / :data:`AGREE_REL`. A recording begun into its
   stream keeps the live filters' state as it began (``NAME.state.npz``): each run goes on
   from it, so with the parameters it was recorded with the re-run is what the live filter
@@ -150,17 +150,12 @@ def _decimate(n: int, max_points: int) -> np.ndarray:
 def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | None,
              ref_kind: str | None, truth: np.ndarray | None, idx: np.ndarray,
              phone_ref: np.ndarray | None,
-             state: dict[str, np.ndarray] | None = None) -> tuple[dict[str, Any], float]:
-    """One estimator over the recording; ``state``: the live filter's as the recording
-    began (it goes on from it; one that does not fit is left out: a cold start)."""
-    est = make_estimator(base, params)
-    warm = False
-    if state is not None:
-        try:
-            est.restore_arrays(state)
-            warm = True
-        except ValueError:
-            pass
+             saved=None) -> tuple[dict[str, Any], float]:
+    """One estimator over the recording; ``saved``: the live filter's state as the
+    recording began (:func:`app.toolkit.recording.recorded_state`'s entry): it goes on
+    from it, ``params`` set as a live change (one that does not fit: a cold start)."""
+    from app.toolkit.recording import warm_estimator
+    est, warm = warm_estimator(base, params, saved)
     t0 = time.perf_counter()
     res = run_in_chunks(est, rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)   # the loop keeps its turns
     spent = time.perf_counter() - t0
@@ -318,14 +313,15 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
           truth: dict[str, np.ndarray] | None = None,
           max_points: int = MAX_POINTS,
           recorded: dict[str, dict[str, np.ndarray]] | None = None,
-          state: dict[str, dict[str, np.ndarray]] | None = None) -> dict[str, Any]:
+          state: dict[str, tuple] | None = None) -> dict[str, Any]:
     """Re-run a recording (a path or a read :class:`LogData`) through every estimator
     of ``specs`` (``{name: (base, params)}``), before and after ``patch``
     (``{name: {key: value}}``); see the module doc for what comes back. ``recorded``:
     the recording's estimates file (:func:`app.toolkit.recording.read_estimates`), what the
     live filters showed: each estimator's ``live`` error over the same rows beside the re-run's.
     ``state``: the live filters' state as the recording began, per instance
-    (:func:`app.toolkit.recording.read_state`): each run, before and after, goes on from it.
+    (:func:`app.toolkit.recording.recorded_state`): each run, before and after, goes on
+    from it.
     WhatIfError for a patch naming an unknown estimator or a refused value (nothing run)."""
     patch = patch or {}
     for name, changes in patch.items():
@@ -385,6 +381,7 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
             entry["live"] = _score(live, start, phone, tq)
             # the re-run scored on the same rows as the live filter, for the comparison
             same = _score(np.where(has[:, None], q_before, np.nan), start, phone, tq)
+            entry["live"]["rerun"] = same      # "before" at those rows: like for like
             entry["note"] = _why_differs({**same, "warm": before["warm"]}, entry["live"],
                                          ref_kind, q_before, live, start, rec.t)
         results[name] = entry
@@ -448,8 +445,8 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recording import (RecordingError, read_estimates, read_events, read_state,
-                                           warm_note, warm_start_s)
+        from app.toolkit.recording import (read_estimates, read_events, recorded_state, warm_note,
+                                           warm_start_s)
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")
@@ -461,17 +458,14 @@ class WhatIfService:
                 recorded = read_estimates(files["estimates"], warn=False)   # (may be in progress)
             events = read_events(files.get("events"))
             rec = with_recorded_magcal(self._read_cached(files["log"]), events)
-            try:
-                state = read_state(files.get("state"))
-            except RecordingError:
-                state = {}
+            state, why = recorded_state(files, events)
             out = rerun(rec, specs, patch, (recorded or {}).get("truth"), recorded=recorded,
                         state=state)
             if rec.counts.get("magcal"):
                 out["notes"].append("the magnetometer calibration in force while recording "
                                     "is applied to the log's raw field, as it was live")
             warm = warm_note(warm_start_s(events), any(
-                (e.get("before") or {}).get("warm") for e in out["estimators"].values()))
+                (e.get("before") or {}).get("warm") for e in out["estimators"].values()), why)
             if warm:
                 out["notes"].append(warm)
             return out

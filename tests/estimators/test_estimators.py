@@ -535,8 +535,32 @@ def test_the_state_as_arrays_restored_mid_stream_equals_one_run(name, tmp_path):
         fresh.restore_arrays(bad)
     with pytest.raises(ValueError, match="has no"):
         fresh.restore_arrays({})
+    # a slot the compiled rows index with, out of range (a crafted file: it crashed the
+    # server's process), is refused too
+    crafted = dict(saved)
+    crafted["_last_f"] = np.array(saved["_last_f"], dtype=float)
+    crafted["_last_f"][0] = 1e8
+    with pytest.raises(ValueError, match="not one it can have"):
+        fresh.restore_arrays(crafted)
     for x, v in fresh.state_arrays().items():
         np.testing.assert_array_equal(v, before[x])
+
+
+def test_a_crafted_moving_average_slot_is_refused():
+    """complementary's compiled row writes its moving averages' buffers at a slot of its
+    state: set to 1e8 in a state file, it wrote far outside the buffer (the server's
+    process died, a reviewer's find). Refused, nothing taken."""
+    from app.estimators.complementary import C_ACC_I, C_MAG_N
+    rows, _ = sim_rows(("still", "turn_x"), seed=3)
+    est = make_estimator("complementary")
+    run(est, rows)
+    for slot, value in ((C_ACC_I, 1e8), (C_MAG_N, -1.0), (C_ACC_I, 0.5)):
+        saved = est.state_arrays()
+        saved["_s"][slot] = value
+        fresh = make_estimator("complementary")
+        with pytest.raises(ValueError, match="moving-average"):
+            fresh.restore_arrays(saved)
+    fresh.restore_arrays(est.state_arrays())     # the real one is taken
 
 
 # the Diagnostics fields each estimator fills (after a stream with every sensor); every

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.estimators.base import Diagnostics, Estimator, vec3
+from app.estimators.base import Diagnostics, Estimator, index_ok, vec3
 from app.estimators.robust.hardiron import HI_STATUS
 from app.estimators.robust.heading import deviation_density, evidence_density
 from app.estimators.robust.kernel import robust_run, robust_step
@@ -27,6 +27,11 @@ class RobustEKF(Estimator):
         self._p = param_vector(self._params)
 
     STATE = Estimator.STATE + ("_s", "_P")     # derived from the parameters: _p
+
+    def _state_error(self) -> str | None:
+        if not index_ok(self._s[S.hi_status], len(HI_STATUS)):
+            return f"hard-iron status {self._s[S.hi_status]!r}"
+        return super()._state_error()
 
     def _reset_state(self) -> None:
         self._s = new_state()

@@ -188,10 +188,15 @@ class WhatIfPanel:
                      for n, e in ests.items() if not e.get("reference")]
         else:
             rows[0] += f"; RMS error {what} [°]:"
-            rows += ["| estimator |" + (" live |" if live else "") + " before | after |",
+            # live: at the rows the recording kept its estimates for; in brackets the
+            # re-run's "before" at the same rows (like for like)
+            rows += ["| estimator |" + (" live (re-run there) |" if live else "") + " before | after |",
                      "|---|" + ("---|" if live else "") + "---|---|"]
             for n, e in ests.items():
-                cells = [n] + ([deg(rms(e.get("live")))] if live else []) + \
+                lv = e.get("live")
+                cell = deg(rms(lv)) + ("" if not lv or not lv.get("rerun") else
+                                       f" ({deg(rms(lv['rerun']))})")
+                cells = [n] + ([cell] if live else []) + \
                     [deg(rms(e["before"])), deg(rms(e["after"]))]
                 rows.append("| " + " | ".join(cells) + " |")
         sel = ests.get(self.est.value)
