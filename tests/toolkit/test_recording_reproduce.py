@@ -366,3 +366,29 @@ def test_record_pressed_before_anything_was_filtered_logs_what_the_filters_step(
     # as the cold recording's (AGREE_DEG's note): 0.005° at the 99th percentile, one row
     # (of several in one millisecond) at 0.05°
     assert np.percentile(err, 99) < 0.01 and err.max() < 2 * AGREE_DEG
+
+
+def test_record_between_a_new_stream_and_its_filters_reset_keeps_no_old_state(tmp_path):
+    """A new stream is on show at once, but its filters are reset only when the filter
+    task takes it up: Record pressed in between saved the old stream's state and warm_s
+    for the new one (148° off in a reviewer's replay). It is cold now."""
+    path = SHARED / "data" / "sensorfusion-app" / LOG
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    core = LiveCore(None)
+    recs = RecordingService(core, tmp_path / "rec")
+    samples = _samples(path)
+    old = core.open_session("phone", "first phone")
+    core.start(old)
+    for k in range(0, 2000, 20):
+        core.process(old, core.feed(old, samples[k:k + 20]))
+    assert core.t_sent is not None
+    new = core.open_session("phone", "second phone")     # on show; core.start(new) not yet
+    recs.start("lesson")
+    core.start(new)
+    for k in range(0, 400, 20):
+        core.process(new, core.feed(new, samples[k:k + 20]))
+    recs.stop()
+    start = read_events(tmp_path / "rec" / "lesson.events.jsonl")[0]
+    assert start["warm_s"] == 0.0 and start["state"] is False, start
+    assert not (tmp_path / "rec" / "lesson.state.npz").exists()
