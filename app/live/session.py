@@ -82,8 +82,13 @@ class Session:
         return self.orderer.flush()
 
     def held(self) -> list[Sample]:
-        """What the reorder buffer holds, in the order it will release it (a copy)."""
+        """What the reorder buffer holds, in the order it will release it, on each
+        sensor's own clock (a copy)."""
         return self.orderer.held()
+
+    def unmapped(self, samples: list[Sample]) -> list[Sample]:
+        """Samples this stream released, back on each sensor's own clock."""
+        return self.orderer.unmapped(samples)
 
     def quiet(self) -> bool:
         """Open, with samples buffered, and nothing received for :data:`QUIET_S` or more."""

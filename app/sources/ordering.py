@@ -181,12 +181,18 @@ class SampleOrderer:
         """What the buffer holds, in the order it will release it, each on its own
         sensor's clock as it came in (a copy; nothing is released): the buffer in time
         order, then what waits for the reference clock or aside after a time jump."""
-        out = []
-        for t, _, s in sorted(self._heap, key=lambda x: (x[0], x[1])):
-            off = self._offsets_ms.get(s.tag, 0)
-            out.append(s if not off else Sample(s.time_ms + off, s.tag, s.values))
+        out = self.unmapped([s for _, _, s in sorted(self._heap, key=lambda x: (x[0], x[1]))])
         out.extend(self._pending)
         out.extend(s for aside in self._aside.values() for _, _, s in aside)
+        return out
+
+    def unmapped(self, samples: list[Sample]) -> list[Sample]:
+        """Released (or held) samples put back on their own sensor's clock, as they came
+        in: each tag's offset to the reference clock added back."""
+        out = []
+        for s in samples:
+            off = self._offsets_ms.get(s.tag, 0)
+            out.append(s if not off else Sample(s.time_ms + off, s.tag, s.values))
         return out
 
     def _rates(self) -> dict[str, float]:

@@ -174,7 +174,8 @@ class RecordingService:
         in the reorder buffer), as they came to this stage; and, when the filters have
         stepped some of the stream already (``state``), their state now. A re-run (from
         that state) then steps what the live filters stepped after it."""
-        pending = (list(self.queued(s)) if self.queued is not None else []) + s.held()
+        queued = list(self.queued(s)) if self.queued is not None else []
+        pending = s.unmapped(queued) + s.held()       # each on its sensor's own clock
         if pending and self.undo_later_stages is not None:
             pending = self.undo_later_stages(pending)
         rec.write_samples(pending)

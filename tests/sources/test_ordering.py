@@ -368,3 +368,25 @@ def test_a_slow_sensors_first_sample_is_no_stop():
     for s in _tagged({"ACC": 100, "MAG": 0.2}, 5.0, 9.9):
         o.push(s)
     assert o.stopped() == frozenset() and o.rates()["MAG"] == pytest.approx(0.2)
+
+
+def test_held_and_released_samples_go_back_on_their_own_clocks():
+    """A recording begun into its stream writes what the buffer holds (and what it has
+    released but is not filtered yet) into its log: each on its own sensor's clock, as it
+    came in, as every later line is (on the reference clock they were 180° off in a
+    reviewer's re-run of a phone whose ACC runs 131072 s ahead)."""
+    o = SampleOrderer(window=0.05)
+    ahead = 131_072_000
+    came: list[Sample] = []
+    released: list[Sample] = []
+    for k in range(40):
+        for s in (Sample(1000 + 5 * k, "GYR", (0.0, 0.0, 0.0)),
+                  Sample(1000 + 5 * k + ahead, "ACC", (0.0, 0.0, 9.81))):
+            came.append(s)
+            released.extend(o.push(s))
+    held = o.held()
+    assert held and released and o.offsets["ACC"] == pytest.approx(ahead / 1000.0)
+    assert any(s.tag == "ACC" for s in held)
+    back = o.unmapped(released) + held
+    assert sorted((s.time_ms, s.tag) for s in back) == sorted((s.time_ms, s.tag) for s in came)
+    assert len(o.held()) == len(held)          # a copy: nothing released
