@@ -88,6 +88,13 @@ def test_recorded_before_the_phone_streams_a_rerun_gives_the_live_estimates(shar
         start = read_events(folder / "warm.events.jsonl")[0]
         assert SPLIT_S - 1.0 < start["warm_s"] < SPLIT_S + 1.0, start
         assert start["state"] is True and (folder / "warm.state.npz").is_file()
+        # the three files a re-run needs can be downloaded (a student's own PC)
+        for part, f in (("log", "warm.txt"), ("events", "warm.events.jsonl"),
+                        ("state", "warm.state.npz")):
+            r = api.get(f"/api/recordings/warm/{part}")
+            assert r.status_code == 200 and r.content == (folder / f).read_bytes(), part
+        r = api.get("/api/recordings/cold/state")
+        assert r.status_code == 404 and "began with its stream" in r.text
         err, said = _rerun_error(folder, "warm", tmp_path, capsys)
         print(f"warm: {err.size} rows, max {err.max():.4f}°")
         assert "goes on from the live filters' state" in said, said

@@ -95,6 +95,26 @@ async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> F
     return FileResponse(path, media_type=media, filename=path.name)
 
 
+@router.get("/{name}/events")
+async def download_events(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
+    """The recording's events (JSON lines: the settings it began with, every change):
+    ``orientlab estimate LOG --config NAME.events.jsonl`` re-runs it with them."""
+    path = tk.recording.files(name)["events"]
+    if path is None:
+        raise ToolError("name", f"{name!r} has no events file (an app log dropped in?)", 404)
+    return FileResponse(path, media_type="application/x-ndjson", filename=path.name)
+
+
+@router.get("/{name}/state")
+async def download_state(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
+    """The filters' state as the recording began (``NAME.state.npz``, for one begun into
+    its stream): beside the log and the events file, a re-run goes on from it."""
+    path = tk.recording.files(name)["state"]
+    if path is None:
+        raise ToolError("name", f"{name!r} has no state file (it began with its stream)", 404)
+    return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
+
 @router.post("/{name}/rerun", dependencies=[Depends(require_presenter)])
 async def rerun(name: str, body: Any = Body(None), tk: Toolkit = Depends(get_toolkit)) -> dict:
     """Re-run the whole recording through every estimator, before and after ``patch``."""
