@@ -38,6 +38,27 @@ def no_rejection_changes(base: str) -> dict[str, Any]:
 PRESETS = ("no-rejection", "lab-approx")
 
 
+def preset(key: str, primary: str) -> tuple[str, str, dict[str, Any]]:
+    """A ready-made variant (:data:`PRESETS`) as ``(name, base, params)``, ``primary``
+    the estimator on show: ``no-rejection`` it with every gate off, ``lab-approx`` the lab
+    filter with the approximate time update; ToolError for another key."""
+    if key == "no-rejection":
+        return f"{primary}-no-rejection", primary, no_rejection_changes(primary)
+    if key == "lab-approx":
+        return "lab-approx", "lab", {"time_update": "approx"}
+    raise ToolError("preset", f"one of {', '.join(PRESETS)}")
+
+
+def ready_made(primary: str) -> dict[str, tuple[str, dict[str, Any]]]:
+    """Every ready-made variant for the estimator ``primary``: ``{name: (base, params)}``
+    (the benchmarks add them to measure the cost of variants)."""
+    out = {}
+    for key in PRESETS:
+        name, base, params = preset(key, primary)
+        out[name] = (base, params)
+    return out
+
+
 class VariantService:
     """Variants on the live ensemble: checks an instance to add or remove before the
     server posts the change (the ensemble applies it between two chunks). ``core``: the
@@ -62,12 +83,7 @@ class VariantService:
         """A ready-made variant (:data:`PRESETS`) as ``(name, base, params)``:
         ``no-rejection`` the primary with every gate off, ``lab-approx`` the lab filter
         with the approximate time update; ToolError for another key."""
-        if key == "no-rejection":
-            base = self.core.ensemble.base_of(self.core.ensemble.primary)
-            return f"{base}-no-rejection", base, no_rejection_changes(base)
-        if key == "lab-approx":
-            return "lab-approx", "lab", {"time_update": "approx"}
-        raise ToolError("preset", f"one of {', '.join(PRESETS)}")
+        return preset(key, self.core.ensemble.base_of(self.core.ensemble.primary))
 
     def check_remove(self, name: str) -> str:
         """``name`` if it is a variant on the ensemble, else ToolError (404 or 409)."""
