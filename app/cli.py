@@ -285,13 +285,14 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
     """``--config``: a preset (TOML), or a recording's events file (``NAME.events.jsonl``:
     the settings it began with). Returns the checked config, the magnetometer
     calibration to apply to the field's rows, as it changed over time
-    (:func:`app.toolkit.recording.magcal_changes`; a preset's ``[magcal]`` from the start),
+    (:func:`app.toolkit.recorded.magcal_changes`; a preset's ``[magcal]`` from the start),
     and for a recording ``{"warm_s", "state"}``: how far into its stream it began and the
     live filters' state then (``NAME.state.npz``, per instance; {} if none).
     CliError on a refused file or value."""
     from app.config import config_from
-    from app.toolkit.recording import (EVENTS_SUFFIX, STATE_SUFFIX, magcal_changes, read_events,
-                                       recorded_state, settings_of, warm_start_s)
+    from app.toolkit.recording import EVENTS_SUFFIX, STATE_SUFFIX
+    from app.toolkit.recorded import (magcal_changes, read_events, recorded_state, settings_of,
+                                      warm_start_s)
     try:
         if config_path is not None and str(config_path).endswith(EVENTS_SUFFIX):
             if not Path(config_path).is_file():
@@ -329,9 +330,9 @@ def take_up_state(est, recording: dict[str, Any]):
     """A recording begun into its stream: ``est``'s like, going on from the live filter's
     state as it began (its instance of the same name; ``est``'s parameters set after, as a
     live change), and it says so; else ``est``, and it says why the re-run starts cold
-    (:func:`app.toolkit.recording.warm_note`)."""
+    (:func:`app.toolkit.recorded.warm_note`)."""
     from app.params import to_dict
-    from app.toolkit.recording import warm_estimator, warm_note
+    from app.toolkit.recorded import warm_estimator, warm_note
     if not recording:
         return est
     saved = (recording.get("state") or {}).get(est.name)

@@ -333,7 +333,7 @@ def correct_rows(t: np.ndarray, mag: np.ndarray,
                  changes: list[tuple[float | None, dict | None]]) -> np.ndarray:
     """Rows of raw field (N, 3) corrected by the calibration in force at each row's time
     ``t`` (s): ``changes`` is ``[(after t or None: from the start, [magcal] table or
-    None)]`` in order (:func:`app.toolkit.recording.magcal_changes`); a calibration takes
+    None)]`` in order (:func:`app.toolkit.recorded.magcal_changes`); a calibration takes
     the rows later than its ``t``. Rows under none stay as they are; NaN rows stay NaN."""
     out = np.array(mag, dtype=float, copy=True)
     t = np.asarray(t, dtype=float)
@@ -457,7 +457,7 @@ class MagCalService:
         (s) of the last MAG sample corrected the old way, ``magcal_from_t`` (None: no MAG
         yet in this stream, every one is corrected the new way). A re-run corrects the
         log's raw field by the calibration in force after it
-        (:func:`app.toolkit.recording.magcal_changes`)."""
+        (:func:`app.toolkit.recorded.magcal_changes`)."""
         ms = self._since_ms
         return {"magcal_from_t": None if ms is None else ms / 1000.0}
 

@@ -33,7 +33,7 @@ begun while the filters were running on its stream:
 ``NAME.state.npz``
     Every filter's state as the recording began (:meth:`Recorder.write_state`), when they
     had filtered some of the stream already: a re-run goes on from it
-    (:func:`recorded_state`, :func:`warm_estimator`).
+    (:func:`app.toolkit.recorded.recorded_state`).
 
 A stream ends the segment: if the phone disconnects while recording, the files are
 closed cleanly (``end`` says why); when a stream starts again, the recording goes on in
@@ -57,7 +57,6 @@ import os
 import re
 import shutil
 import time
-import zipfile
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -351,7 +350,7 @@ class Recorder:
         if seg.written == 0 and self.error is None:
             self._remove(seg)
         else:
-            seg.bytes = sum(_size(p) for p in self._files(seg))
+            seg.bytes = sum(file_size(p) for p in self._files(seg))
 
     def _files(self, seg: Segment) -> list[Path]:
         return [seg.path] + [self.folder / (seg.name + sfx) for sfx in SIBLING_SUFFIXES]
@@ -479,7 +478,7 @@ class Recorder:
     def write_state(self, arrays: dict[str, np.ndarray]) -> None:
         """The live filters' state as the segment begins (``NAME.state.npz``: the arrays of
         :meth:`app.live.ensemble.Ensemble.state_arrays`, ``instance/attribute``; no pickle),
-        for a re-run that goes on from it (:func:`read_state`)."""
+        for a re-run that goes on from it (:func:`app.toolkit.recorded.read_state`)."""
         seg = self.segment
         if seg is None or not arrays:
             return
@@ -488,7 +487,7 @@ class Recorder:
         def write():
             with open(path, "wb") as fh:
                 np.savez(fh, **arrays)
-            self._seg_bytes += _size(path)
+            self._seg_bytes += file_size(path)
         self._guard(write, path)
 
     def write_estimates(self, name: str, t: np.ndarray, tags: list[str] | str,
@@ -613,317 +612,13 @@ def _path_of(fh) -> Path:
     return Path(name)
 
 
-def _size(p: Path) -> int:
+def file_size(p: Path) -> int:
+    """A file's size in bytes, 0 if it cannot be read."""
     try:
         return p.stat().st_size
     except OSError:
         return 0
 
 
-# ---------------------------------------------------------------- the folder
-
-def recording_files(folder: str | Path, name: str) -> dict[str, Path | None]:
-    """The files of recording ``name``: ``log`` (required), ``estimates``, ``events``
-    (None when absent). RecordingError if there is no such log."""
-    folder = Path(folder)
-    check_name(name)
-    log = None
-    for suffix in (LOG_SUFFIX, ".log", ".csv", ".npz", ""):
-        p = folder / (name + suffix)
-        if p.is_file() and not any(p.name.endswith(s) for s in SIBLING_SUFFIXES):
-            log = p
-            break
-    if log is None:
-        # the folder by its name only: a watcher may read this (never the presenter's paths)
-        raise RecordingError(f"no recording named {name!r} in the folder {folder.name or str(folder)!r}")
-    ev = folder / (name + EVENTS_SUFFIX)
-    st = folder / (name + STATE_SUFFIX)
-    return {"log": log, "estimates": estimates_file(folder, name),
-            "events": ev if ev.is_file() else None, "state": st if st.is_file() else None}
-
-
-def read_state(path: str | Path | None) -> dict[str, dict[str, np.ndarray]]:
-    """The live filters' state a recording began with (:meth:`Recorder.write_state`), per
-    instance: ``{instance: {attribute: array}}``; {} when there is none. RecordingError
-    for a file that is not one (too large, not an npz, objects in it)."""
-    if path is None or not Path(path).is_file():
-        return {}
-    path = Path(path)
-    if _size(path) > MAX_STATE_BYTES:
-        raise RecordingError(f"{path.name}: larger than {MAX_STATE_BYTES} bytes: not a state file")
-    out: dict[str, dict[str, np.ndarray]] = {}
-    try:
-        with zipfile.ZipFile(path) as zf:     # what it holds unpacked, before unpacking it
-            if sum(i.file_size for i in zf.infolist()) > MAX_STATE_BYTES:
-                raise ValueError(f"it unpacks to more than {MAX_STATE_BYTES} bytes")
-        with np.load(path, allow_pickle=False) as z:
-            for key in z.files:
-                inst, sep, attr = key.partition("/")
-                if sep:
-                    out.setdefault(inst, {})[attr] = np.asarray(z[key], dtype=float)
-    except Exception as e:   # whatever a damaged file raises (zip, npy, EOF): not used
-        raise RecordingError(f"{path.name}: not a state file ({type(e).__name__}: "
-                             f"{str(e)[:120]})") from None
-    return out
-
-
-def recorded_state(files: dict[str, Path | None], events: list[dict[str, Any]]
-                   ) -> tuple[dict[str, tuple[str, dict[str, Any], dict[str, np.ndarray]]],
-                              str | None]:
-    """The live filters' state a recording began with, when its ``start`` event says it
-    kept one and the file is that one (each instance's ``_last_t`` at the event's ``t``):
-    ``({instance: (its estimator, its parameters then, its state)}, None)``. Else ``({}, why)``: why a
-    re-run starts cold, or None when the recording began with its stream (none to keep)."""
-    start = next((e for e in events if e.get("kind") == "start"), None) or {}
-    path = files.get("state")
-    if not start.get("state"):
-        return {}, (f"{path.name} is not this recording's (its start event names none): "
-                    "not used" if path is not None else None)
-    if path is None:
-        return {}, "its state file is missing"
-    try:
-        state = read_state(path)
-    except RecordingError as e:
-        return {}, str(e)
-    t, params = start.get("t"), start.get("params") or {}
-    out = {}
-    for inst, arrays in state.items():
-        lt = arrays.get("_last_t")
-        if t is None or lt is None or np.ndim(lt) or abs(float(lt) - float(t)) > 1e-6:
-            return {}, f"{path.name} is not the state this recording began with: not used"
-        p = params.get(inst)
-        if isinstance(p, dict):
-            out[inst] = (str(p.get("base", inst)),
-                         {k: v for k, v in p.items() if k != "base" and v is not None}, arrays)
-    return out, None
-
-
-def estimates_file(folder: str | Path, name: str) -> Path | None:
-    """The estimates file of recording ``name`` (gzip, or an older plain CSV), or None."""
-    for sfx in (ESTIMATES_SUFFIX, PLAIN_ESTIMATES_SUFFIX):
-        p = Path(folder) / (name + sfx)
-        if p.is_file():
-            return p
-    return None
-
-
-def read_events(path: str | Path | None) -> list[dict[str, Any]]:
-    """The events of a recording (bad lines skipped)."""
-    out = []
-    if path is None or not Path(path).is_file():
-        return out
-    for line in Path(path).read_text(errors="replace").splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return out
-
-
-def settings_of(events: list[dict[str, Any]]) -> dict[str, Any]:
-    """The settings a recording began with (its ``start`` event), as a preset table
-    (:func:`app.config.validate_config` checks it): ``primary``, each estimator's
-    parameters (the instances named as their estimator; variants are left out) and the
-    magnetometer calibration in force (``magcal``), if any. ValueError when there is no
-    ``start`` event with parameters."""
-    start = next((e for e in events if e.get("kind") == "start"
-                  and isinstance(e.get("params"), dict)), None)
-    if start is None:
-        raise ValueError("no 'start' event with the parameters (not an orientlab recording's "
-                         "events file?)")
-    out: dict[str, Any] = {}
-    params = start["params"]
-    for key, value in params.items():
-        if key == "primary":       # a variant on show (robust-no-rejection): its estimator
-            inst = params.get(value)
-            out[key] = inst.get("base", value) if isinstance(inst, dict) else value
-        elif key == "magcal":
-            out[key] = value
-        elif isinstance(value, dict) and value.get("base", key) == key:
-            out[key] = {k: v for k, v in value.items() if k != "base" and v is not None}
-    return out
-
-
-def warm_estimator(base: str, params: dict[str, Any], saved) -> Any:
-    """A new ``base`` estimator with ``params``, going on from a recording's saved state
-    (``saved``: a :func:`recorded_state` entry, or None) as the live one would have: made
-    with the parameters it was recorded with, its state taken up, then ``params`` set (a
-    live change's order: a changed window resized, a changed reference field applied).
-    Returns ``(estimator, warm)``; cold (``warm`` False) when the state does not fit."""
-    from app.estimators import make_estimator
-    from app.params import ParamError
-    if saved is not None and saved[0] == base:
-        try:
-            est = make_estimator(base, saved[1])
-            est.restore_arrays(saved[2])
-            est.set_params(**params)
-            return est, True
-        except (ValueError, ParamError):
-            pass
-    return make_estimator(base, params), False
-
-
-def warm_start_s(events: list[dict[str, Any]]) -> float:
-    """How long the live filters had run on the stream when the recording began (its
-    ``start`` event's ``warm_s``; 0 when it does not say)."""
-    start = next((e for e in events if e.get("kind") == "start"), None)
-    try:
-        return float((start or {}).get("warm_s") or 0.0)
-    except (TypeError, ValueError):
-        return 0.0
-
-
-WARM_NOTE_S = 0.5    # a recording begun later than this into its stream is said to be warm
-
-
-def warm_note(warm_s: float, warm: bool = False, why: str | None = None) -> str | None:
-    """What a re-run of a recording begun ``warm_s`` into its stream should say, or None.
-    ``warm``: the re-run goes on from the live filters' state as the recording began (its
-    state file was read); ``why``: why not (:func:`recorded_state`)."""
-    if why is not None and not warm:
-        return (f"{why}; the re-run starts cold at the recording's first line" if warm_s <= WARM_NOTE_S
-                else f"{why}; " + warm_note(warm_s))
-    if warm_s <= WARM_NOTE_S:
-        return None
-    if warm:
-        return (f"the recording began {warm_s:.1f} s into its stream: the re-run goes on from "
-                "the live filters' state at its first line (gyroscope bias and field as they "
-                "had learned them)")
-    return (f"the recording began {warm_s:.1f} s into its stream: a re-run starts cold at its "
-            "first line, where the live filters had been running; it differs from what they "
-            "showed until it has learned the gyroscope's bias and the field again (the heading "
-            "can take tens of seconds). To reproduce a recording, press Record before the "
-            "phone streams")
-
-
-def magcal_changes(events: list[dict[str, Any]]) -> list[tuple[float | None, dict | None]]:
-    """The magnetometer calibration in force over a recording, as it changed:
-    ``[(after t, its [magcal] table or None), ...]``, the first from the start (``None``),
-    then one per ``params`` event that changed it, for the MAG samples after its
-    ``magcal_from_t`` (the last one corrected the old way: the correction is applied as
-    samples arrive), or after the event's ``t`` in a recording that does not have it. A
-    change before the stream's first field sample (``None``) replaces those before it.
-    The log holds the raw field; the live filters got it corrected by these."""
-    out: list[tuple[float | None, dict | None]] = []
-    for e in events:
-        params = e.get("params")
-        if not isinstance(params, dict) or e.get("kind") not in ("start", "params"):
-            continue
-        table = params.get("magcal") or None
-        if e["kind"] == "start":
-            out = [(None, table)]
-        elif not out or out[-1][1] != table:
-            t = params["magcal_from_t"] if "magcal_from_t" in params else e.get("t")
-            if t is None:          # before any field sample of the stream: it is the first
-                out = [(None, table)]
-            else:
-                out.append((float(t), table))
-    return out
-
-
-def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
-    """Every recording in ``folder``, newest first: our own (log + siblings) and any app
-    log, CSV or npz dropped in it (name = file stem); never an empty (0-byte) file.
-    ``seconds``/``samples`` come from the events file when there is one (else None: the
-    log is not read here)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        return []
-    out = []
-    for p in folder.iterdir():
-        if not p.is_file() or p.name.startswith("."):
-            continue
-        if any(p.name.endswith(s) for s in SIBLING_SUFFIXES):
-            continue
-        if p.suffix.lower() not in (".txt", ".log", ".csv", ".npz"):
-            continue
-        name = p.stem
-        if not NAME_RE.match(name):
-            continue
-        try:
-            st = p.stat()
-        except OSError:
-            continue
-        if st.st_size == 0:     # nothing in it (a recording started as a stream ended)
-            continue
-        ev = folder / (name + EVENTS_SUFFIX)
-        events = read_events(ev) if ev.is_file() else []
-        end = next((e for e in reversed(events) if e.get("kind") == "end"), None)
-        out.append({"name": name, "path": str(p), "bytes": st.st_size, "modified": st.st_mtime,
-                    "orientlab": bool(events),
-                    "has_estimates": estimates_file(folder, name) is not None,
-                    "seconds": end.get("seconds") if end else None,
-                    "samples": end.get("samples") if end else None,
-                    "end_reason": end.get("reason") if end else None,
-                    "complete": end is not None or not events})
-    out.sort(key=lambda r: r["modified"], reverse=True)
-    return out
-
-
-def _estimate_lines(path: Path, cut: list[str] | None = None):
-    """The text lines of an estimates file, gzip or plain; a gzip still being written
-    (or cut short) gives the lines up to where it was flushed, and says why in ``cut``."""
-    with open(path, "rb") as fh:
-        gz = fh.read(2) == b"\x1f\x8b"
-    if not gz:
-        with open(path, newline="") as fh:
-            yield from fh
-        return
-    rest = b""
-    with gzip.open(path, "rb") as fh:
-        while True:
-            try:
-                block = fh.read(1 << 16)
-            except (EOFError, gzip.BadGzipFile, OSError) as e:
-                if cut is not None:
-                    cut.append(str(e) or type(e).__name__)
-                block = b""
-            if not block:
-                break
-            lines = (rest + block).split(b"\n")
-            rest = lines.pop()
-            for ln in lines:
-                yield ln.decode("utf-8", "replace") + "\n"
-    # a last line without its newline was cut short: dropped
-
-
-def read_estimates(path: str | Path, warn: bool = True) -> dict[str, dict[str, np.ndarray]]:
-    """A recording's estimates file (``.estimates.csv.gz`` or an older plain
-    ``.estimates.csv``): per estimator ``{"t": (N,), "q": (N, 4)}``. A gzip that ends
-    early (a recording still being written, or a file cut short) gives the rows up to
-    there, with a warning (``EstimatesCutShort``) saying so, unless ``warn`` is False."""
-    import csv
-    import warnings
-    per: dict[str, tuple[list, list]] = {}
-    cut: list[str] = []
-    try:
-        return _read_estimate_rows(csv.reader(_estimate_lines(Path(path), cut)), per)
-    finally:
-        if cut and warn:
-            n = sum(len(v[0]) for v in per.values())
-            warnings.warn(f"{path}: the file ends early ({cut[0]}): {n} rows read, the rest is "
-                          "missing (a recording still being written, or a file cut short)",
-                          EstimatesCutShort, stacklevel=2)
-
-
-class EstimatesCutShort(UserWarning):
-    """An estimates file that ends early: :func:`read_estimates` read what is there."""
-
-
-def _read_estimate_rows(rd, per: dict[str, tuple[list, list]]) -> dict[str, dict[str, np.ndarray]]:
-    header = next(rd, None)
-    if not header:
-        return {}
-    ix = {c: i for i, c in enumerate(header)}
-    it, iq = ix["t"], [ix[c] for c in ("qw", "qx", "qy", "qz")]
-    ie = ix["estimator"]
-    for row in rd:
-        try:
-            tt = float(row[it])
-            q = [float(row[i]) for i in iq]
-        except (ValueError, IndexError):
-            continue
-        ts, qs = per.setdefault(row[ie], ([], []))
-        ts.append(tt)
-        qs.append(q)
-    return {k: {"t": np.array(v[0]), "q": np.array(v[1]).reshape(-1, 4)} for k, v in per.items()}
+# Reading a recording back (its files, events, estimates, saved state; the folder's
+# listing) is :mod:`app.toolkit.recorded`.

@@ -21,8 +21,8 @@ import numpy as np
 
 from app.params import to_dict
 from app.toolkit.errors import ToolError
-from app.toolkit.recording import (Recorder, RecordingError, RecordingLimits, list_recordings,
-                                   recording_files)
+from app.toolkit.recording import Recorder, RecordingError, RecordingLimits
+from app.toolkit.recorded import list_recordings, recording_files
 
 log = logging.getLogger("orientlab.recording")
 

@@ -152,9 +152,9 @@ def _one_run(base: str, params: dict[str, Any], rec: LogData, ref: np.ndarray | 
              phone_ref: np.ndarray | None,
              saved=None) -> tuple[dict[str, Any], float]:
     """One estimator over the recording; ``saved``: the live filter's state as the
-    recording began (:func:`app.toolkit.recording.recorded_state`'s entry): it goes on
+    recording began (:func:`app.toolkit.recorded.recorded_state`'s entry): it goes on
     from it, ``params`` set as a live change (one that does not fit: a cold start)."""
-    from app.toolkit.recording import warm_estimator
+    from app.toolkit.recorded import warm_estimator
     est, warm = warm_estimator(base, params, saved)
     t0 = time.perf_counter()
     res = run_in_chunks(est, rec.t, rec.gyr, rec.acc, rec.mag, rec.ori)   # the loop keeps its turns
@@ -317,10 +317,10 @@ def rerun(source: str | Path | LogData, specs: dict[str, tuple[str, dict[str, An
     """Re-run a recording (a path or a read :class:`LogData`) through every estimator
     of ``specs`` (``{name: (base, params)}``), before and after ``patch``
     (``{name: {key: value}}``); see the module doc for what comes back. ``recorded``:
-    the recording's estimates file (:func:`app.toolkit.recording.read_estimates`), what the
+    the recording's estimates file (:func:`app.toolkit.recorded.read_estimates`), what the
     live filters showed: each estimator's ``live`` error over the same rows beside the re-run's.
     ``state``: the live filters' state as the recording began, per instance
-    (:func:`app.toolkit.recording.recorded_state`): each run, before and after, goes on
+    (:func:`app.toolkit.recorded.recorded_state`): each run, before and after, goes on
     from it.
     WhatIfError for a patch naming an unknown estimator or a refused value (nothing run)."""
     patch = patch or {}
@@ -401,7 +401,7 @@ def with_recorded_magcal(rec: LogData, events: list[dict[str, Any]]) -> LogData:
     many calibrations were applied."""
     from dataclasses import replace
     from app.toolkit.magcal import correct_rows
-    from app.toolkit.recording import magcal_changes
+    from app.toolkit.recorded import magcal_changes
     changes = magcal_changes(events)
     used = sum(1 for _, table in changes if table)
     if not used or not len(rec):
@@ -445,8 +445,8 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recording import (read_estimates, read_events, recorded_state, warm_note,
-                                           warm_start_s)
+        from app.toolkit.recorded import (read_estimates, read_events, recorded_state, warm_note,
+                                          warm_start_s)
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")

@@ -21,7 +21,7 @@ import pytest
 from app.sources.readers import read_log_data
 from app.sources.sensorfusion import format_line
 from app.sources.simulate import SimConfig, simulate
-from app.toolkit.recording import EstimatesCutShort, read_estimates, read_events
+from app.toolkit.recorded import EstimatesCutShort, read_estimates, read_events
 from harness import Phone, free_ports, running_server, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]

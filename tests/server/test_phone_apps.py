@@ -602,7 +602,7 @@ def test_a_recording_of_a_sensor_logger_iphone_is_the_same_replayable_log(shared
     import sys
     from tyrex_sensorlogger import messages_ios
     from app.sources.readers import read_log_data
-    from app.toolkit.recording import read_events
+    from app.toolkit.recorded import read_events
     path = _trial(shared_dir, IPHONE)
     bodies = messages_ios(path, 1.0, standardise=False, seconds=20)
     rec_dir = tmp_path / "rec"

@@ -13,7 +13,7 @@ import pytest
 
 from app.cli import main
 from app.quaternion import error_angles
-from app.toolkit.recording import read_estimates, read_events
+from app.toolkit.recorded import read_estimates, read_events
 from harness import Phone, running_server, wait_for
 
 LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"

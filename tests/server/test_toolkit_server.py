@@ -14,7 +14,7 @@ import pytest
 
 from app.toolkit.calibration import calibrate
 from app.sources.readers import read_log_data
-from app.toolkit.recording import read_estimates, read_events
+from app.toolkit.recorded import read_estimates, read_events
 from harness import ALL_AXES, SCALE, Phone, running_server, turns_log_lines, turns_session, wait_for
 
 STILL = "alekodu_activityrecognition/sensorLog_20221024T182616_standstill.txt"

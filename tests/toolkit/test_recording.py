@@ -13,8 +13,8 @@ from app.cli import main as cli_main
 from app.estimators import make_estimator
 from app.sources.readers import read_log_data
 from app.sources.sensorfusion import decode_lines
-from app.toolkit.recording import (Recorder, RecordingError, RecordingLimits, list_recordings, read_estimates,
-    read_events, recording_files)
+from app.toolkit.recording import Recorder, RecordingError, RecordingLimits
+from app.toolkit.recorded import list_recordings, read_estimates, read_events, recording_files
 
 LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
 

@@ -21,7 +21,7 @@ from app.live.core import LiveCore
 from app.quaternion import error_angles
 from app.sources.sensorfusion import MalformedLine, parse_line
 from app.toolkit.magcal import MagCalService
-from app.toolkit.recording import read_estimates, read_events
+from app.toolkit.recorded import read_estimates, read_events
 from app.toolkit.session_recorder import RecordingService
 from app.toolkit.whatif import WhatIfService
 from conftest import SHARED
@@ -197,7 +197,7 @@ def test_a_calibration_changed_before_the_first_field_sample_replaces_the_first(
     sample (Record pressed before the phone streams, then a preset loaded) was applied on
     top of the first one, or not undone: 77° off. Each change corrects the raw field."""
     from app.toolkit.magcal import correct_rows, from_preset
-    from app.toolkit.recording import magcal_changes
+    from app.toolkit.recorded import magcal_changes
     start = {"kind": "start", "params": {"magcal": FIRST}}
     cleared = {"kind": "params", "t": None, "params": {"magcal_from_t": None}}
     second = {"kind": "params", "t": 5.0, "params": {"magcal": SECOND, "magcal_from_t": None}}
@@ -216,7 +216,7 @@ def test_a_recording_whose_primary_was_a_variant_gives_its_estimators_settings()
     """A recording made with a variant on show (robust-no-rejection) was refused by
     ``--config``: "primary: unknown estimator". Its primary reads as its estimator."""
     from app.config import config_from
-    from app.toolkit.recording import settings_of
+    from app.toolkit.recorded import settings_of
     events = [{"kind": "start", "params": {
         "robust": {"base": "robust", "gyr_noise": 0.006},
         "robust-no-rejection": {"base": "robust", "gyr_noise": 0.005},
@@ -305,7 +305,8 @@ def test_a_state_file_that_unpacks_large_is_refused(tmp_path):
     """The 1 MB cap is on what the file unpacks to, not its packed size (a reviewer's
     100 kB file unpacked to 762 MB)."""
     import zipfile
-    from app.toolkit.recording import RecordingError, read_state
+    from app.toolkit.recording import RecordingError
+    from app.toolkit.recorded import read_state
     path = tmp_path / "x.state.npz"
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
         zf.writestr("robust/_s.npy", b"\0" * 50_000_000)
