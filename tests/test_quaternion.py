@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from app import quaternion as qm
@@ -270,13 +270,16 @@ def test_error_pure_inclination(q, a, axis):
 
 @prop
 @given(quats, quats)
+@example(np.array([0.0, 0.0, 0.0, 1.0]), np.array([1e-9, 0.0, 0.0, 1.0]))
 def test_error_split_is_consistent(p, q):
     p, q = p / np.linalg.norm(p), q / np.linalg.norm(q)
     tot, head, inc = (x[0] for x in qm.error_angles(p, q))
     assert abs(tot - (rot(p) * rot(q).inv()).magnitude()) < 1e-6
     # swing-twist: cos(total/2) = cos(heading/2) cos(inclination/2)
     assert abs(math.cos(tot / 2) - math.cos(head / 2) * math.cos(inc / 2)) < 1e-9
-    assert head <= tot + 1e-9 and inc <= tot + 1e-9
+    # (the total comes from arccos, which near 1 resolves only ~1e-8 rad: a 2e-9 heading
+    # beside a total of 0 is that rounding, found by hypothesis in a fresh-clone run)
+    assert head <= tot + 1e-7 and inc <= tot + 1e-7
     # invariant under the sign of either quaternion
     np.testing.assert_allclose([x[0] for x in qm.error_angles(-p, q)], [tot, head, inc], atol=1e-9)
 
