@@ -517,11 +517,17 @@ class Estimator:
         raise NotImplementedError
 
     def save_state(self) -> Any:
-        """A deep copy of the whole mutable state (not the parameters)."""
-        return copy.deepcopy({k: v for k, v in self.__dict__.items() if k != "_params"})
+        """A copy of the mutable state (:attr:`STATE`): neither the parameters nor what
+        derives from them."""
+        return {name: copy.deepcopy(_attr(self, name)) for name in self.STATE}
 
     def load_state(self, state: Any) -> None:
-        self.__dict__.update(copy.deepcopy(state))
+        """Go back to a state :meth:`save_state` gave. The parameters in force stay, and
+        what derives from them is derived again: a state saved before a parameter change
+        goes on with the new parameters (as :meth:`set_params` would have left it), not
+        with the old coefficients."""
+        self._set_state(copy.deepcopy(state))
+        self._on_params()
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """The mutable state (:attr:`STATE`) as named arrays, copied: what a recording

@@ -10,6 +10,9 @@ import pytest
 from app.estimators import NAMES, make_estimator
 from app.estimators.base import Estimator
 from app.estimators.phone import PhoneOrientation
+from app.estimators.robust import RobustEKF
+from app.estimators.robust.state import S
+from app.params import GRAVITY
 from app.live.ensemble import Ensemble, EnsembleError
 from app.sources.simulate import simulate
 from app.sources.ordering import SampleOrderer
@@ -135,6 +138,40 @@ def test_a_non_finite_state_is_restored():
     rec = ensemble.step(ori_chunk(2000, [0.2, 0.5, 0.3]))
     assert inst.restored == 1
     assert np.isfinite(rec.q["nan"]).all() and np.isfinite(inst.estimator.q).all()
+
+
+class NaNRobust(RobustEKF):
+    """robust, its estimate made NaN by a gyroscope sample whose x is 0.5 (a planted bug)."""
+
+    _run_rows = Estimator._run_rows
+
+    def _step(self, t, gyr, acc, mag, ori, flags):
+        super()._step(t, gyr, acc, mag, ori, flags)
+        if gyr[0] == 0.5:
+            self._s[S.q_w] = np.nan
+
+
+def test_a_restore_after_a_parameter_change_keeps_the_new_parameters():
+    """The last good state was saved before a parameter change; the restore brings back
+    that state, and the estimator goes on with the parameters in force (a deep copy of
+    the whole object had brought back the old coefficients: a switched-off magnetometer
+    used again)."""
+    from app.estimators.base import F_MAG, Reason
+    from app.sources.samples import Sample
+
+    def chunk(t0, gx):
+        return [Sample(t0, "GYR", (gx, 0.0, 0.0)), Sample(t0 + 2, "ACC", (0.0, 0.0, GRAVITY)),
+                Sample(t0 + 4, "MAG", (0.0, 20.0, -40.0))]
+
+    ensemble = Ensemble()
+    inst = ensemble.add("nan", "robust", estimator=NaNRobust())
+    ensemble.step(chunk(1000, 0.0) + chunk(1010, 0.0))    # the good state is saved as it begins
+    ensemble.set_params("nan", {"use_mag": False})
+    rec = ensemble.step(chunk(1020, 0.5))                  # ... and restored here
+    assert inst.restored == 1 and np.isfinite(rec.q["nan"]).all()
+    rec = ensemble.step(chunk(1030, 0.0))
+    assert rec.flags["nan"][2, F_MAG] == Reason.DISABLED
+    assert not inst.estimator.params.use_mag
 
 
 def test_the_phones_own_estimate_is_nan_until_its_first_valid_ori_then_shown_every_row():
