@@ -49,6 +49,56 @@ let tabPicked = false;
 function showPanel(b) {
   for (const o of document.querySelectorAll(".tabs [role=tab]")) o.setAttribute("aria-selected", String(o === b));
   for (const p of document.querySelectorAll("aside > section")) p.hidden = p.id !== b.dataset.panel;
+  recordings();
+}
+
+// The Recordings tab: each recording's files to download (anyone who sees the page may:
+// a class shares its recordings), asked again every few seconds while the tab is shown
+// (the one being recorded grows). Names are text, never markup.
+const FILES = [["log", "log", "the stream as the Sensor Fusion app logs it"],
+  ["estimates", "has_estimates", "every filter's estimate (CSV, gzip)"],
+  ["events", "orientlab", "the settings it began with and every change (JSON lines)"],
+  ["state", "has_state", "the filters' state as it began (npz)"]];
+async function recordings() {
+  clearTimeout(recordings.timer);
+  if ($("panel-recordings").hidden) return;
+  try {
+    const r = await fetch("/api/recordings");
+    if (!r.ok) throw new Error(r.statusText);
+    const v = await r.json();
+    const now = v.status && v.status.recording ? v.status.name : null;
+    $("recordings-status").textContent = (now ? `recording ${now} now · ` : "")
+      + `${v.recordings.length} recording${v.recordings.length === 1 ? "" : "s"} in the folder ${v.folder}`;
+    const items = v.recordings.map((rec) => {
+      const li = document.createElement("li");
+      const name = document.createElement("b");
+      name.textContent = rec.name;
+      const when = new Date(rec.modified * 1000).toLocaleString();
+      const what = [when, rec.seconds !== null ? span(rec.seconds) : null,
+        rec.samples !== null ? `${rec.samples} samples` : null,
+        `${(rec.bytes / 1e6).toFixed(rec.bytes < 1e6 ? 2 : 1)} MB`,
+        rec.name === now ? "recording…" : (rec.complete ? null : "not ended")].filter((x) => x);
+      const info = document.createElement("span");
+      info.className = "detail";
+      info.textContent = " " + what.join(" · ") + " ";
+      li.append(name, info);
+      for (const [file, has, title] of FILES) {
+        if (has !== "log" && !rec[has]) continue;
+        const a = document.createElement("a");
+        a.href = `/api/recordings/${encodeURIComponent(rec.name)}/${file}`;
+        a.download = "";
+        a.textContent = file;
+        a.title = title;
+        a.dataset.file = file;
+        li.append(a, " ");
+      }
+      return li;
+    });
+    $("recordings").replaceChildren(...items);
+  } catch (e) {
+    $("recordings-status").textContent = "server not reachable";
+  }
+  recordings.timer = setTimeout(recordings, 3000);
 }
 
 // The Connect tab's app: the streaming phone's, until the presenter picks one

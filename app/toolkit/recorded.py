@@ -250,6 +250,7 @@ def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
         out.append({"name": name, "path": str(p), "bytes": st.st_size, "modified": st.st_mtime,
                     "orientlab": bool(events),
                     "has_estimates": estimates_file(folder, name) is not None,
+                    "has_state": (folder / (name + STATE_SUFFIX)).is_file(),
                     "seconds": end.get("seconds") if end else None,
                     "samples": end.get("samples") if end else None,
                     "end_reason": end.get("reason") if end else None,
