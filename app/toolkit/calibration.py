@@ -469,6 +469,40 @@ def to_json(st: CalibrationStats, t=None, series: dict | None = None,
     return out
 
 
+BIAS_ESTIMATORS = ("lab",)        # lab does not estimate the gyroscope's bias: it is given one
+BIAS_MIN_S, BIAS_MAX_S = 0.5, 20.0   # "Calibrate gyro bias": the rest window's seconds
+BIAS_STILL_DEG_S = 1.0            # an axis's σ above this over the window: the phone moved
+
+
+def rest_bias(core, seconds: Any) -> np.ndarray:
+    """The mean gyroscope rate (rad/s) over the last ``seconds`` of the stream on show, in
+    which the phone lay still: the bias "Calibrate gyro bias" gives lab. ToolError naming
+    why not: the seconds out of range (422); no stream, too few samples, or the phone moved
+    (409)."""
+    seconds = check_seconds(seconds, BIAS_MIN_S, BIAS_MAX_S)
+    check_streaming(core)
+    g = core.history.gyr.window(seconds, 100_000)
+    ok = np.all(np.isfinite(g.data), axis=1)
+    t, w = g["t"][ok], g["w"][ok]
+    if t.shape[0] < 10 or t[-1] - t[0] < 0.5 * seconds:
+        raise ToolError("seconds", f"not enough gyroscope samples in the last {seconds:g} s", 409)
+    sd = float(np.degrees(w.std(axis=0)).max())
+    if sd > BIAS_STILL_DEG_S:
+        raise ToolError("seconds", f"the phone moved during the last {seconds:g} s (σ {sd:.2f} "
+                        "deg/s on one axis): let it lie still and try again", 409)
+    return w.mean(axis=0)
+
+
+def bias_change(core, bias: np.ndarray) -> dict[str, dict[str, Any]]:
+    """The parameters that give ``bias`` to the estimators that take one (to validate as
+    ``{"estimators": ...}``); ToolError (409) when none of them is running."""
+    names = [n for n in BIAS_ESTIMATORS if n in core.ensemble.instances]
+    if not names:
+        raise ToolError("estimators", f"none of {', '.join(BIAS_ESTIMATORS)} is running: no "
+                        "estimator takes a gyroscope bias", 409)
+    return {n: {"gyr_bias": [float(x) for x in bias]} for n in names}
+
+
 class CalibrationService:
     """Exercise 2 on the live server: the statistics of the next ``seconds`` of the
     stream (the phone kept still; collected by a record listener of the live core) or

@@ -64,9 +64,17 @@ def test_demo_lab_with_bias_follows_the_truth_and_disturbances_light(tmp_path):
         assert turns >= 3.0, "the demo starts with the phone at rest"
         wait_for(lambda: (stream_time(gui, api) or 0.0) >= turns - 1.0, 60.0, 0.02,
                  what="the end of the demo's rest")
-        bias, why = gui.calibrate_bias(2.0)
-        assert bias is not None, why
+        r = api.post("/api/calibrate/bias", json={"seconds": 2.0})
+        assert r.status_code == 200, r.text
+        bias = r.json()["applied"]["lab"]["gyr_bias"]
         assert np.allclose(bias, SimConfig().gyr_bias, atol=0.003)
+        assert np.allclose(r.json()["params"]["estimators"]["lab"]["gyr_bias"], bias)
+        assert np.allclose(np.radians(r.json()["gyr_bias_deg_s"]), bias, atol=1e-5)
+        for body, field in (({"seconds": 0.1}, "seconds"), ({"seconds": "2"}, "seconds"),
+                            ({"secs": 2}, "secs")):
+            r = api.post("/api/calibrate/bias", json=body)
+            assert r.status_code == 422 and field in r.text, (body, r.text)
+        assert api.patch("/api/params", json={"estimators": {"lab": {"gyr_bias": [0, 0, 0]}}}).status_code == 200
         gui.bias_seconds.value = 2.0
         gui._on_calibrate_bias(None)          # what the button does (its own, later window)
         wait_for(lambda: np.allclose(api.get("/api/params").json()["estimators"]["lab"]["gyr_bias"],
@@ -81,9 +89,9 @@ def test_demo_lab_with_bias_follows_the_truth_and_disturbances_light(tmp_path):
             if t >= turns:
                 errs.append(st["estimators"]["lab"]["error_to_truth_deg"])
                 if refused is None and t >= turns + 2.0:
-                    refused = gui.calibrate_bias(1.5)
+                    refused = api.post("/api/calibrate/bias", json={"seconds": 1.5})
             time.sleep(0.1)
-        assert refused is not None and refused[0] is None and "moved" in refused[1]
+        assert refused is not None and refused.status_code == 409 and "moved" in refused.text, refused.text
         assert len(errs) > 20
         print(f"lab with the bias: error to truth through the turns max {max(errs):.2f}°, "
               f"median {np.median(errs):.2f}° ({len(errs)} reads)")

@@ -46,6 +46,8 @@ from app.server.gui.plots import PlotFeed
 from app.server.presets import (NAME_RE, list_presets, load_preset, load_preset_path, load_preset_text,
                       save_preset, save_preset_text, shipped_names)
 from app.server.gui.scene import Indicators, Scene, describe_rejection
+from app.toolkit.calibration import BIAS_ESTIMATORS, BIAS_MAX_S, BIAS_MIN_S, rest_bias, bias_change
+from app.toolkit.errors import ToolError
 
 log = logging.getLogger("orientlab.gui")
 
@@ -55,7 +57,6 @@ HOLD_S = 1.0              # a rejection keeps its indicator lit this long
 # to the value in force, and said, only once the typing has paused this long
 REFUSAL_SETTLE_S = 1.5
 CONTROL_PANEL_PX = 340    # the control panel, docked right of the 3D view
-BIAS_ESTIMATORS = ("lab",)  # estimators given the bias by "Calibrate gyro bias"
 
 
 class Gui:
@@ -196,39 +197,28 @@ class Gui:
                                           order=self._folder_order(have[0]) - 0.5)
         with self.bias_folder:
             self.bias_seconds = gui.add_number(
-                "Rest window [s]", 3.0, min=0.5, max=20.0, step=0.5,
+                "Rest window [s]", 3.0, min=BIAS_MIN_S, max=BIAS_MAX_S, step=0.5,
                 hint="How many of the last seconds of gyroscope samples to average. The phone "
                      "must lie still for that long (it checks).")
             self.bias_button = gui.add_button(
                 "Calibrate gyro bias (last N s at rest)",
                 hint="Average the gyroscope over the rest window and give it to lab as gyr_bias "
-                     "(subtracted from every sample). Refused if the phone moved.")
+                     "(subtracted from every sample). Refused if the phone moved. "
+                     "POST /api/calibrate/bias {seconds}")
             self.bias_button.on_click(self._on_calibrate_bias)
 
-    def calibrate_bias(self, seconds: float) -> tuple[np.ndarray | None, str]:
-        """The mean gyroscope rate (rad/s) of the last ``seconds`` s of the stream, or None
-        and why not (too few samples, or the phone moved)."""
-        g = self.engine.core.history.gyr.window(seconds, 100_000)
-        ok = np.all(np.isfinite(g.data), axis=1)
-        t, w = g["t"][ok], g["w"][ok]
-        if t.shape[0] < 10 or t[-1] - t[0] < 0.5 * seconds:
-            return None, f"not enough gyroscope samples in the last {seconds:g} s"
-        sd = np.degrees(w.std(axis=0)).max()
-        if sd > 1.0:
-            return None, (f"the phone moved during the last {seconds:g} s (σ {sd:.2f} deg/s "
-                          "on one axis): let it lie still and try again")
-        return w.mean(axis=0), ""
-
     def _on_calibrate_bias(self, ev) -> None:
-        seconds = float(self.bias_seconds.value)
-        bias, why = self.calibrate_bias(seconds)
-        if bias is None:
-            self._notify(ev, "Bias not set", why)
+        """POST /api/calibrate/bias from the page (the same checks and the same change)."""
+        core = self.engine.core
+        try:
+            bias = rest_bias(core, float(self.bias_seconds.value))
+            params = bias_change(core, bias)
+        except ToolError as e:
+            self._notify(ev, "Bias not set", e.reason)
             return
-        names = [n for n in BIAS_ESTIMATORS if n in self.engine.core.ensemble.instances]
-        self._submit({"estimators": {n: {"gyr_bias": bias.tolist()} for n in names}}, ev)
+        self._submit({"estimators": params}, ev)
         d = np.degrees(bias)
-        self._notify(ev, "Gyroscope bias set", f"{', '.join(names)}: gyr_bias = "
+        self._notify(ev, "Gyroscope bias set", f"{', '.join(params)}: gyr_bias = "
                      f"({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) deg/s", color="green")
 
     def _on_primary(self, ev) -> None:

@@ -9,6 +9,8 @@ with the fitted Gaussian, time plots; g0, gyroscope bias and m0 by formula (7));
 in the estimators (and saves a preset); a calibration over a phone that moved is refused
 (409, the reasons) unless ``"force": true`` (the presenter's "apply anyway"). A
 recording's stretch is a heavy job: one at a time, two waiting, more refused (429).
+``POST /api/calibrate/bias {"seconds"?, "save_as"?}`` gives lab the gyroscope's bias: the mean
+rate of the last N s of the stream, the phone lying still (moved: 409, why).
 ``POST /api/magcal {"seconds"}`` collects the field while the phone is turned (at most
 60,000 samples and the seconds + 5 s of wall time), ``GET /api/magcal`` shows the
 coverage and the fit, or why it was refused; ``POST /api/magcal/apply {"clear"?,
@@ -30,6 +32,7 @@ from app.live.changes import PatchError
 from app.server.access import require_presenter
 from app.server.routers import get_toolkit
 from app.server.toolkit import Toolkit
+from app.toolkit.calibration import bias_change, rest_bias
 from app.toolkit.errors import ToolError
 
 router = APIRouter(prefix="/api", tags=["calibration"])
@@ -121,6 +124,21 @@ async def apply_calibration(body: Any = Body(None), tk: Toolkit = Depends(get_to
     out = await _apply(tk, tk.calibration.change(force=force), b.get("save_as"),
                        tk.calibration.note_applied)
     out["forced"] = force
+    return out
+
+
+@router.post("/calibrate/bias", dependencies=[Depends(require_presenter)])
+async def calibrate_bias(body: Any = Body(None, examples=[{"seconds": 3}]),
+                         tk: Toolkit = Depends(get_toolkit)) -> dict:
+    """Give lab (which does not estimate it) the gyroscope's bias: the mean rate over the
+    last ``seconds`` (0.5-20, default 3) of the stream, in which the phone lay still.
+    Refused (409, why) if it moved then or too few samples came; ``save_as`` also writes a
+    preset."""
+    b = _obj(body, {"seconds", "save_as"})
+    core = tk.engine.core
+    bias = rest_bias(core, b.get("seconds", 3.0))
+    out = await _apply(tk, bias_change(core, bias), b.get("save_as"))
+    out["gyr_bias_deg_s"] = [round(math.degrees(x), 4) for x in bias]
     return out
 
 
