@@ -53,12 +53,41 @@ function showPanel(b) {
 }
 
 // The Recordings tab: each recording's files to download (anyone who sees the page may:
-// a class shares its recordings), asked again every few seconds while the tab is shown
-// (the one being recorded grows). Names are text, never markup.
+// a class shares its recordings), asked again every few seconds while the tab is shown.
+// The list is rebuilt only when it changed (a link keeps its focus); the one being
+// recorded offers its log so far, its estimates once it stops (a compressed file is
+// whole only then). Names are text, never markup.
 const FILES = [["log", "log", "the stream as the Sensor Fusion app logs it"],
   ["estimates", "has_estimates", "every filter's estimate (CSV, gzip)"],
   ["events", "orientlab", "the settings it began with and every change (JSON lines)"],
   ["state", "has_state", "the filters' state as it began (npz)"]];
+function recordingItem(rec, now) {
+  const li = document.createElement("li");
+  const name = document.createElement("b");
+  name.textContent = rec.name;
+  const live = rec.name === now;
+  const what = [new Date(rec.modified * 1000).toLocaleString(),
+    rec.segment > 1 ? `part ${rec.segment} of ${rec.recording}` : null,
+    rec.seconds !== null ? span(rec.seconds) : null,
+    rec.samples !== null ? `${rec.samples} samples` : null,
+    live ? null : `${(rec.bytes / 1e6).toFixed(rec.bytes < 1e6 ? 2 : 1)} MB`,
+    live ? "recording… (the log so far; the estimates when it stops)" : (rec.complete ? null : "not ended")];
+  const info = document.createElement("span");
+  info.className = "detail";
+  info.textContent = " " + what.filter((x) => x).join(" · ") + " ";
+  li.append(name, info);
+  for (const [file, has, title] of FILES) {
+    if ((has !== "log" && !rec[has]) || (live && file === "estimates")) continue;
+    const a = document.createElement("a");
+    a.href = `/api/recordings/${encodeURIComponent(rec.name)}/${file}`;
+    a.download = "";
+    a.textContent = file;
+    a.title = title;
+    a.dataset.file = file;
+    li.append(a, " ");
+  }
+  return li;
+}
 async function recordings() {
   clearTimeout(recordings.timer);
   if ($("panel-recordings").hidden) return;
@@ -66,37 +95,28 @@ async function recordings() {
     const r = await fetch("/api/recordings");
     if (!r.ok) throw new Error(r.statusText);
     const v = await r.json();
-    const now = v.status && v.status.recording ? v.status.name : null;
-    $("recordings-status").textContent = (now ? `recording ${now} now · ` : "")
-      + `${v.recordings.length} recording${v.recordings.length === 1 ? "" : "s"} in the folder ${v.folder}`;
-    const items = v.recordings.map((rec) => {
-      const li = document.createElement("li");
-      const name = document.createElement("b");
-      name.textContent = rec.name;
-      const when = new Date(rec.modified * 1000).toLocaleString();
-      const what = [when, rec.seconds !== null ? span(rec.seconds) : null,
-        rec.samples !== null ? `${rec.samples} samples` : null,
-        `${(rec.bytes / 1e6).toFixed(rec.bytes < 1e6 ? 2 : 1)} MB`,
-        rec.name === now ? "recording…" : (rec.complete ? null : "not ended")].filter((x) => x);
-      const info = document.createElement("span");
-      info.className = "detail";
-      info.textContent = " " + what.join(" · ") + " ";
-      li.append(name, info);
-      for (const [file, has, title] of FILES) {
-        if (has !== "log" && !rec[has]) continue;
-        const a = document.createElement("a");
-        a.href = `/api/recordings/${encodeURIComponent(rec.name)}/${file}`;
-        a.download = "";
-        a.textContent = file;
-        a.title = title;
-        a.dataset.file = file;
-        li.append(a, " ");
-      }
-      return li;
-    });
-    $("recordings").replaceChildren(...items);
+    const st = v.status || {};
+    // the segment being written: a recording goes on in NAME_2... when a new stream starts
+    const segs = st.segments || [];
+    const now = st.recording ? (segs.length ? segs[segs.length - 1].name : st.name) : null;
+    const recs = v.recordings.map((x) => x.name === now ? { ...x, bytes: 0, modified: 0 } : x);
+    const key = JSON.stringify([now, recs, v.left_out, v.folder]);
+    if (key !== recordings.shown) {
+      recordings.shown = key;
+      const n = v.recordings.length;
+      $("recordings-status").textContent = (now ? `recording ${now} now · ` : "")
+        + `${n} recording${n === 1 ? "" : "s"} in the folder ${v.folder}`;
+      $("recordings").replaceChildren(...v.recordings.map((x) => recordingItem(x, now)));
+      $("recordings-left").replaceChildren(...(v.left_out || []).map((x) => {
+        const li = document.createElement("li");
+        li.textContent = `${x.file}: ${x.why}`;
+        return li;
+      }));
+      $("recordings-left-note").hidden = !(v.left_out || []).length;
+    }
   } catch (e) {
     $("recordings-status").textContent = "server not reachable";
+    recordings.shown = null;
   }
   recordings.timer = setTimeout(recordings, 3000);
 }

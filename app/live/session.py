@@ -20,6 +20,7 @@ import numpy as np
 
 from app.sources.samples import Sample
 from app.sources.ordering import SampleOrderer
+from app.sources.slot import PHONE_APPS
 
 
 SILENT_S = 3.0     # a connected phone sending nothing this long is said to be silent (s)
@@ -54,9 +55,20 @@ class Session:
         self.close_reason = ""
         self.last_rx = time.monotonic()
 
+    def public_label(self) -> str:
+        """The stream's label as anyone may read it: a phone by its app, never by its
+        address (the presenter's business, ``GET /api/connect``)."""
+        if self.kind != "phone":
+            return self.label
+        app = PHONE_APPS.get(self.phone_app, "")
+        return f"a phone ({app})" if app else "a phone"
+
     def describe(self) -> dict[str, Any]:
-        """The stream's source for a recording's events: kind, app and what was detected."""
-        return {"kind": self.kind, "label": self.label, "app": self.phone_app or None, **self.details}
+        """The stream's source for a recording's events: kind, app and what was detected.
+        A recording is shared with the class (the page's Recordings tab): a phone is named
+        by its app and what was detected, not by its address."""
+        return {"kind": self.kind, "label": self.public_label(), "app": self.phone_app or None,
+                **{k: v for k, v in self.details.items() if k != "url"}}   # url: its address
 
     @property
     def open(self) -> bool:

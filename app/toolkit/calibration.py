@@ -573,8 +573,12 @@ class CalibrationService:
     def calibrate_recording(self, name: str, from_s: float = 0.0,
                             to_s: float | None = None) -> dict[str, Any]:
         """The statistics of a stretch of a recording (seconds from its start)."""
-        from app.sources.readers import read_log_data
-        rec = read_log_data(self.files(name, "recording")["log"])
+        from app.sources.readers import ReaderError, read_log_data
+        log = self.files(name, "recording")["log"]
+        try:
+            rec = read_log_data(log)
+        except ReaderError as e:     # a file dropped in the folder that is no log
+            raise ToolError("recording", str(e).replace(str(log), log.name)) from None
         if not len(rec):
             raise ToolError("name", "the recording has no samples")
         t = rec.t - rec.t[0]

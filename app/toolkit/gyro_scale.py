@@ -314,10 +314,14 @@ class GyroScaleService:
         return await self.jobs.run(lambda: self.fit_recordings(names))
 
     def fit_recordings(self, names: list[str]) -> dict[str, Any]:
-        from app.sources.readers import read_log_data
+        from app.sources.readers import ReaderError, read_log_data
         recs = []
         for name in names:
-            rec = read_log_data(self.files(name, "recordings")["log"])
+            log = self.files(name, "recordings")["log"]
+            try:
+                rec = read_log_data(log)
+            except ReaderError as e:     # a file dropped in the folder that is no log
+                raise ToolError("recordings", str(e).replace(str(log), log.name)) from None
             recs.append(Recording(name, rec.t, rec.gyr, rec.acc))
         out = to_json(fit(recs))
         out["recordings"] = list(names)

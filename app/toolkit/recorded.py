@@ -9,28 +9,25 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from app.toolkit.recording import (ESTIMATES_SUFFIX, EVENTS_SUFFIX, LOG_SUFFIX, MAX_STATE_BYTES,
-                                   NAME_RE, PLAIN_ESTIMATES_SUFFIX, SIBLING_SUFFIXES,
-                                   STATE_SUFFIX, RecordingError, check_name, file_size)
+from app.toolkit.recording import (ESTIMATES_SUFFIX, EVENTS_SUFFIX, MAX_STATE_BYTES,
+                                   PLAIN_ESTIMATES_SUFFIX, STATE_SUFFIX, RecordingError,
+                                   check_name, file_size, find_log, recording_logs)
 
 
 def recording_files(folder: str | Path, name: str) -> dict[str, Path | None]:
-    """The files of recording ``name``: ``log`` (required), ``estimates``, ``events``
-    (None when absent). RecordingError if there is no such log."""
+    """The files of recording ``name``: ``log`` (required; the one the listing shows,
+    :func:`~app.toolkit.recording.find_log`), ``estimates``, ``events``, ``state`` (None
+    when absent). RecordingError if there is no such log."""
     folder = Path(folder)
     check_name(name)
-    log = None
-    for suffix in (LOG_SUFFIX, ".log", ".csv", ".npz", ""):
-        p = folder / (name + suffix)
-        if p.is_file() and not any(p.name.endswith(s) for s in SIBLING_SUFFIXES):
-            log = p
-            break
+    log = find_log(folder, name)
     if log is None:
         # the folder by its name only: a watcher may read this (never the presenter's paths)
         raise RecordingError(f"no recording named {name!r} in the folder {folder.name or str(folder)!r}")
@@ -219,44 +216,73 @@ def magcal_changes(events: list[dict[str, Any]]) -> list[tuple[float | None, dic
     return out
 
 
-def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
-    """Every recording in ``folder``, newest first: our own (log + siblings) and any app
-    log, CSV or npz dropped in it (name = file stem); never an empty (0-byte) file.
-    ``seconds``/``samples`` come from the events file when there is one (else None: the
-    log is not read here)."""
+EVENTS_HEAD_BYTES = 1 << 20    # the start event (the parameters: some kB) is in this much
+EVENTS_TAIL_BYTES = 1 << 16    # the end event (a few hundred bytes) is in this much
+
+
+def _first_and_last_event(path: Path) -> tuple[dict | None, dict | None]:
+    """The first event of an events file and its ``end`` event, if it ended: read from
+    its head and its tail only (a long recording's file holds every change; the
+    listing reads it twice a second)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.readline(EVENTS_HEAD_BYTES)
+            size = os.fstat(fh.fileno()).st_size
+            fh.seek(max(0, size - EVENTS_TAIL_BYTES))
+            tail = fh.read()
+    except OSError:
+        return None, None
+
+    def parsed(line: bytes) -> dict | None:
+        try:
+            v = json.loads(line)
+        except ValueError:
+            return None
+        return v if isinstance(v, dict) else None
+
+    first = parsed(head)
+    last = next((v for v in (parsed(x) for x in reversed(tail.splitlines()) if x.strip())
+                 if v is not None), None)
+    return first, (last if last is not None and last.get("kind") == "end" else None)
+
+
+def scan_recordings(folder: str | Path) -> tuple[list[dict[str, Any]], list[dict[str, str]]]:
+    """Every recording in ``folder``, newest first, and the files left out with why
+    (:func:`~app.toolkit.recording.recording_logs`). A recording is our own (log and
+    siblings) or any app log, CSV or npz dropped in (its name: the file's stem).
+    ``seconds``/``samples`` come from the events file's end (None without one: the log
+    is not read here); ``recording``/``segment``: the recording a later segment
+    (``NAME_2``) belongs to, and which part it is."""
     folder = Path(folder)
     if not folder.is_dir():
-        return []
+        return [], []
+    logs, left = recording_logs(folder)
     out = []
-    for p in folder.iterdir():
-        if not p.is_file() or p.name.startswith("."):
-            continue
-        if any(p.name.endswith(s) for s in SIBLING_SUFFIXES):
-            continue
-        if p.suffix.lower() not in (".txt", ".log", ".csv", ".npz"):
-            continue
-        name = p.stem
-        if not NAME_RE.match(name):
-            continue
+    for name, p in logs.items():
         try:
             st = p.stat()
         except OSError:
             continue
-        if st.st_size == 0:     # nothing in it (a recording started as a stream ended)
-            continue
         ev = folder / (name + EVENTS_SUFFIX)
-        events = read_events(ev) if ev.is_file() else []
-        end = next((e for e in reversed(events) if e.get("kind") == "end"), None)
+        start, end = _first_and_last_event(ev) if ev.is_file() else (None, None)
+        events = start is not None
         out.append({"name": name, "path": str(p), "bytes": st.st_size, "modified": st.st_mtime,
-                    "orientlab": bool(events),
+                    "orientlab": events,
                     "has_estimates": estimates_file(folder, name) is not None,
                     "has_state": (folder / (name + STATE_SUFFIX)).is_file(),
+                    "recording": start.get("recording", name) if events else name,
+                    "segment": start.get("segment", 1) if events else 1,
                     "seconds": end.get("seconds") if end else None,
                     "samples": end.get("samples") if end else None,
                     "end_reason": end.get("reason") if end else None,
                     "complete": end is not None or not events})
     out.sort(key=lambda r: r["modified"], reverse=True)
-    return out
+    return out, left
+
+
+def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
+    """Every recording in ``folder``, newest first (:func:`scan_recordings`)."""
+    return scan_recordings(folder)[0]
 
 
 def _estimate_lines(path: Path, cut: list[str] | None = None):

@@ -69,6 +69,7 @@ from app.sources.sensorfusion import format_line
 from app.estimators.base import F_ACC, F_ACC_NIS, F_ACC_VAL, F_GYR, F_MAG, F_MAG_NIS, F_MAG_VAL, F_REST, F_TIME
 
 LOG_SUFFIX = ".txt"
+LOG_SUFFIXES = (LOG_SUFFIX, ".log", ".csv", ".npz")   # a recording's log: ours, then an app's
 ESTIMATES_SUFFIX = ".estimates.csv.gz"
 PLAIN_ESTIMATES_SUFFIX = ".estimates.csv"      # recordings made before the gzip
 EVENTS_SUFFIX = ".events.jsonl"
@@ -116,12 +117,88 @@ class RecordingError(Exception):
     """A recording cannot be started, read or written (the message says why)."""
 
 
+NAME_RULE = "letters, digits, '.', '_' or '-' (at most 120), not beginning with '.', '_' or '-'"
+
+
+def name_ok(name: Any) -> bool:
+    """A recording name: letters, digits, ``.``, ``_``, ``-`` (no path, no ``..``)."""
+    return isinstance(name, str) and NAME_RE.match(name) is not None and ".." not in name
+
+
 def check_name(name: str) -> str:
-    """A recording name: letters, digits, ``.``, ``_``, ``-`` (no path)."""
-    if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
-        raise RecordingError(f"invalid recording name {name!r}: use letters, digits, '.', '_' "
-                             f"or '-' (at most 120)")
+    """``name`` if it is a recording name (:func:`name_ok`), else RecordingError."""
+    if not name_ok(name):
+        raise RecordingError(f"invalid recording name {name!r}: use {NAME_RULE}")
     return name
+
+
+def _log_rank(p: Path) -> tuple[int, int] | None:
+    """How file ``p`` ranks as a recording's log, the best first: its extension exactly
+    one of :data:`LOG_SUFFIXES` before one in other case (``X.TXT``), then in that tuple's
+    order; None when it is not a log (a sibling, a hidden file, another extension)."""
+    low = p.name.lower()
+    if p.name.startswith(".") or any(low.endswith(s) for s in SIBLING_SUFFIXES):
+        return None
+    suffix = p.suffix.lower()
+    if suffix not in LOG_SUFFIXES:
+        return None
+    return (int(p.suffix != suffix), LOG_SUFFIXES.index(suffix))
+
+
+def recording_logs(folder: str | Path) -> tuple[dict[str, Path], list[dict[str, str]]]:
+    """The recordings in ``folder``: ``{name: its log}``, newest first, one log per name
+    (the best by :func:`_log_rank`: a name is one recording wherever it is listed,
+    downloaded or replayed), and the files that look like logs but are left out, each with
+    why (``{"file", "why"}``: a name that is not a recording name, another log of a listed
+    name, an empty file). Reads the folder and each log's size and time, no file."""
+    by_name: dict[str, list[tuple[tuple[int, int], Path]]] = {}
+    modified: dict[Path, float] = {}
+    left: list[dict[str, str]] = []
+    try:
+        files = list(Path(folder).iterdir())
+    except OSError:
+        return {}, []
+    for p in files:
+        rank = _log_rank(p)
+        if rank is None:
+            continue
+        try:
+            if not p.is_file():
+                continue
+            st = p.stat()
+        except OSError:
+            continue
+        empty, modified[p] = st.st_size == 0, st.st_mtime
+        if empty:       # nothing in it (a recording started as a stream ended)
+            left.append({"file": p.name, "why": "empty"})
+        elif not name_ok(p.stem):
+            left.append({"file": p.name, "why": f"its name is not a recording name: use {NAME_RULE}"})
+        else:
+            by_name.setdefault(p.stem, []).append((rank, p))
+    logs = {}
+    for name, found in by_name.items():
+        found.sort(key=lambda x: x[0])
+        logs[name] = found[0][1]
+        left += [{"file": p.name, "why": f"another log of the recording {name!r} "
+                  f"({found[0][1].name}, listed): rename one"} for _, p in found[1:]]
+    left.sort(key=lambda x: x["file"])
+    return dict(sorted(logs.items(), key=lambda x: modified[x[1]], reverse=True)), left
+
+
+def find_log(folder: str | Path, name: str) -> Path | None:
+    """The log of recording ``name`` in ``folder`` (the one :func:`recording_logs` lists),
+    or None."""
+    folder = Path(folder)
+    for suffix in LOG_SUFFIXES:          # the usual case: no listing of the folder
+        p = folder / (name + suffix)
+        if p.is_file() and _log_rank(p) is not None:
+            try:
+                if p.stat().st_size > 0:
+                    return p
+            except OSError:
+                pass
+            break
+    return recording_logs(folder)[0].get(name)
 
 
 def default_name(now: float | None = None) -> str:
@@ -274,8 +351,10 @@ class Recorder:
                                  f"{e.strerror or e}") from None
         if not os.access(self.folder, os.W_OK):
             raise RecordingError(f"the recordings folder {self.folder} is not writable")
-        # (a state file left by a removed recording would be taken for this one's)
-        if any((self.folder / (self.base + sfx)).exists() for sfx in (LOG_SUFFIX, STATE_SUFFIX)):
+        # (a state file left by a removed recording would be taken for this one's; a log
+        # of any kind of that name is the recording of that name)
+        if (find_log(self.folder, self.base) is not None
+                or (self.folder / (self.base + STATE_SUFFIX)).exists()):
             raise RecordingError(f"a recording named {self.base!r} exists already")
         low = self._low_space()
         if low:
@@ -292,7 +371,8 @@ class Recorder:
     def _segment_name(self) -> str:
         k = sum(not s.removed for s in self.segments) + 1
         name = self.base if k == 1 else f"{self.base}_{k}"
-        while (self.folder / (name + LOG_SUFFIX)).exists():
+        while ((self.folder / (name + LOG_SUFFIX)).exists() or find_log(self.folder, name) is not None
+               or (self.folder / (name + STATE_SUFFIX)).exists()):
             k += 1
             name = f"{self.base}_{k}"
         return name
@@ -423,6 +503,8 @@ class Recorder:
         every call): the reason, also in :attr:`stop_reason` and the ``end`` event."""
         if not self.active:
             return self.stop_reason
+        if self.segment is not None:    # a silent stream's files too: whole within a second
+            self._maybe_flush()
         lim = self.limits
         size = self.bytes
         reason = None

@@ -21,15 +21,16 @@ import numpy as np
 
 from app.params import to_dict
 from app.toolkit.errors import ToolError
-from app.toolkit.recording import Recorder, RecordingError, RecordingLimits
-from app.toolkit.recorded import list_recordings, recording_files
+from app.toolkit.recording import Recorder, RecordingError, RecordingLimits, recording_logs
+from app.toolkit.recorded import recording_files, scan_recordings
 
 log = logging.getLogger("orientlab.recording")
 
 
 def _source(session) -> str:
-    """A segment's source as its ``start`` event names it."""
-    return f"{session.kind} {session.label}"
+    """A segment's source as its ``start`` event names it (a phone by its app, not its
+    address: a recording is shared with the class)."""
+    return f"{session.kind} {session.public_label()}" if session.kind != "phone" else session.public_label()
 
 
 def params_in_force(ensemble, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
@@ -212,8 +213,14 @@ class RecordingService:
             return {**self.recorder.summary(), "recording": True}
         return {"recording": False, "last": self.last, "limits": self.limits.as_dict()}
 
-    def recordings(self) -> list[dict[str, Any]]:
-        return list_recordings(self.folder)
+    def scan(self) -> tuple[list[dict[str, Any]], list[dict[str, str]]]:
+        """The recordings and the files of the folder left out, with why."""
+        return scan_recordings(self.folder)
+
+    def names(self) -> list[str]:
+        """The recordings' names, newest first, each once (the page's menus): the folder
+        and the logs' sizes and times only, no file read."""
+        return list(recording_logs(self.folder)[0])
 
     def files(self, name: str, field: str = "name") -> dict[str, Path | None]:
         """The files of recording ``name``; ToolError (404, naming the request's ``field``)

@@ -133,6 +133,18 @@ def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
         listed = api.get("/api/recordings").json()
         assert "lesson" in [x["name"] for x in listed["recordings"]]
         assert api.get("/api/recordings/lesson/log").content == body
+        # a recording is shared with the class: the phone by its app, never its address
+        phone = next(e["phone"] for e in ev if e.get("phone"))     # recorded before it came
+        assert phone["label"] == "a phone (Sensor Fusion app)", phone
+        assert "127.0.0.1" not in (rec_dir / "lesson.events.jsonl").read_text()
+        assert "127.0.0.1" not in str(listed), listed["status"]
+        # a file dropped in the folder that is no log: the tools that read it say so
+        (rec_dir / "notes.txt").write_text("bring a magnet at 12:05\n")
+        r = api.post("/api/calibrate", json={"recording": "notes"})
+        assert r.status_code == 422 and "notes.txt: unknown format" in r.text, r.text
+        r = api.post("/api/gyro-scale", json={"recordings": ["notes"]})
+        assert r.status_code == 422 and "notes.txt: unknown format" in r.text, r.text
+        assert str(rec_dir) not in r.text
         assert api.get("/api/recordings/nope/log").status_code == 404
         assert api.get("/api/recordings/..%2Fetc/log").status_code in (404, 422)
         # what-if: the whole recording re-run, before and after a change
@@ -249,10 +261,10 @@ def test_a_disturbance_ends_with_its_stream_and_never_reaches_the_next(tmp_path,
         # each file says which recording it belongs to, and whose stream it holds
         starts = [read_events(s.settings.recordings / f"{n}.events.jsonl")[0] for n in ("two", "two_2")]
         assert [(e["recording"], e["segment"]) for e in starts] == [("two", 1), ("two", 2)]
-        assert starts[0]["source"] == "" and starts[1]["source"].startswith("phone "), starts
+        assert starts[0]["source"] == "" and starts[1]["source"] == "a phone (Sensor Fusion app)", starts
         # (recorded before the phone streamed: its stream is named when it came)
         came = [e for e in read_events(s.settings.recordings / "two.events.jsonl") if e["kind"] == "stream"]
-        assert len(came) == 1 and came[0]["source"].startswith("phone "), came
+        assert len(came) == 1 and came[0]["source"] == "a phone (Sensor Fusion app)", came
         tab = s.app.state.toolkit_tab
         wait_for(lambda: "`two_2`" in tab.rec_md.content and "2 streams" in tab.rec_md.content,
                  10.0, what="both files named")

@@ -14,7 +14,8 @@ from app.estimators import make_estimator
 from app.sources.readers import read_log_data
 from app.sources.sensorfusion import decode_lines
 from app.toolkit.recording import Recorder, RecordingError, RecordingLimits
-from app.toolkit.recorded import list_recordings, read_estimates, read_events, recording_files
+from app.toolkit.recorded import (list_recordings, read_estimates, read_events, recording_files,
+                                  scan_recordings)
 
 LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
 
@@ -80,6 +81,59 @@ def test_a_disconnect_ends_the_segment_and_the_next_stream_gets_its_own(tmp_path
     assert (tmp_path / "lesson_2.txt").read_bytes() == b"20\tACC\t0\t0\t9.8\n"
     assert read_events(tmp_path / "lesson.events.jsonl")[-1]["reason"] == "phone disconnected"
     assert recording_files(tmp_path, "lesson_2")["events"] is not None
+
+
+def test_a_name_is_one_recording_and_every_file_left_out_says_why(tmp_path):
+    """Files dropped in the recordings folder by hand: each name is listed once (two logs
+    of one name had crashed the page's menus), with the log the downloads and the
+    replay take; a file that looks like a log but is left out is named with why; a new
+    recording or segment never takes a name a dropped log has."""
+    line = b"1000\tACC\t0\t0\t9.81\n"
+    for f in ("dup.csv", "dup.txt", "dup.log", "UPPER.TXT", "a..b.txt", "My Log.txt",
+              "_under.txt", "lab2.csv", "seg_2.csv", "ok.npz"):
+        (tmp_path / f).write_bytes(line)
+    (tmp_path / "empty.txt").write_bytes(b"")
+    (tmp_path / "notes.md").write_bytes(line)          # not a log's extension: not named
+    os.utime(tmp_path / "ok.npz", (1e9, 1e9))             # the oldest
+    listed = list_recordings(tmp_path)
+    names = [r["name"] for r in listed]
+    assert sorted(names) == ["UPPER", "dup", "lab2", "ok", "seg_2"] and names[-1] == "ok"
+    by = {r["name"]: r for r in listed}
+    assert by["dup"]["path"].endswith("dup.txt")
+    for name, f in (("dup", "dup.txt"), ("UPPER", "UPPER.TXT"), ("lab2", "lab2.csv")):
+        assert recording_files(tmp_path, name)["log"].name == f
+    left = {x["file"]: x["why"] for x in scan_recordings(tmp_path)[1]}
+    assert set(left) == {"dup.csv", "dup.log", "a..b.txt", "My Log.txt", "_under.txt", "empty.txt"}
+    assert "dup.txt, listed" in left["dup.csv"] and "not a recording name" in left["My Log.txt"]
+    assert left["empty.txt"] == "empty"
+    with pytest.raises(RecordingError, match="exists already"):
+        Recorder(tmp_path, "lab2").start({}, label="phone")
+    rec = Recorder(tmp_path, "seg")
+    rec.start({}, label="phone A")
+    rec.write_samples(_samples([line.strip()]))
+    rec.new_segment("phone B")                          # seg_2 is a dropped log's name
+    rec.write_samples(_samples([line.strip()]))
+    assert [g["name"] for g in rec.stop()["segments"]] == ["seg", "seg_3"]
+    parts = {r["name"]: r for r in list_recordings(tmp_path)}
+    assert (parts["seg_3"]["recording"], parts["seg_3"]["segment"]) == ("seg", 2)
+    assert (parts["seg"]["recording"], parts["seg"]["segment"]) == ("seg", 1)
+    assert parts["seg_3"]["complete"] and parts["seg_3"]["end_reason"] == "stopped"
+    assert (parts["seg_2"]["recording"], parts["seg_2"]["orientlab"]) == ("seg_2", False)
+
+
+def test_the_listing_reads_an_events_file_by_its_ends(tmp_path):
+    """A long class's events file holds every change; the listing (twice a second on
+    the page) reads its first line and its end only, and finds the end event there."""
+    rec = Recorder(tmp_path, "long")
+    rec.start({"robust": {"gyr_noise": 0.005}}, label="phone")
+    rec.write_samples(_samples([b"1000\tACC\t0\t0\t9.81"]))
+    rec.count_samples(np.array([1.0]))
+    for k in range(3000):
+        rec.note("params", params={"robust": {"gyr_noise": 0.005 + k * 1e-6, "pad": "x" * 200}})
+    rec.stop()
+    assert (tmp_path / "long.events.jsonl").stat().st_size > 600_000
+    r = list_recordings(tmp_path)[0]
+    assert r["complete"] and r["samples"] == 1 and r["orientlab"] and r["recording"] == "long"
 
 
 def test_an_unwritable_folder_is_a_clear_error(tmp_path):

@@ -568,7 +568,7 @@ class ToolkitTab:
                     + (f" ({len(segs)} streams, {last['seconds']:.1f} s in all)" if len(segs) > 1 else "")
                     + f", {last['samples']} samples, {size(last.get('bytes'))}"
                     + (f" -- **stopped: {why}**" if why else ""))
-        names = tuple(r["name"] for r in tk.recording.recordings()) or ("(none)",)
+        names = tuple(tk.recording.names()) or ("(none)",)
         if names != self._known_recordings:
             self._known_recordings = names
             for dd in (self.rp_name, self.gs_name):

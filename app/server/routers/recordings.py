@@ -12,6 +12,7 @@ it through every estimator (:mod:`app.toolkit.whatif`).
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 from pathlib import Path
@@ -59,7 +60,9 @@ async def recordings(request: Request, tk: Toolkit = Depends(get_toolkit)) -> di
     """The recordings folder and what the recorder is doing (paths for the presenter
     only)."""
     rs = tk.recording
-    out = {"folder": str(rs.folder), "status": rs.status(), "recordings": rs.recordings()}
+    listed, left_out = await asyncio.to_thread(rs.scan)     # off the loop: a folder of many
+    out = {"folder": str(rs.folder), "status": rs.status(), "recordings": listed,
+           "left_out": left_out}
     if not request.app.state.access.is_presenter(request):
         out = without_paths(out, rs.folder)
         out["folder"] = rs.folder.name or "recordings"
