@@ -494,9 +494,11 @@ def rest_bias(core, seconds: Any) -> np.ndarray:
 
 
 def bias_change(core, bias: np.ndarray) -> dict[str, dict[str, Any]]:
-    """The parameters that give ``bias`` to the estimators that take one (to validate as
-    ``{"estimators": ...}``); ToolError (409) when none of them is running."""
-    names = [n for n in BIAS_ESTIMATORS if n in core.ensemble.instances]
+    """The parameters that give ``bias`` to the estimators that take one, variants too (a
+    bias is the phone's, not a filter's: lab-approx compares its time update with lab's,
+    not another bias), to validate as ``{"estimators": ...}``; ToolError (409) when none
+    of them is running."""
+    names = [n for n, inst in core.ensemble.instances.items() if inst.base in BIAS_ESTIMATORS]
     if not names:
         raise ToolError("estimators", f"none of {', '.join(BIAS_ESTIMATORS)} is running: no "
                         "estimator takes a gyroscope bias", 409)
@@ -593,8 +595,8 @@ class CalibrationService:
         return out
 
     def change(self, force: bool = False) -> dict[str, dict[str, Any]]:
-        """What "apply" sets: per builtin estimator on the ensemble the preset values (to
-        validate as ``{"estimators": ...}``). A calibration that does not look
+        """What "apply" sets: per estimator on the ensemble, variants too, the values of
+        its kind (to validate as ``{"estimators": ...}``). A calibration that does not look
         stationary (the phone moved, too few samples...) is refused (409, the reasons in
         words) unless ``force``: the presenter's explicit "apply anyway"."""
         if self.last is None:
@@ -603,8 +605,10 @@ class CalibrationService:
             why = refusal(self.last)
             if why is not None:
                 raise ToolError("calibration", why, 409)
-        names = self.core.ensemble.names
-        return {k: v for k, v in self.last["apply"].items() if k in names and v}
+        # every instance of each kind, variants too: a calibration is the phone's
+        apply = self.last["apply"]
+        return {n: apply[inst.base] for n, inst in self.core.ensemble.instances.items()
+                if apply.get(inst.base)}
 
     def note_applied(self) -> None:
         """The last calibration was applied (its report heads a preset saved next)."""

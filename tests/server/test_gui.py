@@ -64,9 +64,15 @@ def test_demo_lab_with_bias_follows_the_truth_and_disturbances_light(tmp_path):
         assert turns >= 3.0, "the demo starts with the phone at rest"
         wait_for(lambda: (stream_time(gui, api) or 0.0) >= turns - 1.0, 60.0, 0.02,
                  what="the end of the demo's rest")
+        # a variant of lab (exercise 9's approximate time update) gets the phone's bias too
+        r = api.post("/api/estimators", json={"name": "lab-approx", "base": "lab",
+                                              "params": {"time_update": "approx"}})
+        assert r.status_code == 200, r.text
         r = api.post("/api/calibrate/bias", json={"seconds": 2.0})
         assert r.status_code == 200, r.text
         bias = r.json()["applied"]["lab"]["gyr_bias"]
+        assert r.json()["applied"]["lab-approx"]["gyr_bias"] == bias
+        assert api.delete("/api/estimators/lab-approx").status_code == 200
         assert np.allclose(bias, SimConfig().gyr_bias, atol=0.003)
         assert np.allclose(r.json()["params"]["estimators"]["lab"]["gyr_bias"], bias)
         assert np.allclose(np.radians(r.json()["gyr_bias_deg_s"]), bias, atol=1e-5)

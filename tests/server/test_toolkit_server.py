@@ -77,11 +77,18 @@ def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
             _processed(api, 8000, "the log processed")
             # apply (the phone still connected: the change lands in the recording):
             # noise levels, bias, g0, m0 into the estimators, and a preset
+            # (a variant of lab is given the phone's calibration too)
+            assert api.post("/api/estimators", json={"name": "lab-approx", "base": "lab", "params": {
+                "time_update": "approx"}}).status_code == 200
             r = api.post("/api/calibrate/apply", json={"save_as": "mycal"})
             assert r.status_code == 200, r.text
             p = api.get("/api/params").json()["estimators"]
             np.testing.assert_allclose(p["lab"]["m0"], cal["m0"], atol=1e-9)
             np.testing.assert_allclose(p["robust"]["gyr_bias"], cal["gyr_bias"], atol=1e-9)
+            for k in ("m0", "gyr_bias", "gyr_std", "g0"):
+                np.testing.assert_allclose(p["lab-approx"][k], p["lab"][k], atol=1e-12)
+            assert p["lab-approx"]["time_update"] == "approx"
+            assert api.delete("/api/estimators/lab-approx").status_code == 200
             assert (tmp_path / "mycal.toml").is_file()
         wait_for(lambda: _state(api)["source"] == "phone-disconnected", what="disconnect")
         # the statistics: the same numbers as orientlab calibrate on those 4 s of samples
