@@ -203,6 +203,12 @@ def fit(recordings: list[Recording], max_iter: int = 5) -> GyroScaleFit:
     integration 14° out, and the regressors are integrated along that wrong attitude. So the
     fit is repeated with the gyroscope divided by 1 + the scale found, until what is left
     changes it by less than 10⁻⁵ (Gauss-Newton)."""
+    for i, a in enumerate(recordings):     # the same samples twice would halve the σ
+        for b in recordings[:i]:
+            if a.t.shape == b.t.shape and np.array_equal(a.t, b.t) \
+                    and np.array_equal(a.gyr, b.gyr, equal_nan=True):
+                raise ToolError("recordings", f"{b.name} and {a.name} hold the same samples: "
+                                "give each recording once")
     scale = np.zeros(3)
     first = None
     for _ in range(max_iter):

@@ -379,6 +379,10 @@ def test_magnetometer_calibration_from_the_stream(tmp_path):
         assert res["residual_before_uT"] > 3.0 and res["residual_after_uT"] < 0.5
         r = api.post("/api/magcal/apply", json={"save_as": "withmag"})
         assert r.status_code == 200 and r.json()["applied"]["offset_uT"] == res["offset_uT"]
+        for bad in ("false", 1, None):              # "false" had cleared the calibration
+            r = api.post("/api/magcal/apply", json={"clear": bad})
+            assert r.status_code == 422 and "clear" in r.text, (bad, r.text)
+        assert api.get("/api/magcal").json()["applied"]["offset_uT"] == res["offset_uT"]
         text = (tmp_path / "withmag.toml").read_text()
         assert "[magcal]" in text
         # from now on every MAG sample is corrected: a raw reading of the offset alone

@@ -67,6 +67,11 @@ def test_recordings_without_enough_rests_are_refused_with_a_reason():
     # two recordings of the same phone: one scale, a bias error each
     f2 = fit([rec(ALL_AXES[:4], name="a"), rec(ALL_AXES[4:], name="b", seed=3)])
     assert np.allclose(f2.scale, SCALE, atol=1e-3), f2.scale
+    # the same recording twice (listed twice, or a copy) is not new evidence: it had
+    # shrunk each σ by √2 and made a weak axis "measured"
+    a = rec(FLAT, name="a")
+    with pytest.raises(ToolError, match="a and a copy hold the same samples"):
+        fit([a, Recording("a copy", a.t.copy(), a.gyr.copy(), a.acc.copy())])
 
 
 @pytest.mark.parametrize("name", ["robust", "lab"])

@@ -159,9 +159,12 @@ async def magcal_apply(body: Any = Body(None), tk: Toolkit = Depends(get_toolkit
     """Correct every MAG sample with the fit (``{"clear": true}``: stop correcting);
     ``save_as`` also writes a preset holding it (``[magcal]``)."""
     b = _obj(body, {"clear", "save_as"})
+    clear = b.get("clear", False)
+    if not isinstance(clear, bool):           # "false" (a string) had cleared it
+        raise ToolError("clear", "must be true or false")
     if b.get("save_as"):
         tk.check_preset_name(b["save_as"])    # a refused preset name applies nothing
-    out = tk.magcal.apply(bool(b.get("clear", False)))
+    out = tk.magcal.apply(clear)
     if b.get("save_as"):
         out["preset"] = str(tk.save_preset(b["save_as"]))
     return out
