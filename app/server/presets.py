@@ -30,8 +30,8 @@ import re
 import tempfile
 from pathlib import Path
 
-from app.config import DEFAULT_CONFIG, ConfigError, load_config, merge, validate_config
-from app.params import CONFIG_DIR, dump_toml, load_toml
+from app.config import ConfigError, config_from, load_config
+from app.params import CONFIG_DIR, dump_toml
 from app.live import Change, PatchError
 from app.server.engine import Engine
 
@@ -110,9 +110,7 @@ def config_from_text(text: str | bytes, source: str = "upload") -> dict:
         over = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{source}: not valid TOML: {str(e)[:200]}") from None
-    validate_config(over, source)
-    raw = load_toml(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else {}
-    return validate_config(merge(raw, over), source)
+    return config_from(over, source)       # former names read as the new, as --config does
 
 
 def load_preset_text(engine: Engine, text: str | bytes, source: str = "upload") -> Change:

@@ -530,6 +530,13 @@ def test_a_calibrate_preset_loads_from_its_path_and_from_an_upload(srv, api, tmp
     r = api.post("/api/presets/upload", content=b"[lab]\nacc_noise = 'x'\n",
                  headers={**AUTH, "Content-Type": "application/toml"})
     assert r.status_code == 422
+    # a preset written before lab's rename reads its former name as --config does
+    r = api.post("/api/presets/upload", content=b"[lab]\ngyr_noise = 0.02\n",
+                 headers={**AUTH, "Content-Type": "application/toml"})
+    assert r.status_code == 200 and r.json()["estimators"]["lab"]["gyr_std"] == 0.02, r.text
+    r = api.post("/api/presets/upload", content=b"[lab]\ngyr_noise = 0.02\ngyr_std = 0.03\n",
+                 headers={**AUTH, "Content-Type": "application/toml"})
+    assert r.status_code == 422 and "keep gyr_std only" in r.text, r.text
     api.post("/api/presets/load", json={"name": "default"}, headers=AUTH)
 
 
