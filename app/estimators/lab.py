@@ -38,6 +38,9 @@ from app.estimators.kalman import correct
 
 
 
+M0_MIN_UT = 5.0    # the weakest field m0 may be (the earth's is 25-65 µT, indoors rarely < 15)
+
+
 @dataclass(frozen=True)
 class LabParams(CommonParams):
     time_update: str = param("exact", choices=("exact", "approx"),
@@ -94,6 +97,10 @@ class LabParams(CommonParams):
     def check(self) -> None:
         if np.linalg.norm(self.g0) < 1.0:
             raise ParamError("g0", "must be a gravity vector (|g0| >= 1 m/s²)")
+        # |m0| is the field-strength band's centre: near zero, every sample is refused
+        if self.m0 is not None and np.linalg.norm(self.m0) < M0_MIN_UT:
+            raise ParamError("m0", f"must be a magnetic field (|m0| >= {M0_MIN_UT:g} µT; the "
+                                   "earth's is 25-65 µT), or null to learn it")
         if self.mag_band_uT is not None and not self.mag_band_uT[0] < self.mag_band_uT[1]:
             raise ParamError("mag_band_uT", "must be (lo, hi) with lo < hi")
         for name in ("gyr_cov", "acc_cov", "mag_cov"):

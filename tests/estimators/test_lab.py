@@ -44,3 +44,17 @@ def test_compiled_run_equals_the_reference_step(rows, params):
     b = ref_est.step(t1, gyr=np.array([0.1, 0.0, 0.0]), acc=np.array([0.0, 0.5, 9.8]))
     np.testing.assert_allclose(est.q, ref_est.q, atol=1e-9)
     assert a.acc == b.acc and a.gyr == b.gyr
+
+
+@pytest.mark.parametrize("key, value", [("g0", [0.0, 0.0, 0.0]), ("m0", [0.0, 0.0, 0.0]),
+                                        ("m0", [0.0, 1.0, -2.0])])
+def test_a_reference_vector_that_is_no_field_is_refused_naming_it(key, value):
+    """A zero (or near zero) g0 or m0 is no gravity and no earth field: lab would refuse
+    every sample against it without a word. Refused, naming it; null m0 still learns it."""
+    from app.params import ParamError
+    est = make_estimator("lab")
+    with pytest.raises(ParamError, match=key):
+        est.set_params(**{key: value})
+    est.set_params(m0=[0.0, 20.0, -40.0])
+    est.set_params(m0=None)
+    assert est.params.m0 is None
