@@ -341,4 +341,4 @@ def test_serve_starts_prints_the_addresses_and_stops_cleanly_on_ctrl_c():
     assert proc.returncode == 0, out
     assert f"http://127.0.0.1:{port}/" in out
     assert f"port {phone}" in out
-    assert "a phone cannot reach its push URLs" in " ".join(out.split())   # --host 127.0.0.1
+    assert "no phone can reach it" in " ".join(out.split())   # --host 127.0.0.1

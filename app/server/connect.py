@@ -45,17 +45,24 @@ class Connect:
         return f"http://{self.host(request)}:{self.settings.port}"
 
     def unreachable(self) -> str | None:
-        """Why no phone can reach the push URLs (the page listens on this PC only), or None."""
-        host = (self.settings.host or "").strip("[]")
-        try:
-            loopback = host.lower() == "localhost" or ipaddress.ip_address(host).is_loopback
-        except ValueError:
-            loopback = False
-        if not loopback:
+        """Why phones cannot reach this PC (the page, or the Sensor Fusion app's port,
+        listens on this PC only), or None."""
+        def loopback(host: str | None) -> bool:
+            host = (host or "").strip("[]")
+            try:
+                return host.lower() == "localhost" or ipaddress.ip_address(host).is_loopback
+            except ValueError:
+                return False
+
+        page, tcp = loopback(self.settings.host), loopback(self.settings.phone_bind)
+        if not (page or tcp):
             return None
-        return (f"The page listens on {host} only (--host): a phone cannot reach its push "
-                "URLs (Sensor Logger, phyphox). Start orientlab without --host, or with "
-                "--host set to this PC's network address.")
+        apps = ", ".join((["Sensor Logger", "phyphox"] if page else [])
+                         + (["the Sensor Fusion app"] if tcp else []))
+        where = self.settings.host if page else self.settings.phone_bind
+        return (f"orientlab listens on {where.strip('[]')} only (--host): no phone can reach it "
+                f"({apps}). Start orientlab without --host, or with --host set to this PC's "
+                "network address.")
 
     def view(self, request: Request | None = None) -> dict[str, Any]:
         st = self.st

@@ -438,7 +438,7 @@ def test_connect_tab_qr_codes_decode_to_the_connect_addresses(tmp_path):
             assert want["unreachable"] and "--host" in want["unreachable"]
             note = page.locator("#unreachable")
             note.wait_for(state="visible", timeout=10_000)
-            assert "cannot reach" in note.inner_text()
+            assert "no phone can reach" in note.inner_text()
             # a student's page (no token, no cookie): no addresses, no codes
             page.context.clear_cookies()
             page2 = page.context.new_page()
@@ -566,9 +566,13 @@ def test_phone_addresses_follow_the_address_given_with_host():
     out = banner(Settings(host=picked), connect.host(), 8080, 3400, 8000)
     assert f"http://{picked}:8000/sensorlogger" in out and f"address {picked}" in out
     loop = Connect(Settings(host="127.0.0.1"), None)
-    assert loop.host() != "127.0.0.1" and "cannot reach" in loop.unreachable()
+    assert loop.host() != "127.0.0.1" and "no phone can reach" in loop.unreachable()
+    assert "the Sensor Fusion app" in loop.unreachable()      # its port is on loopback too
     for name in ("localhost", "::1", "127.0.0.2"):
-        assert "cannot reach" in Connect(Settings(host=name), None).unreachable(), name
+        assert "no phone can reach" in Connect(Settings(host=name), None).unreachable(), name
+    # the page on the network, the phone's TCP port on this PC only
+    tcp = Connect(Settings(host=picked, phone_host="127.0.0.1"), None).unreachable()
+    assert "(the Sensor Fusion app)" in tcp and "Sensor Logger" not in tcp, tcp
     out = banner(Settings(host="127.0.0.1"), loop.host(), 8080, 3400, 8000,
                  unreachable=loop.unreachable())
     assert "note:" in out and "--host" in out
