@@ -119,7 +119,9 @@ def _is_json(headers) -> bool:
     return any(k.lower() == b"content-type" and b"json" in v.lower() for k, v in headers)
 
 
-_QUOTED = re.compile(r"'([^'\n]{65,})('|$)" + r'|"([^"\n]{65,})("|$)')   # a long quoted value
+# a long quoted value: its opening quote not after a letter (the closing quote of a short
+# value, "'nope' (known: ...)", opens nothing: the list after it is the server's, not input)
+_QUOTED = re.compile(r"(?<!\w)'([^'\n]{65,})('|$)" + r'|(?<!\w)"([^"\n]{65,})("|$)')
 _RUN = re.compile(r"[^\s'\"]{81,}")        # a long run without a space or a quote
 MAX_MSG = 300         # characters of one string in an error answer
 MAX_QUOTE = 48        # characters of a long quoted (or unbroken) value kept in a message

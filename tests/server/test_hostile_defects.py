@@ -262,6 +262,16 @@ def test_error_messages_do_not_echo_long_input(srv, api):
     r = api.post("/api/inject", content=b'{"kind": "' + b"C" * 5000 + b'"',
                  headers={"Content-Type": "application/json"})
     assert r.status_code == 422 and "C" * 100 not in r.text and '"input"' not in r.text, r.text[:300]
+    # what the server lists is not input: a short name's closing quote opened a "value"
+    # and the known names after it were cut ("(known: robust, lab, comp...' (83+ characters)")
+    for name in ("robust-with-a-long-variant-name", "lab-with-another-long-variant-name"):
+        assert api.post("/api/estimators", json={"name": name, "base": name.split("-")[0]}).status_code == 200
+    r = api.delete("/api/estimators/nope")
+    assert r.status_code == 404 and "lab-with-another-long-variant-name" in r.text, r.text
+    r = api.delete("/api/estimators/" + "B" * 3000)
+    assert r.status_code in (404, 422) and "B" * 100 not in r.text, r.text[:300]
+    for name in ("robust-with-a-long-variant-name", "lab-with-another-long-variant-name"):
+        assert api.delete(f"/api/estimators/{name}").status_code == 200
 
 
 def test_a_storm_of_primary_changes_settles():
