@@ -158,8 +158,10 @@ def validate_patch(ensemble: Ensemble | EnsembleSchema, body: Any) -> Change:
         try:
             replace_params(ensemble.params_of(name), c)
         except ParamError as e:
-            raise PatchError(origin.get((name, e.field), ("estimators", name, e.field)),
-                             e.reason) from None
+            # where the client sent it (a shared key at the top: not under "estimators"),
+            # with the element's index when one element is wrong ("gyr_bias[2]")
+            at = origin.get((name, e.field.split("[")[0]), ("estimators", name, e.field))
+            raise PatchError(at[:-1] + (e.field,), e.reason) from None
     ch.params = {n: c for n, c in changes.items() if c}
     ch.against = {n: ensemble.uid_of(n) for n in ch.params}
     if ch.primary is not None:

@@ -52,6 +52,21 @@ def test_top_level_takes_shared_names_only():
     assert "unknown parameter" in e.value.reason
 
 
+def test_a_refusal_names_the_key_where_the_client_sent_it():
+    """A shared key sent at the top is refused there, not under an estimator the client
+    never named; one wrong element of a vector is named with its index."""
+    ensemble = Ensemble()
+    for body, loc in (({"gyr_bias": [0.1, 0.2, "x"]}, ("gyr_bias[2]",)),
+                      ({"gyr_bias": [0.1, 0.2]}, ("gyr_bias",)),
+                      ({"max_gap": -1.0}, ("max_gap",)),
+                      ({"estimators": {"lab": {"gyr_bias": [0.1, "x", 0.0]}}},
+                       ("estimators", "lab", "gyr_bias[1]")),
+                      ({"estimators": {"lab": {"acc_std": -1.0}}}, ("estimators", "lab", "acc_std"))):
+        with pytest.raises(PatchError) as e:
+            validate_patch(ensemble, body)
+        assert e.value.loc == loc, (body, e.value.loc)
+
+
 def test_a_renamed_key_is_refused_with_its_new_name():
     ensemble = Ensemble()
     with pytest.raises(PatchError) as e:
