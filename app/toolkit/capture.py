@@ -48,6 +48,7 @@ class Capture:
     kind: str                   # "still" or "magcal"
     seconds: float
     started_wall: float = field(default_factory=time.monotonic)
+    ended_wall: float | None = None    # when it got its result or failed (:meth:`end`)
     t0: float | None = None     # stream time of the first sample (s)
     t_last: float | None = None
     t: list = field(default_factory=list)
@@ -77,7 +78,15 @@ class Capture:
 
     @property
     def wall_elapsed(self) -> float:
-        return time.monotonic() - self.started_wall
+        """Wall time from the start to the end (to now while it runs)."""
+        end = self.ended_wall if self.ended_wall is not None else time.monotonic()
+        return end - self.started_wall
+
+    def end(self, result: dict | None = None, error: str | None = None) -> None:
+        """It is over: with its result, or why it failed; its wall time stops."""
+        self.result, self.error = result, error
+        if self.ended_wall is None:
+            self.ended_wall = time.monotonic()
 
     def capped(self) -> str | None:
         """None while the collection is within its bounds; else why it must stop now:
@@ -139,12 +148,12 @@ class Capture:
         return t, cat(self.gyr), cat(self.acc), cat(self.mag)
 
     def succeed(self, result: dict) -> None:
-        self.result = result
+        self.end(result=result)
         if self.done is not None and not self.done.done():
             self.done.set_result(result)
 
     def fail(self, error: str) -> None:
-        self.error = error
+        self.end(error=error)
         if self.done is not None and not self.done.done():
             self.done.set_exception(ToolError("seconds", error, 409))
 
@@ -158,9 +167,8 @@ class Capture:
         return True
 
     def status(self) -> dict[str, Any]:
-        n = sum(len(x) for x in self.t)
         return {"kind": self.kind, "seconds": self.seconds, "elapsed_s": round(self.elapsed, 2),
-                "remaining_s": round(self.remaining, 2), "rows": n,
+                "remaining_s": round(self.remaining, 2), "rows": self.rows,
                 "wall_s": round(self.wall_elapsed, 2), "max_rows": MAX_ROWS,
                 "done": self.result is not None or self.error is not None, "error": self.error,
                 "note": self.note}

@@ -427,16 +427,16 @@ class MagCalService:
         if cap.note is not None:
             why = cap.clock_untrusted()
             if why is not None:
-                cap.error = why
+                cap.end(error=why)
                 return
         try:
             self.result = fit(self._raw[:cap.rows])
-            cap.result = self.result.as_dict()
+            cap.end(result=self.result.as_dict())
         except MagCalRefused as e:
             self.refused = e
-            cap.error = "fit refused: " + e.reason
+            cap.end(error="fit refused: " + e.reason)
         except MagCalError as e:
-            cap.error = str(e)
+            cap.end(error=str(e))
 
     def on_change(self, ch) -> None:
         """A preset loaded (page or API; the engine's change listener): its magnetometer

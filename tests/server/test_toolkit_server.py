@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import shutil
 import threading
+import time
 
 import httpx
 import numpy as np
@@ -375,6 +376,10 @@ def test_magnetometer_calibration_from_the_stream(tmp_path):
             res = wait_for(lambda: api.get("/api/magcal").json().get("result"), what="fit")
         cap = api.get("/api/magcal").json()["capture"]
         assert cap["coverage"] > 0.8
+        # the samples it kept are its rows; its wall time stops when it is done
+        assert cap["done"] and cap["rows"] == cap["samples"] > 100, cap
+        time.sleep(0.3)
+        assert api.get("/api/magcal").json()["capture"]["wall_s"] == cap["wall_s"]
         np.testing.assert_allclose(res["offset_uT"], b, atol=0.5)
         assert res["residual_before_uT"] > 3.0 and res["residual_after_uT"] < 0.5
         r = api.post("/api/magcal/apply", json={"save_as": "withmag"})
