@@ -261,16 +261,21 @@ RobustParams.default_from = {
     "use_mag": "design: every sensor on",
     "max_gap": "design: 1 s of a 0.1 rad/s bias is 6°, more than a gap should bridge",
     "gyr_hold": "design: a few samples of a phone sending one sensor per row",
-    "gyr_noise": "physics: the gyroscope's attitude random walk against BROAD's optical truth, "
+    "gyr_noise": "shared trials (set with them in view; its source measured on them since): the "
+                 "gyroscope's attitude random walk against BROAD's optical truth, "
                  "0.0036-0.0056 rad/√s over 2-20 s in a steady field (benchmarks/noise_densities.py): "
                  "a model error (scale, misalignment, timing), 40× a phone gyroscope's white noise",
     "bias_noise": "physics: a MEMS bias drifting by 0.02 °/s over VQF's biasForgettingTime (100 s)",
     "bias_max": "physics: 3× the largest phone bias (0.1 rad/s)",
     "gyr_scale_noise": "physics: a 1 % scale error over acc_tau (benchmarks/gyro_scale.py: 0.2-2.3 %)",
-    "refused_turn_noise": "physics: a 1 % scale error per second of turn",
-    "bias_init": "VQF: biasSigmaInit 0.5 °/s (here 0.57 °/s)",
+    "refused_turn_noise": "shared trials (set with them in view): a 1 % scale error per second of turn",
+    "bias_init": "shared trials (set with them in view): near VQF's biasSigmaInit 0.5 °/s (here "
+                 "0.57 °/s), the size of an OS-calibrated phone gyroscope's bias (0.006-0.009 rad/s "
+                 "against the truth); a raw gyroscope's 0.05-0.1 rad/s starts 5-10 σ off",
     "bias_motion_noise": "VQF: biasSigmaMotion 0.1 °/s as a noise density (VQF's per-sample "
-                         "W = σ⁴/V + σ², with biasForgettingTime 100 s: 1 °/s·√s)",
+                         "W = σ⁴/V + σ², with biasForgettingTime 100 s: 1 °/s·√s); with robust's own "
+                         "bias_noise, 5.8× below VQF's V, the bias settles at 0.04 °/s in 10 min, not "
+                         "VQF's 0.1 °/s in 100 s",
     "bias_motion_clip": "VQF: biasClip 2 °/s",
     "heading_drift_window": "physics: the heading's time constant, heading_noise / gyr_noise",
     "heading_drift_corr": "physics: a few strides or turns of the arm (0.5-1 s each)",
@@ -288,11 +293,13 @@ RobustParams.default_from = {
     "acc_flag_rel": "design: a flag only, no estimate changes",
     "acc_delay_periods": "physics: a sample stands for its period and is stamped at its end: half a "
                          "period behind the attitude at its stamp",
-    "heading_noise": "physics: the field's heading against BROAD's optical truth in a steady field, "
+    "heading_noise": "shared trials (set with them in view; its source measured on them since): the "
+                     "field's heading against BROAD's optical truth in a steady field, "
                      "0.09-0.10 rad·√s at the heading's time scale, 10-20 s "
                      "(benchmarks/noise_densities.py); a noisier field's wander adds to it",
     "heading_evidence_tau": "physics: a few strides, short against the heading's tens of seconds",
-    "mag_norm_gate_rel": "physics: an undisturbed phone's field strength, low-passed as the gate sees it, "
+    "mag_norm_gate_rel": "shared trials (set with them in view; its source measured on them since): an "
+                         "undisturbed phone's field strength, low-passed as the gate sees it, "
                          "stays within 14 % of its median 99 % of the time (median of the 24 undisturbed "
                          "phone trials: an uncalibrated magnetometer's residual hard and soft iron; a "
                          "calibrated IMU's, 6 %, is under VQF's magNormTh 10 %; benchmarks/noise_densities.py)",
@@ -319,7 +326,8 @@ RobustParams.default_from = {
     "rest_gyr_th": "VQF: restThGyr 2 °/s",
     "rest_acc_th": "VQF: restThAcc 0.5 m/s²",
     "rest_time": "VQF: restMinT 1.5 s",
-    "rest_noise": "VQF: biasSigmaRest 0.03 °/s, as a noise density",
+    "rest_noise": "VQF: biasSigmaRest 0.03 °/s, as a noise density; with robust's own bias_noise the "
+                  "bias at rest settles at 0.013 °/s in about 50 s, not VQF's 0.03 °/s in 9 s",
     "rw_noise": "design: a hand turns a phone by about 0.5 rad in a second",
     "update_rate_hz": "design: the cost of an update; every sample still enters the low-passes",
     "rest_lp_tau": "VQF: restFilterTau 0.5 s",
