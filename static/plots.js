@@ -33,8 +33,10 @@
       ["yaw", "#d62728", false], ["pitch", "#2ca02c", false], ["roll", "#1f77b4", false],
       ["phone yaw", "#d62728", true, false, 1.5, undefined, null], ["phone pitch", "#2ca02c", true, false, 1.5, undefined, null],
       ["phone roll", "#1f77b4", true, false, 1.5, undefined, null]] },
-    { key: "error", title: "Error angle [°]", unit: "°", fmt: fmtFixed(2), series: [
-      ["to phone's own", "#ff7f0e", false], ["to truth", "#17becf", false]] },
+    // against the phone's own estimate is a difference, not an error: that estimate is
+    // itself degrees off on real phones
+    { key: "error", title: "Error to truth, difference from the phone's own [°]", unit: "°", fmt: fmtFixed(2), series: [
+      ["vs phone's own", "#ff7f0e", false], ["to truth", "#17becf", false]] },
     { key: "acc", title: "|acc| [m/s²]", unit: " m/s²", fmt: fmtFixed(2), series: [
       ["|acc|", "#1f77b4", false], ["band lo", GREY, true, true, 1.5, "band", "gate band"], ["band hi", GREY, true, true, 1.5, "band", null],
       ["shake injected", "#d62728", false, false, 4, "marker"]] },

@@ -283,8 +283,10 @@ def _notes(ref_kind: str | None, have_live: bool) -> list[str]:
     """What the reported error is, in words (the page shows them beside the numbers)."""
     ref = {"truth": "to the truth (the demo's simulated orientation), as the live read-out's "
                     "\"error to truth\"",
-           "phone": "to the phone's own estimate (its ORI), not to the truth: the phone's own "
-                    "errors count too"}.get(ref_kind or "")
+           "phone": "against the phone's own estimate (its ORI), not the truth: a difference, "
+                    "not an error. The phone's own is itself often several degrees off "
+                    "(docs/accuracy.md), so a change that makes a filter more accurate can show a "
+                    "larger difference"}.get(ref_kind or "")
     out = [f"RMS error {ref}, over the whole recording from each filter's alignment on; the "
            "live read-out shows the error at one instant" if ref else
            "no reference in this log (no truth, no ORI): no error can be scored; \"change\" is "

@@ -133,7 +133,7 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path):
         # the demo: the phone's own estimate (ORI) and the truth: both error series;
         # robust's |mag| band (grey) goes out as its two ends and spans the gaps
         wait_drawn(page, {"euler": ["yaw", "pitch", "roll"],
-                                "error": ["to phone's own", "to truth"],
+                                "error": ["vs phone's own", "to truth"],
                                 "acc": ["|acc|"], "mag": ["|mag|", "band lo"],
                                 "nis": ["acc NIS", "mag NIS"]}, timeout=60.0)
         # the Tuning tab: values in the user's unit with three significant digits,
@@ -147,7 +147,7 @@ def test_acc_only_log_and_demo_plots_draw(tmp_path):
         tip.wait_for(state="visible", timeout=10_000)
         text = tip.inner_text()
         assert text.startswith("Gyroscope noise density") and "Raising it trusts the gyroscope less" in text
-        assert "Default from physics: the gyroscope's attitude random walk" in text  # its source
+        assert "Default from shared trials (set with them in view; its source measured on them since): the gyroscope's attitude random walk" in text  # its source
         frame.get_by_role("button", name="Calibrate gyro bias (last N s at rest)").click()
         note = frame.get_by_text("Gyroscope bias set").or_(frame.get_by_text("Bias not set"))
         note.first.wait_for(state="visible", timeout=10_000)

@@ -488,7 +488,8 @@ def _error_text(st: dict) -> str:
     if st["error_to_truth_deg"] is not None:
         parts.append(f"to truth {st['error_to_truth_deg']:.1f}°")
     if st["error_to_phone_deg"] is not None:
-        parts.append(f"to phone's own {st['error_to_phone_deg']:.1f}°")
+        # a difference, not an error: the phone's own estimate is itself degrees off
+        parts.append(f"vs phone's own {st['error_to_phone_deg']:.1f}°")
     return ", ".join(parts) or "– (no reference in this stream)"
 
 
@@ -571,7 +572,7 @@ def _readouts_html(st: dict) -> str:
     rows = [
         ("Euler yaw pitch roll", f"<code>{_deg3(st['euler_deg'])}</code>"),
         ("phone's own", f"<code>{_deg3(st['phone_euler_deg'])}</code>"),
-        ("error to phone", "–" if err is None else f"{err:.2f}°"),
+        ("vs phone's own", "–" if err is None else f"{err:.2f}°"),
         ("error to truth", "–" if err_t is None else f"{err_t:.2f}°"),
         ("gyro bias used", "–" if bias is None else
          "<code>" + " ".join(f"{math.degrees(b):.2f}" for b in bias) + "</code> deg/s"),

@@ -197,7 +197,7 @@ _DEC_ACC = 3            # m/s²
 _DEC_MAG = 2            # µT
 
 POSE_SERIES = ("yaw", "pitch", "roll", "phone yaw", "phone pitch", "phone roll",
-               "to phone's own", "to truth")
+               "vs phone's own", "to truth")
 
 
 def _r(a: np.ndarray, d: int) -> list:
@@ -221,7 +221,7 @@ class PlotFeed:
     complete: :meth:`_decimate`): a plot's cost does not grow with the phone's rate.
 
     Messages (JSON): ``{"k": "s"|"d", "now": x, "pose": [x, yaw, pitch, roll, phone yaw,
-    phone pitch, phone roll, error to phone's own, error to truth], "acc": [x, |acc|,
+    phone pitch, phone roll, difference from the phone's own, error to truth], "acc": [x, |acc|,
     NIS], "mag": [x, |mag|, L_k, NIS], "meta": {...}}``; columns as lists, ``null`` a
     gap; every ``x`` in s since the stream started (one clock for every plot). ``"s"``
     (a snapshot: the whole window, a new stream) replaces what a client holds; ``"d"``

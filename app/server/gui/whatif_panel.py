@@ -180,7 +180,7 @@ class WhatIfPanel:
 
         def rms(run, k=key):
             return None if run is None or k is None or run.get(k) is None else run[k].get("rms")
-        what = {"truth": "to truth", "phone": "to phone's own"}.get(ref or "", "")
+        what = {"truth": "to truth", "phone": "vs phone's own"}.get(ref or "", "")
         rows = [f"**{out['name']}**: {out['duration_s']:.0f} s re-run in {out['estimate_s']:.1f} s", ""]
         if key is None:
             rows += ["| estimator | change [°] |", "|---|---|"]
