@@ -286,6 +286,21 @@ def test_robust_scale_noise_speeds_the_tilt_up_in_a_steady_turn():
     assert on < 0.75 * off, (on, off)
 
 
+def test_robust_time_update_carries_the_bias_through_the_scale_gain():
+    """With gyr_scale set, the rate is (ω - b) / (1 + s): its derivative by the bias is
+    -1 / (1 + s) per axis, so the attitude-bias covariance after one step is -dt R G Pbb
+    (a reviewer's find: it was -dt R Pbb, ignoring the gain)."""
+    from app.estimators.robust.kernel import _predict
+    scale = np.array([0.08, -0.05, 0.0])
+    est = make_estimator("robust", {"gyr_scale": scale.tolist()})
+    s, P, p = est._s.copy(), np.zeros((6, 6)), est._p
+    pbb = np.array([1e-4, 2e-4, 3e-4])
+    P[3:, 3:] = np.diag(pbb)
+    dt = 0.01
+    _predict(s, P, p, np.array([0.0, 0.0, 0.0]), dt)     # identity attitude: R = I
+    np.testing.assert_allclose(np.diag(P[:3, 3:]), -dt * pbb / (1.0 + scale), rtol=1e-12)
+
+
 def test_robust_scale_noise_stays_small_in_a_back_and_forth():
     """A swing of ±1 rad at 1 Hz (up to 6.3 rad/s, 4x the steady turn's mean rate) has no
     net turn: the scale noise adds a small fraction of the tilt variance the steady turn

@@ -132,20 +132,24 @@ def _predict(s, P, p, w, dt):
     # the bias removed about the vertical, integrated: the heading drift fit adds it back
     s[S.dr_bint] += (r20 * s[S.bias_x] * gx + r21 * s[S.bias_y] * gy + r22 * s[S.bias_z] * gz) * dt
     _integrate(s, wx * dt, wy * dt, wz * dt)
+    # the rate's derivative by the bias is -G (the scale's gain per axis): below, R stands
+    # for R G (f here), the attitude's derivative by the bias over dt (-R G dt)
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = (r00 * gx, r01 * gy, r02 * gz, r10 * gx, r11 * gy,
+                                                   r12 * gz, r20 * gx, r21 * gy, r22 * gz)
     # F = [[I, -R dt], [0, I]];  P <- F P F' + Qd, by blocks with T = R [Pbb | Pbt]:
     # Ptt += dt² T[:, :3] R' - dt (T[:, 3:] + T[:, 3:]');  Ptb -= dt T[:, :3]
     # (T lives in a scratch slot of the state, s[T + 6 i + j], indexed there: neither an
     # array nor a view of one is made per sample; a view costs its reference counting)
     T = S.pred_T
     for i in range(3):
-        ri0, ri1, ri2 = (r00, r01, r02) if i == 0 else ((r10, r11, r12) if i == 1 else (r20, r21, r22))
+        ri0, ri1, ri2 = (f00, f01, f02) if i == 0 else ((f10, f11, f12) if i == 1 else (f20, f21, f22))
         for j in range(3):
             s[T + 6 * i + j] = ri0 * P[3, 3 + j] + ri1 * P[4, 3 + j] + ri2 * P[5, 3 + j]      # R Pbb
             s[T + 6 * i + 3 + j] = ri0 * P[3, j] + ri1 * P[4, j] + ri2 * P[5, j]              # R Pbt
     dt2 = dt * dt
     for i in range(3):
         for j in range(i, 3):
-            rj0, rj1, rj2 = (r00, r01, r02) if j == 0 else ((r10, r11, r12) if j == 1 else (r20, r21, r22))
+            rj0, rj1, rj2 = (f00, f01, f02) if j == 0 else ((f10, f11, f12) if j == 1 else (f20, f21, f22))
             v = -dt * (s[T + 6 * i + 3 + j] + s[T + 6 * j + 3 + i])
             v += dt2 * s[T + 6 * i] * rj0
             v += dt2 * s[T + 6 * i + 1] * rj1
