@@ -74,7 +74,9 @@ class LiveCore:
         s = Session(kind, label, self.reorder_window_s if window_s is None else window_s,
                     truth, phone_app=phone_app)
         if self.session is not None and self.session.open:
-            self.session.close(f"replaced by {kind} {label}")
+            # (a phone by its app: the reason goes into recordings the class downloads)
+            self.session.close(f"replaced by {kind} {s.public_label()}" if kind != "phone"
+                               else f"replaced by {s.public_label()}")
         self.session = s
         self.totals.sessions += 1
         return s

@@ -498,7 +498,8 @@ def bias_change(core, bias: np.ndarray) -> dict[str, dict[str, Any]]:
     bias is the phone's, not a filter's: lab-approx compares its time update with lab's,
     not another bias), to validate as ``{"estimators": ...}``; ToolError (409) when none
     of them is running."""
-    names = [n for n, inst in core.ensemble.instances.items() if inst.base in BIAS_ESTIMATORS]
+    sch = core.ensemble.schema        # one snapshot: this also runs on viser's threads
+    names = [n for n in sch.names if sch.base_of(n) in BIAS_ESTIMATORS]
     if not names:
         raise ToolError("estimators", f"none of {', '.join(BIAS_ESTIMATORS)} is running: no "
                         "estimator takes a gyroscope bias", 409)
@@ -606,9 +607,8 @@ class CalibrationService:
             if why is not None:
                 raise ToolError("calibration", why, 409)
         # every instance of each kind, variants too: a calibration is the phone's
-        apply = self.last["apply"]
-        return {n: apply[inst.base] for n, inst in self.core.ensemble.instances.items()
-                if apply.get(inst.base)}
+        apply, sch = self.last["apply"], self.core.ensemble.schema   # one snapshot (any thread)
+        return {n: apply[sch.base_of(n)] for n in sch.names if apply.get(sch.base_of(n))}
 
     def note_applied(self) -> None:
         """The last calibration was applied (its report heads a preset saved next)."""

@@ -170,9 +170,9 @@ def recording_logs(folder: str | Path) -> tuple[dict[str, Path], list[dict[str, 
             continue
         empty, modified[p] = st.st_size == 0, st.st_mtime
         if empty:       # nothing in it (a recording started as a stream ended)
-            left.append({"file": p.name, "why": "empty"})
+            left.append({"file": shown_name(p), "why": "empty"})
         elif not name_ok(p.stem):
-            left.append({"file": p.name, "why": f"its name is not a recording name: use {NAME_RULE}"})
+            left.append({"file": shown_name(p), "why": f"its name is not a recording name: use {NAME_RULE}"})
         else:
             by_name.setdefault(p.stem, []).append((rank, p))
     logs = {}
@@ -187,18 +187,33 @@ def recording_logs(folder: str | Path) -> tuple[dict[str, Path], list[dict[str, 
 
 def find_log(folder: str | Path, name: str) -> Path | None:
     """The log of recording ``name`` in ``folder`` (the one :func:`recording_logs` lists),
-    or None."""
-    folder = Path(folder)
-    for suffix in LOG_SUFFIXES:          # the usual case: no listing of the folder
-        p = folder / (name + suffix)
-        if p.is_file() and _log_rank(p) is not None:
-            try:
-                if p.stat().st_size > 0:
-                    return p
-            except OSError:
-                pass
-            break
-    return recording_logs(folder)[0].get(name)
+    or None. One pass over the folder's names, a file looked at only when its stem is
+    ``name``: a request for a name that is not there costs no stat of every recording,
+    and the file is the one on disk, whatever a case-insensitive disk would open for a
+    name built here."""
+    found: list[tuple[tuple[int, int], Path]] = []
+    try:
+        with os.scandir(folder) as entries:
+            for e in entries:
+                p = Path(e.path)
+                if p.stem != name:
+                    continue
+                rank = _log_rank(p)
+                try:
+                    if rank is None or not e.is_file() or e.stat().st_size == 0:
+                        continue
+                except OSError:
+                    continue
+                found.append((rank, p))
+    except OSError:
+        return None
+    return min(found, key=lambda x: x[0])[1] if found else None
+
+
+def shown_name(p: Path) -> str:
+    """A file's name as text any client can take: bytes that are not UTF-8 (a zip from
+    another system) shown as U+FFFD, never as the lone surrogates Python reads them as."""
+    return p.name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
 
 
 def default_name(now: float | None = None) -> str:
@@ -354,7 +369,7 @@ class Recorder:
         # (a state file left by a removed recording would be taken for this one's; a log
         # of any kind of that name is the recording of that name)
         if (find_log(self.folder, self.base) is not None
-                or (self.folder / (self.base + STATE_SUFFIX)).exists()):
+                or any((self.folder / (self.base + sfx)).exists() for sfx in (LOG_SUFFIX, STATE_SUFFIX))):
             raise RecordingError(f"a recording named {self.base!r} exists already")
         low = self._low_space()
         if low:

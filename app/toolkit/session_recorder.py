@@ -25,6 +25,7 @@ from app.toolkit.recording import Recorder, RecordingError, RecordingLimits, rec
 from app.toolkit.recorded import recording_files, scan_recordings
 
 log = logging.getLogger("orientlab.recording")
+LEFT_OUT_SHOWN = 50     # files left out of the listing named, at most
 
 
 def _source(session) -> str:
@@ -214,8 +215,18 @@ class RecordingService:
         return {"recording": False, "last": self.last, "limits": self.limits.as_dict()}
 
     def scan(self) -> tuple[list[dict[str, Any]], list[dict[str, str]]]:
-        """The recordings and the files of the folder left out, with why."""
-        return scan_recordings(self.folder)
+        """The recordings and the files of the folder left out, with why (at most
+        :data:`LEFT_OUT_SHOWN`, then one line saying how many more); the log being
+        written, empty until its first flush, is not among them."""
+        listed, left = scan_recordings(self.folder)
+        rec = self.recorder
+        seg = rec.segment if rec is not None else None
+        if seg is not None:
+            left = [x for x in left if x["file"] != seg.path.name]
+        if len(left) > LEFT_OUT_SHOWN:
+            more = len(left) - LEFT_OUT_SHOWN
+            left = left[:LEFT_OUT_SHOWN] + [{"file": f"... and {more} more", "why": "not shown"}]
+        return listed, left
 
     def names(self) -> list[str]:
         """The recordings' names, newest first, each once (the page's menus): the folder

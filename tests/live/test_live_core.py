@@ -66,3 +66,16 @@ def test_params_view_and_presets_of_the_builtins():
     assert "lab-approx" in core.params_view()["estimators"]
     sec = core.preset_sections()
     assert "lab-approx" not in sec and sec["primary"] == "lab" and sec["lab"]["use_mag"] is False
+
+
+def test_a_replaced_streams_reason_names_the_new_phone_by_its_app():
+    """The reason a stream ended goes into recordings the class downloads: the phone that
+    replaced it is named by its app, not by its address (a reviewer found
+    "replaced by phone 192.168.1.23 (Sensor Logger)" in a recording's end event)."""
+    core = LiveCore(None)
+    old = core.open_session("demo", "simulated phone")
+    core.open_session("phone", "192.168.1.23 (Sensor Logger)", phone_app="sensorlogger")
+    assert old.close_reason == "replaced by a phone (Sensor Logger)", old.close_reason
+    replay = core.open_session("replay", "walk.txt")
+    core.open_session("phone", "127.0.0.1:40000")
+    assert "127.0.0.1" not in replay.close_reason and "replaced by a phone" in replay.close_reason

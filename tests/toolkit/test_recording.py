@@ -121,9 +121,32 @@ def test_a_name_is_one_recording_and_every_file_left_out_says_why(tmp_path):
     assert (parts["seg_2"]["recording"], parts["seg_2"]["orientlab"]) == ("seg_2", False)
 
 
-def test_the_listing_reads_an_events_file_by_its_ends(tmp_path):
+def test_a_file_name_that_is_not_utf8_is_shown_and_an_empty_log_keeps_its_name(tmp_path):
+    """A zip from another system leaves Latin-1 names: listed as left out, its name
+    readable as text (its lone surrogates had made the API's answer a 500). A log left
+    empty (a crash before the first write) still holds its name: a new recording of that
+    name is refused, as before, not moved to NAME_2."""
+    import json
+    raw = os.fsencode(tmp_path) + b"/mesure_\xe9t\xe9.txt"
+    with open(raw, "wb") as fh:
+        fh.write(b"1000\tACC\t0\t0\t9.81\n")
+    listed, left = scan_recordings(tmp_path)
+    assert listed == [] and left[0]["file"] == "mesure_\ufffdt\ufffd.txt", left
+    json.dumps(left).encode("utf-8")                      # what the API sends
+    (tmp_path / "lesson.txt").write_bytes(b"")
+    with pytest.raises(RecordingError, match="exists already"):
+        Recorder(tmp_path, "lesson").start({}, label="phone")
+    # a file is found by its own name, not by one built here (a case-insensitive disk
+    # opens Walk.TXT for walk.txt)
+    (tmp_path / "Walk.TXT").write_bytes(b"1000\tACC\t0\t0\t9.81\n")
+    (tmp_path / "walk.csv").write_bytes(b"t,ax\n0,1\n")
+    assert recording_files(tmp_path, "walk")["log"].name == "walk.csv"
+    assert recording_files(tmp_path, "Walk")["log"].name == "Walk.TXT"
+
+
+def test_the_listing_finds_the_end_of_a_long_events_file(tmp_path):
     """A long class's events file holds every change; the listing (twice a second on
-    the page) reads its first line and its end only, and finds the end event there."""
+    the page) reads its first line and its last 64 kB, and finds the end event there."""
     rec = Recorder(tmp_path, "long")
     rec.start({"robust": {"gyr_noise": 0.005}}, label="phone")
     rec.write_samples(_samples([b"1000\tACC\t0\t0\t9.81"]))

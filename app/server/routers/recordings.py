@@ -64,6 +64,8 @@ async def recordings(request: Request, tk: Toolkit = Depends(get_toolkit)) -> di
     out = {"folder": str(rs.folder), "status": rs.status(), "recordings": listed,
            "left_out": left_out}
     if not request.app.state.access.is_presenter(request):
+        # the folder's other files are the presenter's business (only they can rename them)
+        out.pop("left_out")
         out = without_paths(out, rs.folder)
         out["folder"] = rs.folder.name or "recordings"
     return out
@@ -84,14 +86,14 @@ async def stop(tk: Toolkit = Depends(get_toolkit)) -> dict:
 @router.get("/{name}/log")
 async def download_log(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The recording's log, as the Sensor Fusion app writes it."""
-    path = tk.recording.files(name)["log"]
+    path = (await asyncio.to_thread(tk.recording.files, name))["log"]
     return FileResponse(path, media_type="text/plain", filename=path.name)
 
 
 @router.get("/{name}/estimates")
 async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The estimates recorded beside the log (CSV, gzip-compressed for a recent one)."""
-    path = tk.recording.files(name)["estimates"]
+    path = (await asyncio.to_thread(tk.recording.files, name))["estimates"]
     if path is None:
         raise ToolError("name", f"{name!r} has no estimates file (an app log dropped in?)", 404)
     media = "application/gzip" if path.name.endswith(".gz") else "text/csv"
@@ -102,7 +104,7 @@ async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> F
 async def download_events(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The recording's events (JSON lines: the settings it began with, every change):
     ``orientlab estimate LOG --config NAME.events.jsonl`` re-runs it with them."""
-    path = tk.recording.files(name)["events"]
+    path = (await asyncio.to_thread(tk.recording.files, name))["events"]
     if path is None:
         raise ToolError("name", f"{name!r} has no events file (an app log dropped in?)", 404)
     return FileResponse(path, media_type="application/x-ndjson", filename=path.name)
@@ -112,7 +114,7 @@ async def download_events(name: str, tk: Toolkit = Depends(get_toolkit)) -> File
 async def download_state(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The filters' state as the recording began (``NAME.state.npz``, for one begun into
     its stream): beside the log and the events file, a re-run goes on from it."""
-    path = tk.recording.files(name)["state"]
+    path = (await asyncio.to_thread(tk.recording.files, name))["state"]
     if path is None:
         raise ToolError("name", f"{name!r} has no state file (it began with its stream)", 404)
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
