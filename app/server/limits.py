@@ -119,21 +119,38 @@ def _is_json(headers) -> bool:
     return any(k.lower() == b"content-type" and b"json" in v.lower() for k, v in headers)
 
 
-# a long quoted value: its opening quote not after a letter (the closing quote of a short
-# value, "'nope' (known: ...)", opens nothing: the list after it is the server's, not input)
-_QUOTED = re.compile(r"(?<!\w)'([^'\n]{65,})('|$)" + r'|(?<!\w)"([^"\n]{65,})("|$)')
+_OPEN = re.compile(r"(?<!\w)['\"]")       # a quote that can open a value: not after a letter
 _RUN = re.compile(r"[^\s'\"]{81,}")        # a long run without a space or a quote
 MAX_MSG = 300         # characters of one string in an error answer
 MAX_QUOTE = 48        # characters of a long quoted (or unbroken) value kept in a message
+LONG_QUOTE = 65       # a quoted value this long is cut
 
 
 def _cut_quotes(text: str) -> str:
-    """A value quoted in a message (``got 'AAAA...'``) cut to an excerpt and its length."""
-    def cut(m):
-        q = "'" if m.group(1) is not None else '"'
-        v = m.group(1) if m.group(1) is not None else m.group(3)
-        return f"{q}{v[:MAX_QUOTE]}...{q} ({len(v)}+ characters)"
-    text = _QUOTED.sub(cut, text)
+    """A value quoted in a message (``got 'AAAA...'``) cut to an excerpt and its length.
+    Quotes are paired from the left: a quote that closes a value never opens the next, so
+    the names a message lists after a short quoted one (``'nope-' (known: ...)``) are kept
+    whole; a value whose closing quote is missing (a message cut short) runs to the line's
+    end."""
+    out, i = [], 0
+    while True:
+        m = _OPEN.search(text, i)
+        if m is None:
+            out.append(text[i:])
+            break
+        q, start = m.group(0), m.end()
+        end = text.find(q, start)
+        nl = text.find("\n", start)
+        stop = len(text) if nl < 0 else nl
+        close = end if 0 <= end < stop else stop
+        v = text[start:close]
+        out.append(text[i:m.start()])
+        if len(v) >= LONG_QUOTE:
+            out.append(f"{q}{v[:MAX_QUOTE]}...{q} ({len(v)}+ characters)")
+        else:
+            out.append(text[m.start():close + (1 if close == end else 0)])
+        i = close + (1 if close == end else 0)
+    text = "".join(out)
     return _RUN.sub(lambda m: f"{m.group(0)[:MAX_QUOTE]}... ({len(m.group(0))}+ characters)", text)
 
 
