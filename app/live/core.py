@@ -75,8 +75,7 @@ class LiveCore:
                     truth, phone_app=phone_app)
         if self.session is not None and self.session.open:
             # (a phone by its app: the reason goes into recordings the class downloads)
-            self.session.close(f"replaced by {kind} {s.public_label()}" if kind != "phone"
-                               else f"replaced by {s.public_label()}")
+            self.session.close(f"replaced by {s.source_text()}")
         self.session = s
         self.totals.sessions += 1
         return s

@@ -63,6 +63,11 @@ class Session:
         app = PHONE_APPS.get(self.phone_app, "")
         return f"a phone ({app})" if app else "a phone"
 
+    def source_text(self) -> str:
+        """The stream in a few words anyone may read: its kind and label, a phone by its
+        app ("demo simulated phone", "a phone (Sensor Logger)")."""
+        return self.public_label() if self.kind == "phone" else f"{self.kind} {self.label}"
+
     def describe(self) -> dict[str, Any]:
         """The stream's source for a recording's events: kind, app and what was detected.
         A recording is shared with the class (the page's Recordings tab): a phone is named

@@ -31,7 +31,7 @@ LEFT_OUT_SHOWN = 50     # files left out of the listing named, at most
 def _source(session) -> str:
     """A segment's source as its ``start`` event names it (a phone by its app, not its
     address: a recording is shared with the class)."""
-    return f"{session.kind} {session.public_label()}" if session.kind != "phone" else session.public_label()
+    return session.source_text()
 
 
 def params_in_force(ensemble, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
