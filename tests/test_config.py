@@ -106,6 +106,16 @@ def test_the_bias_measurement_noises_are_vqfs_published_sigmas_as_densities(ts):
     assert p.rest_noise * deg == pytest.approx(rest, rel=0.03)
     assert RobustParams.default_from["bias_motion_noise"].startswith("VQF: biasSigmaMotion")
     assert RobustParams.default_from["rest_noise"].startswith("VQF: biasSigmaRest")
+    # where each settles (docs/accuracy.md, the labels): a random walk of density q measured
+    # with density r settles at sqrt(q r) with the time constant r / q; VQF's own q is its V
+    q_vqf = np.sqrt(c.biasV / c.accTs) / 100.0 / deg      # (0.01 °/s)² per sample -> rad/s/√s
+    assert q_vqf / p.bias_noise == pytest.approx(5.8, abs=0.05)
+    for r, sigma, tau, sigma_vqf, tau_vqf in ((p.bias_motion_noise, 0.041, 582.0, 0.1, 100.0),
+                                              (p.rest_noise, 0.0126, 53.3, 0.030, 9.2)):
+        assert np.sqrt(p.bias_noise * r) * deg == pytest.approx(sigma, rel=0.02)
+        assert r / p.bias_noise == pytest.approx(tau, rel=0.02)
+        assert np.sqrt(q_vqf * r) * deg == pytest.approx(sigma_vqf, rel=0.02)
+        assert r / q_vqf == pytest.approx(tau_vqf, rel=0.02)
 
 
 def test_an_old_preset_with_a_renamed_key_loads_translated(tmp_path, caplog):

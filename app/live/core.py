@@ -34,7 +34,6 @@ from app.live.ensemble import Ensemble, Records
 from app.live.changes import Change, apply_change, change_from_config, common_names, validate_patch
 from app.live.history import History
 from app.live.session import Session, Totals
-from app.sources.slot import PHONE_APPS
 
 log = logging.getLogger("orientlab.live")
 
@@ -229,8 +228,7 @@ class LiveCore:
             return f"replaying log {s.label}" + ("" if s.open else " (ended)")
         # the phone's address is the presenter's business (GET /api/connect), not every
         # watcher's: the status names its app only
-        app = PHONE_APPS.get(s.phone_app, "")
-        who = f"phone ({app})" if app else "phone"
+        who = f"phone ({s.app_name})" if s.app_name else "phone"
         if s.open:
             silent = s.silent()
             if silent is not None:

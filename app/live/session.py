@@ -55,13 +55,17 @@ class Session:
         self.close_reason = ""
         self.last_rx = time.monotonic()
 
+    @property
+    def app_name(self) -> str:
+        """The phone app's name ("Sensor Logger"), "" when not a phone app's stream."""
+        return PHONE_APPS.get(self.phone_app, "")
+
     def public_label(self) -> str:
         """The stream's label as anyone may read it: a phone by its app, never by its
         address (the presenter's business, ``GET /api/connect``)."""
         if self.kind != "phone":
             return self.label
-        app = PHONE_APPS.get(self.phone_app, "")
-        return f"a phone ({app})" if app else "a phone"
+        return f"a phone ({self.app_name})" if self.app_name else "a phone"
 
     def source_text(self) -> str:
         """The stream in a few words anyone may read: its kind and label, a phone by its

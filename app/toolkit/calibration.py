@@ -498,7 +498,7 @@ def bias_change(core, bias: np.ndarray) -> dict[str, dict[str, Any]]:
     bias is the phone's, not a filter's: lab-approx compares its time update with lab's,
     not another bias), to validate as ``{"estimators": ...}``; ToolError (409) when none
     of them is running."""
-    sch = core.ensemble.schema        # one snapshot: this also runs on viser's threads
+    sch = core.ensemble.schema        # one snapshot of the instances (a change may be pending)
     names = [n for n in sch.names if sch.base_of(n) in BIAS_ESTIMATORS]
     if not names:
         raise ToolError("estimators", f"none of {', '.join(BIAS_ESTIMATORS)} is running: no "
@@ -576,12 +576,8 @@ class CalibrationService:
     def calibrate_recording(self, name: str, from_s: float = 0.0,
                             to_s: float | None = None) -> dict[str, Any]:
         """The statistics of a stretch of a recording (seconds from its start)."""
-        from app.sources.readers import ReaderError, read_log_data
-        log = self.files(name, "recording")["log"]
-        try:
-            rec = read_log_data(log)
-        except ReaderError as e:     # a file dropped in the folder that is no log
-            raise ToolError("recording", str(e).replace(str(log), log.name)) from None
+        from app.toolkit.recorded import read_recording_log
+        rec = read_recording_log(self.files(name, "recording")["log"], "recording")
         if not len(rec):
             raise ToolError("name", "the recording has no samples")
         t = rec.t - rec.t[0]

@@ -320,14 +320,10 @@ class GyroScaleService:
         return await self.jobs.run(lambda: self.fit_recordings(names))
 
     def fit_recordings(self, names: list[str]) -> dict[str, Any]:
-        from app.sources.readers import ReaderError, read_log_data
+        from app.toolkit.recorded import read_recording_log
         recs = []
         for name in names:
-            log = self.files(name, "recordings")["log"]
-            try:
-                rec = read_log_data(log)
-            except ReaderError as e:     # a file dropped in the folder that is no log
-                raise ToolError("recordings", str(e).replace(str(log), log.name)) from None
+            rec = read_recording_log(self.files(name, "recordings")["log"], "recordings")
             recs.append(Recording(name, rec.t, rec.gyr, rec.acc))
         out = to_json(fit(recs))
         out["recordings"] = list(names)

@@ -37,6 +37,18 @@ def recording_files(folder: str | Path, name: str) -> dict[str, Path | None]:
             "events": ev if ev.is_file() else None, "state": st if st.is_file() else None}
 
 
+def read_recording_log(log: Path, field: str = "name"):
+    """The rows of a recording's log (:func:`app.sources.readers.read_log_data`); a file
+    dropped in the folder that is no log is a ToolError naming ``field``, the file by its
+    name (never its folder's path)."""
+    from app.sources.readers import ReaderError, read_log_data
+    from app.toolkit.errors import ToolError
+    try:
+        return read_log_data(log)
+    except ReaderError as e:
+        raise ToolError(field, str(e).replace(str(log), log.name)) from None
+
+
 def read_state(path: str | Path | None) -> dict[str, dict[str, np.ndarray]]:
     """The live filters' state a recording began with (:meth:`Recorder.write_state`), per
     instance: ``{instance: {attribute: array}}``; {} when there is none. RecordingError
@@ -278,11 +290,6 @@ def scan_recordings(folder: str | Path) -> tuple[list[dict[str, Any]], list[dict
                     "complete": end is not None or not events})
     out.sort(key=lambda r: r["modified"], reverse=True)
     return out, left
-
-
-def list_recordings(folder: str | Path) -> list[dict[str, Any]]:
-    """Every recording in ``folder``, newest first (:func:`scan_recordings`)."""
-    return scan_recordings(folder)[0]
 
 
 def _estimate_lines(path: Path, cut: list[str] | None = None):

@@ -366,10 +366,7 @@ class Recorder:
                                  f"{e.strerror or e}") from None
         if not os.access(self.folder, os.W_OK):
             raise RecordingError(f"the recordings folder {self.folder} is not writable")
-        # (a state file left by a removed recording would be taken for this one's; a log
-        # of any kind of that name is the recording of that name)
-        if (find_log(self.folder, self.base) is not None
-                or any((self.folder / (self.base + sfx)).exists() for sfx in (LOG_SUFFIX, STATE_SUFFIX))):
+        if self._taken(self.base):
             raise RecordingError(f"a recording named {self.base!r} exists already")
         low = self._low_space()
         if low:
@@ -383,11 +380,17 @@ class Recorder:
             self.active = False
             raise RecordingError(_os_message(self.folder / self.base, e)) from None
 
+    def _taken(self, name: str) -> bool:
+        """Whether ``name`` is a recording's already: a log of any kind (:func:`find_log`),
+        our own log even empty (a crash before the first write), or a state file (one left
+        by a removed recording would be taken for the new one's)."""
+        return (find_log(self.folder, name) is not None
+                or any((self.folder / (name + sfx)).exists() for sfx in (LOG_SUFFIX, STATE_SUFFIX)))
+
     def _segment_name(self) -> str:
         k = sum(not s.removed for s in self.segments) + 1
         name = self.base if k == 1 else f"{self.base}_{k}"
-        while ((self.folder / (name + LOG_SUFFIX)).exists() or find_log(self.folder, name) is not None
-               or (self.folder / (name + STATE_SUFFIX)).exists()):
+        while self._taken(name):
             k += 1
             name = f"{self.base}_{k}"
         return name

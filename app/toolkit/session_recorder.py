@@ -14,6 +14,7 @@ holds its size and rate (``bytes``, ``bytes_per_s``).
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -21,11 +22,13 @@ import numpy as np
 
 from app.params import to_dict
 from app.toolkit.errors import ToolError
-from app.toolkit.recording import Recorder, RecordingError, RecordingLimits, recording_logs
+from app.toolkit.recording import (Recorder, RecordingError, RecordingLimits, file_size,
+                                   recording_logs)
 from app.toolkit.recorded import recording_files, scan_recordings
 
 log = logging.getLogger("orientlab.recording")
 LEFT_OUT_SHOWN = 50     # files left out of the listing named, at most
+NAMES_FRESH_S = 10.0    # the recordings' names are read again at least this often
 
 
 def _source(session) -> str:
@@ -66,6 +69,7 @@ class RecordingService:
         self.recorder: Recorder | None = None
         self.last: dict[str, Any] | None = None      # the last recording's summary
         self._session = None                         # the stream being recorded
+        self._names: tuple[tuple, list[str]] = ((), [])   # (when read, the names): names()
         core.sample_stages.append(self.stage)
         core.record_listeners.append(self.on_records)
 
@@ -229,9 +233,20 @@ class RecordingService:
         return listed, left
 
     def names(self) -> list[str]:
-        """The recordings' names, newest first, each once (the page's menus): the folder
-        and the logs' sizes and times only, no file read."""
-        return list(recording_logs(self.folder)[0])
+        """The recordings' names, newest first, each once (the page's menus, asked twice a
+        second on the loop): read again (the folder's names, the logs' sizes and times)
+        only when the folder changed, the recording being made got its first bytes, or
+        :data:`NAMES_FRESH_S` passed (a file copied in is made empty, then written)."""
+        seg = self.recorder.segment if self.recorder is not None else None
+        try:
+            changed = self.folder.stat().st_mtime_ns
+        except OSError:
+            changed = None
+        key = (changed, None if seg is None else (seg.name, file_size(seg.path) > 0),
+               int(time.monotonic() // NAMES_FRESH_S))
+        if key != self._names[0]:
+            self._names = (key, list(recording_logs(self.folder)[0]))
+        return list(self._names[1])
 
     def files(self, name: str, field: str = "name") -> dict[str, Path | None]:
         """The files of recording ``name``; ToolError (404, naming the request's ``field``)

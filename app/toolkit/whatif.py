@@ -473,11 +473,11 @@ class WhatIfService:
             return out
         try:
             out = await self.jobs.run(run)
-        except ToolError:        # busy (429): as it is
+        except ToolError:        # busy (429), a file that is no log: as it is
             raise
         except WhatIfError as e:
             raise ToolError(e.field, e.reason) from None
-        except ValueError as e:  # a file that cannot be read
+        except ValueError as e:  # a file's other refusal (its events, its estimates)
             raise ToolError("name", str(e)) from None
         out["name"] = name
         self.last = out
@@ -493,7 +493,8 @@ class WhatIfService:
         if key in cache:
             cache[key] = cache.pop(key)
             return cache[key]
-        rec = read_log_data(path)
+        from app.toolkit.recorded import read_recording_log
+        rec = read_recording_log(path)       # ToolError for a file that is no log
         cache[key] = rec
         while len(cache) > 2:
             cache.pop(next(iter(cache)))

@@ -14,8 +14,7 @@ from app.estimators import make_estimator
 from app.sources.readers import read_log_data
 from app.sources.sensorfusion import decode_lines
 from app.toolkit.recording import Recorder, RecordingError, RecordingLimits
-from app.toolkit.recorded import (list_recordings, read_estimates, read_events, recording_files,
-                                  scan_recordings)
+from app.toolkit.recorded import read_estimates, read_events, recording_files, scan_recordings
 
 LOG = "alekodu_activityrecognition/sensorLog_20221024T182635_walking_hand.txt"
 
@@ -59,7 +58,7 @@ def test_the_log_is_the_stream_and_reads_like_the_original(tmp_path, shared_dir)
     assert [e["kind"] for e in ev] == ["start", "params", "end"]
     assert ev[0]["params"]["robust"]["gyr_noise"] == 0.005
     assert ev[1]["params"]["robust"]["gyr_noise"] == 0.01 and ev[1]["t"] == pytest.approx(r0.t[100])
-    listed = {r["name"]: r for r in list_recordings(tmp_path)}
+    listed = {r["name"]: r for r in scan_recordings(tmp_path)[0]}
     assert listed["take1"]["orientlab"] and listed["take1"]["samples"] == len(r0)
     assert "o" in listed                                        # a CSV dropped in is listed too
 
@@ -95,7 +94,7 @@ def test_a_name_is_one_recording_and_every_file_left_out_says_why(tmp_path):
     (tmp_path / "empty.txt").write_bytes(b"")
     (tmp_path / "notes.md").write_bytes(line)          # not a log's extension: not named
     os.utime(tmp_path / "ok.npz", (1e9, 1e9))             # the oldest
-    listed = list_recordings(tmp_path)
+    listed = scan_recordings(tmp_path)[0]
     names = [r["name"] for r in listed]
     assert sorted(names) == ["UPPER", "dup", "lab2", "ok", "seg_2"] and names[-1] == "ok"
     by = {r["name"]: r for r in listed}
@@ -114,7 +113,7 @@ def test_a_name_is_one_recording_and_every_file_left_out_says_why(tmp_path):
     rec.new_segment("phone B")                          # seg_2 is a dropped log's name
     rec.write_samples(_samples([line.strip()]))
     assert [g["name"] for g in rec.stop()["segments"]] == ["seg", "seg_3"]
-    parts = {r["name"]: r for r in list_recordings(tmp_path)}
+    parts = {r["name"]: r for r in scan_recordings(tmp_path)[0]}
     assert (parts["seg_3"]["recording"], parts["seg_3"]["segment"]) == ("seg", 2)
     assert (parts["seg"]["recording"], parts["seg"]["segment"]) == ("seg", 1)
     assert parts["seg_3"]["complete"] and parts["seg_3"]["end_reason"] == "stopped"
@@ -155,7 +154,7 @@ def test_the_listing_finds_the_end_of_a_long_events_file(tmp_path):
         rec.note("params", params={"robust": {"gyr_noise": 0.005 + k * 1e-6, "pad": "x" * 200}})
     rec.stop()
     assert (tmp_path / "long.events.jsonl").stat().st_size > 600_000
-    r = list_recordings(tmp_path)[0]
+    r = scan_recordings(tmp_path)[0][0]
     assert r["complete"] and r["samples"] == 1 and r["orientlab"] and r["recording"] == "long"
 
 

@@ -20,6 +20,7 @@ from app.live.changes import Change
 from app.live.core import LiveCore
 from app.quaternion import error_angles
 from app.sources.sensorfusion import MalformedLine, parse_line
+from app.sources.samples import Sample
 from app.toolkit.magcal import MagCalService
 from app.toolkit.recorded import read_estimates, read_events
 from app.toolkit.session_recorder import RecordingService
@@ -393,3 +394,26 @@ def test_record_between_a_new_stream_and_its_filters_reset_keeps_no_old_state(tm
     start = read_events(tmp_path / "rec" / "lesson.events.jsonl")[0]
     assert start["warm_s"] == 0.0 and start["state"] is False, start
     assert not (tmp_path / "rec" / "lesson.state.npz").exists()
+
+
+def test_the_menus_names_follow_the_folder_without_reading_it_each_time(tmp_path):
+    """The Lab tab asks for the recordings' names twice a second on the loop: they are
+    read again when the folder changes or the recording being made gets its first bytes,
+    so each change shows at once."""
+    core = LiveCore(None)
+    folder = tmp_path / "rec"
+    recs = RecordingService(core, folder)
+    assert recs.names() == []
+    folder.mkdir()
+    (folder / "walk.txt").write_text("1000\tACC\t0\t0\t9.81\n")
+    assert recs.names() == ["walk"]
+    s = core.open_session("phone", "a phone")
+    core.start(s)
+    recs.start("lesson")
+    assert recs.names() == ["walk"]                      # its log is empty until written
+    core.process(s, core.feed(s, [Sample(1000.0 + 10 * k, "ACC", (0.0, 0.0, 9.81)) for k in range(50)]))
+    recs.recorder._maybe_flush()
+    assert set(recs.names()) == {"walk", "lesson"}
+    recs.stop()
+    (folder / "walk.txt").unlink()
+    assert recs.names() == ["lesson"]

@@ -208,18 +208,24 @@ class Gui:
             self.bias_button.on_click(self._on_calibrate_bias)
 
     def _on_calibrate_bias(self, ev) -> None:
-        """POST /api/calibrate/bias from the page (the same checks and the same change)."""
-        core = self.engine.core
-        try:
-            bias = rest_bias(core, float(self.bias_seconds.value))
-            params = bias_change(core, bias)
-        except ToolError as e:
-            self._notify(ev, "Bias not set", e.reason)
-            return
-        self._submit({"estimators": params}, ev)
-        d = np.degrees(bias)
-        self._notify(ev, "Gyroscope bias set", f"{', '.join(params)}: gyr_bias = "
-                     f"({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) deg/s", color="green")
+        """POST /api/calibrate/bias from the page (the same checks and the same change),
+        worked out on the loop, which owns the stream's history and the ensemble (this
+        callback runs on viser's thread)."""
+        seconds = float(self.bias_seconds.value)
+
+        def on_loop() -> None:
+            core = self.engine.core
+            try:
+                bias = rest_bias(core, seconds)
+                params = bias_change(core, bias)
+            except ToolError as e:
+                self._notify(ev, "Bias not set", e.reason)
+                return
+            self._submit({"estimators": params}, ev)
+            d = np.degrees(bias)
+            self._notify(ev, "Gyroscope bias set", f"{', '.join(params)}: gyr_bias = "
+                         f"({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) deg/s", color="green")
+        self.engine.loop.call_soon_threadsafe(on_loop)
 
     def _on_primary(self, ev) -> None:
         """A viewer picked a primary. Not when :meth:`sync` set the menu (viser calls the
