@@ -162,6 +162,12 @@ class Runner:
             return [_job(t) for t in tasks]
         return list(self.pool.map(_job, tasks, chunksize=1))
 
+    def close(self) -> None:
+        """Join the workers before the interpreter exits (its exit hook otherwise writes to a
+        pipe that may be closed already, and prints an error after the figures)."""
+        if self.pool is not None:
+            self.pool.shutdown()
+
 
 def score(runner: Runner, method: str, trials: list[dict], params: dict | None = None) -> list[dict]:
     return runner.map([(method, tr, params) for tr in trials])
@@ -332,6 +338,7 @@ def main(argv=None) -> int:
         ph = [e for lab, e in held_all if lab.startswith("phones w/o")]
         if ph:
             print(f"  leave-one-phone-out, mean over the three held-out phones: {np.mean([e[0] for e in ph]):.2f}")
+    runner.close()
     print(f"\nrun time {time.perf_counter() - t0:.0f} s")
     return 0
 
