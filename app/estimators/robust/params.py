@@ -45,7 +45,7 @@ class RobustParams(CommonParams):
                                           "σ grows with the turn and the first good field after a long refusal "
                                           "corrects at once, not at the steady rate (0.01 √s: 1 % of a turn "
                                           "over a second); 0: off")
-    bias_init: float = param(0.01, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
+    bias_init: float = param(0.5 / DEG, unit="rad/s", lo=0.0, hi=1.0, log=True, user_unit="deg/s",
                              user_scale=DEG, doc="σ of the gyroscope bias at the start")
     bias_motion_noise: float = param(1.0 / DEG, unit="rad/s·√s", lo=0.0, hi=1.0, user_unit="deg/s·√s",
                                      user_scale=DEG,
@@ -269,9 +269,9 @@ RobustParams.default_from = {
     "bias_max": "physics: 3× the largest phone bias (0.1 rad/s)",
     "gyr_scale_noise": "physics: a 1 % scale error over acc_tau (benchmarks/gyro_scale.py: 0.2-2.3 %)",
     "refused_turn_noise": "shared trials (set with them in view): a 1 % scale error per second of turn",
-    "bias_init": "shared trials (set with them in view): near VQF's biasSigmaInit 0.5 °/s (here "
-                 "0.57 °/s), the size of an OS-calibrated phone gyroscope's bias (0.006-0.009 rad/s "
-                 "against the truth); a raw gyroscope's 0.05-0.1 rad/s starts 5-10 σ off",
+    "bias_init": "VQF: biasSigmaInit 0.5 °/s, the size of an OS-calibrated phone gyroscope's bias "
+                 "(0.006-0.009 rad/s against the truth); a raw gyroscope's 0.05-0.1 rad/s starts "
+                 "6-11 σ off and is learned at rest and in motion",
     "bias_motion_noise": "VQF: biasSigmaMotion 0.1 °/s as a noise density (VQF's per-sample "
                          "W = σ⁴/V + σ², with biasForgettingTime 100 s: 1 °/s·√s); with robust's own "
                          "bias_noise, 5.8× below VQF's V, the bias settles at 0.04 °/s in 10 min, not "
