@@ -271,7 +271,7 @@ RobustParams.default_from = {
     "refused_turn_noise": "shared trials (set with them in view): a 1 % scale error per second of turn",
     "bias_init": "VQF: biasSigmaInit 0.5 °/s, the size of an OS-calibrated phone gyroscope's bias "
                  "(0.006-0.009 rad/s against the truth); a raw gyroscope's 0.05-0.1 rad/s starts "
-                 "6-11 σ off and is learned at rest and in motion",
+                 "5.7-11.5 σ off and is learned at rest and in motion",
     "bias_motion_noise": "VQF: biasSigmaMotion 0.1 °/s as a noise density (VQF's per-sample "
                          "W = σ⁴/V + σ², with biasForgettingTime 100 s: 1 °/s·√s); with robust's own "
                          "bias_noise, 5.8× below VQF's V, the bias settles at 0.04 °/s in 10 min, not "
