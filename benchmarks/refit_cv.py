@@ -89,7 +89,7 @@ class Scores:
 
 def refit(scores: Scores, train: np.ndarray, s0: dict) -> tuple[dict, int]:
     """The five set by coordinate descent on the training trials from ``s0``, and the number
-    of passes it took (the last one changes nothing, unless MAX_PASSES ran out)."""
+    of passes it took (the last one changes nothing; MAX_PASSES + 1: it ran out, and says so)."""
     cur = dict(s0)
     for n in range(1, MAX_PASSES + 1):
         moved = False
@@ -101,7 +101,8 @@ def refit(scores: Scores, train: np.ndarray, s0: dict) -> tuple[dict, int]:
             cur = best
         if not moved:
             return cur, n
-    return cur, MAX_PASSES
+    print(f"  (the descent had not converged after {MAX_PASSES} passes)")
+    return cur, MAX_PASSES + 1
 
 
 def steps_of(setting: dict) -> str:
