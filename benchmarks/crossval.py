@@ -121,12 +121,7 @@ def main(argv=None) -> int:
                 a, b, c = held[m].mean(0), base[m].mean(0), vqf[m].mean(0)
                 print(f"| {lab} | {int(m.sum())} | | {a[0]:.2f} ({a[1]:.2f}/{a[2]:.2f}) | {b[0]:.2f} | "
                       f"{c[0]:.2f} |")
-        ratio = h[0] / v[0]
-        bound = 0.95 if which == "broad" else 0.85
-        worst = np.max(held[:, 0] - (2 * vqf[:, 0] + 5.0))
-        print(f"\nheld-out / VQF: {ratio:.3f} (done-when: ≤ {bound}); inclination {h[2]:.3f} vs "
-              f"VQF {v[2]:.3f}; closest trial to 2×VQF+5°: {worst:+.2f}° "
-              f"({'none catastrophic' if worst < 0 else 'CATASTROPHIC'})")
+        print("\n" + evalkit.done_when(which, held, vqf)[0])
         print(f"\nEach parameter alone ({which}, rule: {args.rule}): the folds may change only it; "
               "worst first\n")
         print("| parameter | chosen per fold | held-out | held-out − defaults |")

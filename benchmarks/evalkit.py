@@ -48,6 +48,23 @@ def broad_kind(trial: dict) -> str:
     return "undisturbed rotation"   # rotation without rests, and the combined trial
 
 
+# issue 19's done-when: held-out total RMSE at most this × VQF's (BROAD's inclination no worse,
+# no trial above 2 × VQF + 5°: catastrophic)
+BOUNDS = {"broad": 0.95, "phones": 0.85}
+
+
+def done_when(which: str, held: np.ndarray, vqf: np.ndarray) -> tuple[str, bool]:
+    """Issue 19's done-when on per-trial held-out errors ``held`` against VQF's (both (n, 3)):
+    the line the cross-validations print, and whether it holds."""
+    h, v = held.mean(0), vqf.mean(0)
+    bound = BOUNDS[which]
+    worst = float(np.max(held[:, 0] - (2 * vqf[:, 0] + 5.0)))
+    ok = h[0] / v[0] <= bound and worst < 0 and (which != "broad" or h[2] <= v[2])
+    return (f"held-out / VQF: {h[0] / v[0]:.3f} (done-when: ≤ {bound}); inclination {h[2]:.3f} vs "
+            f"VQF {v[2]:.3f}; closest trial to 2×VQF+5°: {worst:+.2f}° "
+            f"({'none catastrophic' if worst < 0 else 'CATASTROPHIC'})"), ok
+
+
 _TRIALS: dict[str, list[dict]] = {}
 
 

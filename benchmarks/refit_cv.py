@@ -145,19 +145,14 @@ def run_phase(phase: float, scores: dict, per_trial: bool) -> dict:
                 a, bb, ss, c = (x[m].mean(0) for x in (held, base, at_start, vqf))
                 print(f"| {lab} | {int(m.sum())} | | {a[0]:.2f} ({a[1]:.2f}/{a[2]:.2f}) | {bb[0]:.2f} | "
                       f"{ss[0]:.2f} | {c[0]:.2f} |")
-        bound = 0.95 if which == "broad" else 0.85
-        worst = np.max(held[:, 0] - (2 * vqf[:, 0] + 5.0))
-        print(f"\nheld-out / VQF: {h[0] / v[0]:.3f} (done-when: ≤ {bound}); inclination {h[2]:.3f} vs "
-              f"VQF {v[2]:.3f}; closest trial to 2×VQF+5°: {worst:+.2f}° "
-              f"({'none catastrophic' if worst < 0 else 'CATASTROPHIC'}); the start alone: "
-              f"{st[0] / v[0]:.3f} × VQF; passes per fold {passes}")
+        line, ok = evalkit.done_when(which, held, vqf)
+        print(f"\n{line}; the start alone: {st[0] / v[0]:.3f} × VQF; passes per fold {passes}")
         if per_trial:
             print("\n| trial | held-out | defaults | start | VQF |\n|---|---|---|---|---|")
             for t, a, bb, ss, c in zip(trs, held, base, at_start, vqf):
                 print(f"| {t['name']} | {a[0]:.2f} | {bb[0]:.2f} | {ss[0]:.2f} | {c[0]:.2f} |")
         out[which] = dict(ratio=h[0] / v[0], incl=h[2], vqf_incl=v[2], start=st[0] / v[0],
-                          base=b[0] / v[0], ok=h[0] / v[0] <= bound and worst < 0
-                          and (which == "phones" or h[2] <= v[2]))
+                          base=b[0] / v[0], ok=ok)
     return out
 
 
