@@ -31,12 +31,6 @@ LEFT_OUT_SHOWN = 50     # files left out of the listing named, at most
 NAMES_FRESH_S = 10.0    # the recordings' names are read again at least this often
 
 
-def _source(session) -> str:
-    """A segment's source as its ``start`` event names it (a phone by its app, not its
-    address: a recording is shared with the class)."""
-    return session.source_text()
-
-
 def params_in_force(ensemble, parts: list[Callable[[], dict]] = ()) -> dict[str, Any]:
     """Every instance's base and parameters, the primary, and the tables ``parts`` add
     (the magnetometer calibration in force): what a recording notes at each change."""
@@ -88,9 +82,9 @@ class RecordingService:
             return samples
         if session is not self._session:
             if self._session is not None:     # a stream that starts now: the filters too
-                rec.new_segment(_source(session), session.describe(), {"t": None, "warm_s": 0.0})
+                rec.new_segment(session.source_text(), session.describe(), {"t": None, "warm_s": 0.0})
             else:                              # recording before any stream: this is its source
-                rec.note("stream", source=_source(session), phone=session.describe())
+                rec.note("stream", source=session.source_text(), phone=session.describe())
             self._session = session
         rec.write_samples(samples)
         self._check()
@@ -162,7 +156,7 @@ class RecordingService:
             s = self.core.session
             at = self._warm()
             state = self.core.ensemble.state_arrays() if at["warm_s"] > 0 else {}
-            rec.start(self.params_in_force(), label="" if s is None else _source(s),
+            rec.start(self.params_in_force(), label="" if s is None else s.source_text(),
                       phone=None if s is None else s.describe(), at={**at, "state": bool(state)})
             if s is not None and s.open:
                 self._begin(rec, s, state)

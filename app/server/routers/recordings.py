@@ -83,19 +83,26 @@ async def stop(tk: Toolkit = Depends(get_toolkit)) -> dict:
     return tk.recording.stop()
 
 
+async def _file(tk: Toolkit, name: str, kind: str, missing: str = "") -> Path:
+    """Recording ``name``'s file of ``kind`` (log, estimates, events, state), found off the
+    loop (a pass over the folder); 404 saying ``missing`` when the recording has none."""
+    path = (await asyncio.to_thread(tk.recording.files, name))[kind]
+    if path is None:
+        raise ToolError("name", f"{name!r} has no {kind} file ({missing})", 404)
+    return path
+
+
 @router.get("/{name}/log")
 async def download_log(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The recording's log, as the Sensor Fusion app writes it."""
-    path = (await asyncio.to_thread(tk.recording.files, name))["log"]
+    path = await _file(tk, name, "log")
     return FileResponse(path, media_type="text/plain", filename=path.name)
 
 
 @router.get("/{name}/estimates")
 async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The estimates recorded beside the log (CSV, gzip-compressed for a recent one)."""
-    path = (await asyncio.to_thread(tk.recording.files, name))["estimates"]
-    if path is None:
-        raise ToolError("name", f"{name!r} has no estimates file (an app log dropped in?)", 404)
+    path = await _file(tk, name, "estimates", "an app log dropped in?")
     media = "application/gzip" if path.name.endswith(".gz") else "text/csv"
     return FileResponse(path, media_type=media, filename=path.name)
 
@@ -104,9 +111,7 @@ async def download_estimates(name: str, tk: Toolkit = Depends(get_toolkit)) -> F
 async def download_events(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The recording's events (JSON lines: the settings it began with, every change):
     ``orientlab estimate LOG --config NAME.events.jsonl`` re-runs it with them."""
-    path = (await asyncio.to_thread(tk.recording.files, name))["events"]
-    if path is None:
-        raise ToolError("name", f"{name!r} has no events file (an app log dropped in?)", 404)
+    path = await _file(tk, name, "events", "an app log dropped in?")
     return FileResponse(path, media_type="application/x-ndjson", filename=path.name)
 
 
@@ -114,9 +119,7 @@ async def download_events(name: str, tk: Toolkit = Depends(get_toolkit)) -> File
 async def download_state(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
     """The filters' state as the recording began (``NAME.state.npz``, for one begun into
     its stream): beside the log and the events file, a re-run goes on from it."""
-    path = (await asyncio.to_thread(tk.recording.files, name))["state"]
-    if path is None:
-        raise ToolError("name", f"{name!r} has no state file (it began with its stream)", 404)
+    path = await _file(tk, name, "state", "it began with its stream")
     return FileResponse(path, media_type="application/octet-stream", filename=path.name)
 
 
