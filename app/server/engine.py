@@ -4,7 +4,7 @@ Everything the filter does lives in :class:`app.live.LiveCore` (pure and synchro
 sessions, the ensemble of estimators, changes, history, read models). This module only
 moves work onto the event loop and results off it:
 
-- **the inbox**: one asyncio queue, in posting order. Streams (a phone of any app, the
+- **the inbox** (:class:`Inbox`): one queue, in posting order. Streams (a phone of any app, the
   demo, a replayed log) call :meth:`Engine.feed` with samples from the event loop; the
   core's session counts and reorders, and the released samples are queued with the
   arrival time of their chunk. Parameter changes are validated first
@@ -53,6 +53,41 @@ from app.params import GRAVITY
 from app.sources.samples import Sample
 
 log = logging.getLogger("orientlab.engine")
+
+
+class Inbox:
+    """The filter task's queue, in posting order, on one event loop: ``put_nowait``,
+    ``await get()``, ``get_nowait``, ``empty``, ``qsize`` as :class:`asyncio.Queue`, and
+    :meth:`items`, what waits, in order (a recording begun mid-stream takes the samples
+    not yet filtered). Its own deque, so nothing reads a private attribute of asyncio's."""
+
+    def __init__(self) -> None:
+        self._items: deque = deque()
+        self._ready = asyncio.Event()
+
+    def put_nowait(self, item) -> None:
+        self._items.append(item)
+        self._ready.set()
+
+    async def get(self):
+        while not self._items:
+            self._ready.clear()
+            await self._ready.wait()
+        return self._items.popleft()
+
+    def get_nowait(self):
+        if not self._items:
+            raise asyncio.QueueEmpty
+        return self._items.popleft()
+
+    def empty(self) -> bool:
+        return not self._items
+
+    def qsize(self) -> int:
+        return len(self._items)
+
+    def items(self) -> list:
+        return list(self._items)
 SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the loop
 
 PLOT_HZ = 20.0                # WS /ws/plots messages a second at most (the plots redraw as often)
@@ -151,7 +186,7 @@ class Engine:
         self.core = LiveCore(config, history_s=settings.history_s,
                              reorder_window_s=settings.reorder_window_s)
         self.loop = loop
-        self.inbox: asyncio.Queue | None = None
+        self.inbox: Inbox | None = None
         self.background_allowed: asyncio.Event | None = None
         self.pose_listeners: list[Callable[[np.ndarray], None]] = []  # after every batch
         self.listeners: list[Callable[[Snapshot], None]] = []       # at most scene_hz
@@ -181,7 +216,7 @@ class Engine:
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         """Attach to the running loop (called in the FastAPI lifespan)."""
         self.loop = loop
-        self.inbox = asyncio.Queue()
+        self.inbox = Inbox()
         self._scene_timer.loop = self._ws_timer.loop = self._plot_timer.loop = loop
         self.background_allowed = asyncio.Event()
         self.background_allowed.set()
@@ -256,10 +291,9 @@ class Engine:
 
     def queued_samples(self, s: Session) -> list[Sample]:
         """The samples of stream ``s`` queued for the filter task, not yet filtered (in the
-        order they will be). Reads the inbox's deque (``asyncio.Queue._queue``, CPython's
-        since 3.4); on the loop only."""
-        items = getattr(self.inbox, "_queue", ()) if self.inbox is not None else ()
-        return [x for it in list(items) if it[0] == "samples" and it[1] is s for x in it[2]]
+        order they will be); on the loop only."""
+        items = self.inbox.items() if self.inbox is not None else ()
+        return [x for it in items if it[0] == "samples" and it[1] is s for x in it[2]]
 
     def pause_background(self) -> None:
         self.background_allowed.clear()

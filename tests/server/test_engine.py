@@ -4,6 +4,7 @@ is counted and the stream goes on; the supervisor restarts the task and says so.
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import os
 import socket
@@ -117,3 +118,43 @@ def test_the_supervisor_restarts_the_filter_task(srv, api):
     lines = simulate(("still",), seed=2).lines()
     st = play(srv, api, lines)
     assert st["counts"]["samples"] == len(lines) and st["initialized"]
+
+
+def test_the_inbox_keeps_order_and_a_recording_sees_what_waits_for_the_filter():
+    """Engine.queued_samples (what a recording begun mid-stream takes) lists the samples of
+    one stream that wait for the filter task, in time order, and none of another stream's;
+    the inbox hands items out in posting order, and a waiting get() wakes on the next put."""
+    from collections import Counter
+
+    from app.server.engine import Engine
+    from app.server.settings import Settings
+    from app.sources.sensorfusion import decode_lines
+
+    samples = decode_lines(simulate(("still",), seed=3).lines()[:60], Counter())
+    key = lambda x: (x.time_ms, x.tag)   # noqa: E731
+
+    async def scenario():
+        eng = Engine(Settings(source="none"))
+        eng.bind(asyncio.get_running_loop())
+        a = eng.open_session("demo", "a")
+        eng.feed(a, samples)
+        eng.close_session(a, "test")                # releases what the reorder buffer held
+        b = eng.open_session("demo", "b")
+        eng.feed(b, samples[:7])
+        eng.close_session(b, "test")
+        queued_a, queued_b = eng.queued_samples(a), eng.queued_samples(b)
+        for queued, fed in ((queued_a, samples), (queued_b, samples[:7])):
+            assert sorted(map(key, queued)) == sorted(map(key, fed))        # all of them,
+            assert [x.time_ms for x in queued] == sorted(x.time_ms for x in queued)  # in order
+        kinds = []
+        while not eng.inbox.empty():
+            kinds.append((await eng.inbox.get())[0])
+        assert kinds[0] == "session" and kinds.count("session") == 2 and "samples" in kinds
+        assert eng.queued_samples(a) == [] and eng.inbox.qsize() == 0
+        waiter = asyncio.ensure_future(eng.inbox.get())
+        await asyncio.sleep(0.01)
+        assert not waiter.done()                    # an empty inbox waits ...
+        eng.inbox.put_nowait(("change", None, None))
+        assert (await asyncio.wait_for(waiter, 1.0))[0] == "change"   # ... and wakes on a put
+
+    asyncio.run(scenario())
