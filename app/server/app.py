@@ -34,7 +34,7 @@ from app.server.limits import BodyLimit, install_error_handlers
 from app.server.connect import Connect
 from app.server.phones import PUSH_APPS, TICK_S, HttpPhones
 from app.sources.phyphox_poll import PhyphoxPoller
-from app.sources.sensorfusion_tcp import SensorFusionServer
+from app.server.tcp_phone import SensorFusionServer
 from app.sources.slot import PhoneSlot
 from app.server.routers import (calibrate, connect, estimators, health, params, phone, push,
                                 recordings, replay, state)
@@ -44,7 +44,8 @@ from app.server.routers import install_tool_errors
 from app.server.toolkit import Toolkit
 from app.server.gui.scene import Scene, loop_safe_wakeups
 from app.server.settings import Settings
-from app.sources.runners import ReplayControl, run_demo, run_replay
+from app.server.background import run_demo, run_replay
+from app.sources.pacing import ReplayControl
 
 log = logging.getLogger("orientlab.server")
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from app.live.changes import Change, PatchError
+from app.server.background import ReplayService
 from app.server.engine import Engine
 from app.server.presets import check_save, save_preset
 from app.toolkit.calibration import CalibrationService
@@ -26,7 +27,6 @@ from app.toolkit.gyro_scale import GyroScaleService
 from app.toolkit.inject import InjectionService
 from app.toolkit.magcal import MagCalService
 from app.toolkit.recording import RecordingLimits
-from app.toolkit.replay import ReplayService
 from app.toolkit.session_recorder import RecordingService
 from app.toolkit.variants import VariantService
 from app.toolkit.whatif import WhatIfService

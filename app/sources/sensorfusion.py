@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 
-from app.sources.samples import MAX_TIME_MS, VALUE_LIMITS, DecodeError, Sample, impossible, quaternion_reading
+from app.sources.samples import (MAX_TIME_MS, MOTION_TAGS, VALUE_LIMITS, DecodeError, Sample, impossible,
+                                 quaternion_reading)
 
 # tag -> accepted value counts (numeric tags) ; None = free text fields
 TAG_ARITY: dict[str, tuple[int, ...] | None] = {
@@ -200,3 +201,12 @@ def format_line(time_ms: int, tag: str, values) -> str:
     i = int(time_ms)
     t = str(i) if i == time_ms else f"{time_ms:.3f}"   # sub-ms stamps: to the µs
     return f"{t}\t{tag}\t{vals}"
+
+
+def valid_sample_line(line) -> bool:
+    """A line holding a usable motion sample (the test for a new connection)."""
+    try:
+        smp = parse_line(line)
+    except MalformedLine:
+        return False
+    return smp.tag in MOTION_TAGS and all(math.isfinite(v) for v in smp.values)

@@ -551,7 +551,7 @@ def test_a_phone_flood_keeps_the_queue_bounded_and_loses_nothing(srv, api, monke
     With ``max_backlog=8`` the receiver's waiting path is taken for sure."""
     import threading
 
-    from app.sources import sensorfusion_tcp as receiver
+    from app.server import tcp_phone as receiver
     if max_backlog is not None:
         monkeypatch.setattr(receiver, "MAX_BACKLOG", max_backlog)
     from app.sources.sensorfusion import format_line

@@ -1,10 +1,10 @@
-"""Replay control (app/sources/runners.py ReplayControl): pause, speed, seek, loop."""
+"""Replay control (app/sources/pacing.py ReplayControl): pause, speed, seek, loop."""
 
 from __future__ import annotations
 
 import pytest
 
-from app.sources.runners import ReplayControl, ReplayError
+from app.sources.pacing import ReplayControl, ReplayError
 
 
 def _ctl():

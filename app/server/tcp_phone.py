@@ -1,10 +1,12 @@
-"""The phone receiver: a TCP server for the Sensor Fusion app's stream.
+"""The Sensor Fusion app's TCP receiver, wired to the engine.
 
 The phone is the TCP client and only sends lines (see
 ``shared/protocols/sensorfusion-app.md``). Each connection becomes a session of the
-engine; its lines are decoded here (:func:`~app.sources.sensorfusion.decode_lines`: what
-does not parse is counted by reason) and the samples go the way every source's go
-(``engine.feed``).
+engine; its lines are decoded by the app's source module
+(:func:`~app.sources.sensorfusion.decode_lines`: what does not parse is counted by
+reason) and the samples go the way every source's go (``engine.feed``). This is the
+network edge, as :mod:`app.server.phones` is for the apps that push over HTTP: the wire
+format stays in :mod:`app.sources.sensorfusion`, which knows nothing of the engine.
 
 Robustness:
 
@@ -40,14 +42,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import socket
 import time
 from collections import Counter
 
-from app.sources.samples import MOTION_TAGS
 from app.sources.slot import PhoneSlot
-from app.sources.sensorfusion import LineSplitter, MalformedLine, decode_lines, parse_line
+from app.sources.sensorfusion import LineSplitter, decode_lines, valid_sample_line
 
 log = logging.getLogger("orientlab.receiver")
 
@@ -82,15 +82,6 @@ def quick_ack(sock: socket.socket | None) -> None:
 
 PHONE_APP = "sensorfusion"   # this source's key in the phone slot (app.sources.slot.PHONE_APPS)
 HELLO_MAX_LINES = 2000     # lines without a valid sample before a connection is dropped
-
-
-def valid_sample_line(line) -> bool:
-    """A line holding a usable motion sample (the test for a new connection)."""
-    try:
-        smp = parse_line(line)
-    except MalformedLine:
-        return False
-    return smp.tag in MOTION_TAGS and all(math.isfinite(v) for v in smp.values)
 
 
 def feed_lines(engine, session, lines: list, t_arrival: float | None = None) -> None:

@@ -1,58 +1,14 @@
-"""Background sources: the built-in demo phone and the replay of an app log.
-
-Both produce samples at real-time speed and feed them through the very path a phone's
-samples take (``engine.feed``: count, reorder). A replayed log is decoded as the phone's
-lines are (:func:`~app.sources.sensorfusion_tcp.feed_lines`). They run while
-``engine.background_allowed`` is set; a phone that connects clears it, and the source
-waits until it is set again ("Resume demo").
-"""
+"""Pacing a recorded app log at real time: :class:`ReplayControl`, the playhead of a replay
+(pause, speed, seek, loop). Pure: it says which lines are due at a monotonic time; the
+server's background task (:mod:`app.server.background`) hands them to the engine."""
 
 from __future__ import annotations
 
-import asyncio
 import bisect
 import itertools
-import logging
 import math
-import time
-from pathlib import Path
 
-import numpy as np
-
-from app.sources.samples import Sample
 from app.sources.sensorfusion import MalformedLine, parse_line
-from app.sources.sensorfusion_tcp import feed_lines
-from app.sources.simulate import Simulation, stream
-
-log = logging.getLogger("orientlab.sources")
-TICK_S = 0.01   # how often a source hands over the lines due
-
-
-async def run_demo(engine, seed: int = 0) -> None:
-    """The simulated phone (see :mod:`app.sources.simulate`), looping its scenes forever."""
-    sim = Simulation()
-    boot_ms = sim.config.boot_ms
-
-    def truth(time_ms):
-        return sim.truth((np.asarray(time_ms, float) - boot_ms) / 1000.0)
-
-    while True:
-        await engine.background_allowed.wait()
-        session = engine.open_session("demo", "simulated phone", truth=truth)
-        gen = stream(seed)
-        pending = next(gen)
-        t0_wall = time.monotonic()
-        t0_ms = pending[0]
-        while engine.background_allowed.is_set() and engine.core.session is session:
-            due_ms = t0_ms + (time.monotonic() - t0_wall) * 1000.0
-            samples = []
-            while pending[0] <= due_ms:
-                samples.append(Sample(*pending))
-                pending = next(gen)
-            if samples:
-                engine.feed(session, samples)
-            await asyncio.sleep(TICK_S)
-        engine.close_session(session, "a phone took over")
 
 
 def _pace_times(lines: list[bytes]) -> list[float]:
@@ -163,34 +119,3 @@ class ReplayControl:
                 "duration_s": round(self.duration_s, 3), "paused": self.paused,
                 "speed": self.speed, "loop": self.loop, "loops": self.loops,
                 "at_end": self.at_end}
-
-
-async def run_replay(engine, path: str | Path, pause_s: float = 1.0,
-                     control: ReplayControl | None = None) -> None:
-    """Replay an app log: real time by default, under ``control`` (pause, speed, seek,
-    loop); every loop and every seek is a new stream."""
-    path = Path(path)
-    ctl = control or ReplayControl(path.read_bytes().splitlines(), path.name)
-    lines = ctl.lines
-    while True:
-        await engine.background_allowed.wait()
-        ctl.restart = False
-        session = engine.open_session("replay", f"{ctl.label} (from {ctl.position_s:.1f} s)")
-        reason = "a phone took over"
-        while engine.background_allowed.is_set() and engine.core.session is session:
-            if ctl.restart:
-                reason = f"seek to {ctl.position_s:.1f} s"
-                break
-            i, j = ctl.due(time.monotonic())
-            if j > i:
-                feed_lines(engine, session, lines[i:j])
-            if ctl.at_end:
-                reason = "end of log"
-                if ctl.loop:
-                    break
-            await asyncio.sleep(TICK_S)
-        engine.close_session(session, reason)
-        if reason == "end of log":
-            ctl.loops += 1
-            await asyncio.sleep(pause_s)
-            ctl.seek(0.0)
