@@ -63,6 +63,15 @@ the stream's time goes on 1 ms after the last sample released, as the filters, t
 and a recording need (a filter skips a row older than its last). Before, one
 sample 10 s ahead made the buffer drop seconds of good samples as late.
 
+*A wrong first stamp.* A tag's offset is read from its first sample, so a wrong first
+stamp looks like a sensor on another clock. When a tag whose offset came from that one
+sample then confirms a jump, the one stamp was wrong: its offset is read again from the
+samples that confirmed it, and nothing is re-anchored. When the stream's very first
+sample (the reference) was the wrong one, the other tags' offsets were read against it:
+at the re-anchoring every motion tag stamped on the same clock as the jumping tag's new
+samples (within ``offset_threshold``) takes its offset. Before, ACC and GYR stayed 10 s
+apart for the whole session, and each sample was a new jump.
+
 Released samples are new :class:`~app.sources.sensorfusion.Sample` objects whose ``time_ms`` is on
 the reference clock (offset removed, possibly clamped).
 """
@@ -152,6 +161,7 @@ class SampleOrderer:
         self._newest: int | None = None         # newest mapped time seen (ms)
         self._released: int | None = None       # last released time (ms)
         self._latest: dict[str, int] = {}       # motion tag -> its newest mapped time
+        self._raw: dict[str, int] = {}          # motion tag -> its newest time as stamped
         self._recent: dict[str, deque] = {}
         # tag -> samples waiting aside after a time jump: [(arrival seq, mapped t, sample)]
         self._aside: dict[str, list[tuple[int, int, Sample]]] = {}
@@ -313,6 +323,8 @@ class SampleOrderer:
         return off
 
     def _insert(self, sample: Sample) -> list[Sample]:
+        if sample.tag in MOTION_TAGS:
+            self._raw[sample.tag] = sample.time_ms
         t = sample.time_ms - self._offset_of(sample)
         if abs(t - self._newest) > self.jump_ms:
             return self._set_aside(sample, t)
@@ -332,21 +344,33 @@ class SampleOrderer:
         self._seq += 1
         if len(aside) < self.jump_confirm:
             return []
-        if sample.tag not in MOTION_TAGS:   # this tag's clock moved: a new offset
+        lone_first = (sample.tag != self._reference
+                      and self.counters.tags[sample.tag] - len(aside) <= 1)
+        if sample.tag not in MOTION_TAGS or lone_first:
+            # this tag's clock moved (a non-motion tag), or its offset was read from its
+            # first sample alone and the tag has been elsewhere ever since (that one stamp
+            # was wrong): a new offset for this tag, read again as on its first sample
             del self._aside[sample.tag]
-            self._offsets_ms[sample.tag] += aside[0][1] - self._newest
+            diff = aside[0][2].time_ms - self._newest
+            self._offsets_ms[sample.tag] = (diff if sample.tag not in MOTION_TAGS
+                                            or abs(diff) > self.offset_threshold * 1000.0 else 0)
             out: list[Sample] = []
             for _, _, s in aside:
                 out.extend(self._insert(s))
             return out
-        return self._reanchor(aside[0][1])
+        return self._reanchor(aside[0][1], sample.tag, aside[0][2].time_ms)
 
-    def _reanchor(self, t_new: int) -> list[Sample]:
-        """The stream's clock jumped to ``t_new``: release the buffer in order, start
-        the new clock, then place what was waiting aside (in arrival order). A clock that
-        went back is moved on by the step (every tag's offset), so the stream's time goes
-        on just after the last sample released: the filters, the plots and a recording
-        need a time that never goes back (the filters skip a row older than the last)."""
+    def _reanchor(self, t_new: int, tag: str, raw_new: int) -> list[Sample]:
+        """The stream's clock jumped to ``t_new`` (``tag``'s samples, stamped ``raw_new``
+        on their own clock, say so): release the buffer in order, start the new clock,
+        then place what was waiting aside (in arrival order). A clock that went back is
+        moved on by the step (every tag's offset), so the stream's time goes on just after
+        the last sample released: the filters, the plots and a recording need a time that
+        never goes back (the filters skip a row older than the last). A motion tag whose
+        own stamps are on the same clock as ``tag``'s new ones (within
+        ``offset_threshold``) takes ``tag``'s offset: its own was read against a wrong
+        stamp (the stream's first sample stamped 10 s off made every other sensor look
+        10 s off, and each of their samples a new jump)."""
         self.counters.jumps += 1
         out: list[Sample] = []
         while self._heap:
@@ -355,10 +379,14 @@ class SampleOrderer:
         self._aside = {}
         if t_new <= self._newest:       # the newest time placed: nothing released is later
             step = self._newest - t_new + 1
-            for tag in self._offsets_ms:
-                self._offsets_ms[tag] -= step
+            for other in self._offsets_ms:
+                self._offsets_ms[other] -= step
             self.counters.back_ms += step
             t_new += step
+        off = self._offsets_ms.get(tag, 0)
+        for other, raw in self._raw.items():
+            if other != tag and abs(raw - raw_new) <= self.offset_threshold * 1000.0:
+                self._offsets_ms[other] = off
         self._newest = t_new
         self._released = None
         self._latest = {}

@@ -282,6 +282,34 @@ def test_time_stamp_far_in_the_future_or_past_is_a_glitch():
     assert o.counters.late == 0 and o.counters.malformed["time_jump"] == 2
 
 
+@pytest.mark.parametrize("tag, shift_ms", [("ACC", 10_000), ("GYR", 10_000), ("MAG", -10_000),
+                                             ("GYR", -10_000)])
+def test_a_wrong_first_stamp_leaves_the_sensors_in_step(tag, shift_ms):
+    """The first sample of a sensor stamped 10 s off. Its offset was read from that one
+    stamp, so the sensor looked like one on another clock; each sample after it was a
+    jump, and when the stream's very first sample was the wrong one, every other sensor's
+    offset was read against it: ACC and GYR ended 10 s apart for the rest of the session
+    (120 re-anchorings in 3 s of a live TCP stream, a review found). Now the sensors stay
+    in step: one offset for all, at most one re-anchoring, nothing dropped as late."""
+    stream = imu_stream(600)
+    k = next(i for i, x in enumerate(stream) if x.tag == tag)
+    stream[k] = Sample(stream[k].time_ms + shift_ms, tag, stream[k].values)
+    o = SampleOrderer(window=0.05)
+    out = run_all(o, stream)
+    assert times(out) == sorted(times(out))
+    assert o.counters.jumps <= 1 and o.counters.late == 0
+    assert len(set(o.offsets.values())) == 1, o.offsets          # one clock for all three
+    assert len(out) >= len(stream) - 1
+    # after the first second every sensor's samples come on their own intervals, in step
+    late = [x for x in out[len(out) // 3:]]
+    for t in ("ACC", "GYR", "MAG"):
+        d = np.diff(times([x for x in late if x.tag == t]))
+        assert d.min() >= 0 and np.median(d) == (10 if t != "MAG" else 20)
+    acc = times([x for x in late if x.tag == "ACC"])
+    gyr = times([x for x in late if x.tag == "GYR"])
+    assert abs(np.median(np.array(gyr[:50]) - np.array(acc[:50]))) <= 2     # GYR 1 ms after ACC
+
+
 def test_a_real_clock_jump_is_reanchored_without_loss():
     """The whole stream moves by +60 s (or back by 30 s): nothing is dropped, the jump is
     counted. Forward, the times are the phone's. Back, the stream's time goes on 1 ms after
