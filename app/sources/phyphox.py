@@ -383,12 +383,20 @@ class PhyphoxPushStream:
     def take(self, obj: dict, now: float) -> Batch:
         """Samples of one POST body's object (:meth:`read`); ``new_session`` is True on the
         first batch with samples of each session (the first of the stream too): the
-        consumer resets its state then. Raises :class:`PhyphoxError` for buffers that are
-        no arrays, a timeinfo or model of the wrong type."""
+        consumer resets its state then. A part of the wrong type (a buffer that is no
+        array, a timeinfo or model of the wrong type) is counted by its reason and left
+        out, and the rest of the POST is used: with ``keep="false"`` the phone has cleared
+        what it sent. Raises :class:`PhyphoxError` (the POST refused whole) only when such
+        a part is all there is."""
         arrays: dict[str, tuple[list, list[list]]] = {}
+        bad: list[PhyphoxError] = []
         for tag, (tname, comps) in self.buffers.items():
-            ta = self._array(obj, tname)
-            ca = [self._array(obj, c) for c in comps]
+            try:
+                ta = self._array(obj, tname)
+                ca = [self._array(obj, c) for c in comps]
+            except PhyphoxError as e:       # this sensor's buffers only
+                bad.append(e)
+                continue
             if ta is None and all(c is None for c in ca):
                 continue
             if ta is None or any(c is None for c in ca):
@@ -398,10 +406,16 @@ class PhyphoxPushStream:
             arrays[tag] = (ta, ca)
         timeinfo = obj.get(TIMEINFO_KEY)
         if timeinfo is not None and not isinstance(timeinfo, dict):
-            raise PhyphoxError("bad_timeinfo", "timeinfo is not an object")
+            bad.append(PhyphoxError("bad_timeinfo", "timeinfo is not an object"))
+            timeinfo = None
         model = obj.get(MODEL_KEY)
         if model is not None and not isinstance(model, str):
-            raise PhyphoxError("bad_model", "model is not a string")
+            bad.append(PhyphoxError("bad_model", "model is not a string"))
+            model = None
+        if bad and not arrays:
+            raise bad[0]
+        for e in bad:
+            self.counts[e.reason] += 1
 
         self.counts["posts"] += 1
         self.last_post_wall = now

@@ -738,3 +738,19 @@ def test_fake_phone_get_semantics():
         for x in th:
             x.join()
         assert fake.max_in_flight == 2
+
+
+@pytest.mark.parametrize("extra,reason", [
+    ({"model": 5}, "bad_model"), ({"timeinfo": [1]}, "bad_timeinfo"),
+    ({"gyr_t": [1.0], "gyrX": "oops", "gyrY": [0], "gyrZ": [0]}, "bad_buffer"),
+])
+def test_push_a_bad_part_loses_nothing_that_was_good(extra, reason):
+    """One part of the wrong type (the model, the timeinfo, one sensor's buffer) is counted
+    by its reason and left out; the POST's good buffers are used. Before, the whole POST was
+    refused with 400, and the phone (keep="false") had already cleared what it sent."""
+    stream = PhyphoxPushStream()
+    body = json.loads(_body(acc_t=[1.0, 1.01], accX=[0, 0], accY=[0, 0], accZ=[9.8, 9.8]))
+    batch = stream.decode(json.dumps({**body, **extra}).encode(), now=0.0)
+    assert [(x.tag, x.values) for x in batch.samples] == [("ACC", (0.0, 0.0, 9.8))] * 2
+    assert stream.counts[reason] == 1 and stream.counts["posts"] == 1
+    assert not any(k.startswith("rejected_") for k in stream.counts)
