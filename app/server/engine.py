@@ -263,6 +263,12 @@ class Engine:
         self.inbox.put_nowait(("session", s))
         return s
 
+    def open_phone_session(self, label: str, phone_app: str, window_s: float | None = None) -> Session:
+        """A phone that took the slot (any app's receiver): the demo or a replayed log
+        pauses (until "Resume demo"), and the phone's stream replaces the one on show."""
+        self.pause_background()
+        return self.open_session("phone", label, phone_app=phone_app, window_s=window_s)
+
     def close_session(self, s: Session, reason: str = "end of stream") -> None:
         """End a stream: release what the reorder buffer holds; the last state stays."""
         self._queue(s, self.core.close_session(s, reason))

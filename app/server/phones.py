@@ -263,9 +263,8 @@ class HttpPhones:
         if new_session or st.session is None or not st.session.open:
             if st.session is not None and st.session.open:
                 self.engine.close_session(st.session, "the phone started a new recording")
-            self.engine.pause_background()
-            st.session = self.engine.open_session(
-                "phone", f"{st.key} ({PHONE_APPS[st.phone_app]})", phone_app=st.phone_app,
+            st.session = self.engine.open_phone_session(
+                f"{st.key} ({PHONE_APPS[st.phone_app]})", st.phone_app,
                 window_s=PUSH_APPS[st.phone_app].window_s if st.phone_app in PUSH_APPS
                 else POLL_WINDOW_S)
             st.session.withheld_by = getattr(st.decoder, "withheld", None)

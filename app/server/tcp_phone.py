@@ -217,8 +217,7 @@ class SensorFusionServer:
         if why is not None:   # another phone got in meanwhile
             self._writers.discard(writer)
             return self._refuse(writer, label, why, counted=True)
-        eng.pause_background()
-        session = eng.open_session("phone", label, phone_app=PHONE_APP)
+        session = eng.open_phone_session(label, PHONE_APP)
         conn["session"] = session
         self.current = session
         log.info("phone %s connected", label)
