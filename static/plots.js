@@ -116,6 +116,20 @@
     return br;
   }
 
+  function alignDeg(col, ref) {
+    // the same angle of another source (the phone's own yaw or roll beside the estimate's):
+    // each value shifted by whole turns to lie nearest the reference's at the same time, so
+    // two values 5° apart are drawn 5° apart. Unwrapped alone, through pitch ±90° (where
+    // yaw and roll jump by 180°) the two could unwrap in opposite directions, a turn apart
+    // (as app/server/gui/plots.py's unwrap_deg with align)
+    const out = col.slice();
+    for (let i = 0; i < out.length; i++) {
+      const r = ref[i];
+      if (out[i] !== null && r !== null && r !== undefined) out[i] -= 360 * Math.round((out[i] - r) / 360);
+    }
+    return out;
+  }
+
   function ends(n, v) {
     const out = new Array(n).fill(null);
     if (v !== null && v !== undefined && n > 0) { out[0] = v; out[n - 1] = v; }
@@ -133,7 +147,8 @@
     if (key === "euler" || key === "error") {
       const p = r.pose;
       if (key === "error") return [p[0], p[7], p[8]];
-      return [p[0], unwrapDeg(p[1]), p[2], unwrapDeg(p[3]), unwrapDeg(p[4]), p[5], unwrapDeg(p[6])];
+      const yaw = unwrapDeg(p[1]), roll = unwrapDeg(p[3]);
+      return [p[0], yaw, p[2], roll, alignDeg(unwrapDeg(p[4]), yaw), p[5], alignDeg(unwrapDeg(p[6]), roll)];
     }
     if (key === "acc") {
       const a = r.acc, n = a[0].length, band = m.acc_band || [null, null];
@@ -335,6 +350,6 @@
     new ResizeObserver(schedule).observe(root);
   }
 
-  window.orientlabPlots = { charts, store, win, stats };
+  window.orientlabPlots = { charts, store, win, stats, columns };
   init();
 })();

@@ -232,3 +232,29 @@ def test_on_a_phone_screen_the_plots_draw_below_the_3d_view(tmp_path):
         framed("the phone above the panel after the client reset its camera")
         if ARTIFACTS.is_dir():
             page.screenshot(path=str(ARTIFACTS / "page_390x844.png"), full_page=True)
+
+
+def test_the_phones_own_yaw_and_roll_are_drawn_beside_the_estimates(tmp_path):
+    """The phone's own yaw beside the estimate's, 3° apart, through a jump of about 180°
+    (pitch passing ±90°): the estimate's jump of +179° unwraps upwards, the phone's of
+    +185° (-175° wrapped) downwards. Unwrapped each on its own, the page drew them a turn
+    apart (357°, the y axis stretched to ±400°); each phone value is now drawn nearest the
+    estimate's at the same time."""
+    pytest.importorskip("playwright.sync_api")
+    wrap = lambda d: (d + 180.0) % 360.0 - 180.0   # noqa: E731 - as the estimators report
+    t = [0.1 * i for i in range(40)]
+    est = [0.0] * 20 + [179.0] * 20
+    phone = [-3.0] * 20 + [wrap(182.0)] * 20
+    null = [None] * 40
+    ring = [t, est, [80.0] * 40, [wrap(v + 1.0) for v in est], phone, [80.0] * 40,
+            [wrap(v + 1.0) for v in phone], null, null]
+    with running_server(source="none", preset_dir=tmp_path) as srv, open_plots(srv, tmp_path) as page:
+        cols = page.evaluate("""(ring) => {
+            const p = window.orientlabPlots;
+            p.store.rings.pose = ring;
+            return p.columns("euler");
+        }""", ring)
+    for est_k, phone_k in ((1, 4), (3, 6)):                      # yaw, roll
+        gaps = [abs(b - a) for a, b in zip(cols[est_k], cols[phone_k])]
+        assert max(gaps) < 10.0, (est_k, cols[est_k], cols[phone_k])
+    assert max(map(abs, cols[1] + cols[4])) <= 185.0             # no axis stretched to ±400

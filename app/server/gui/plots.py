@@ -147,9 +147,11 @@ def unwrap_deg(deg: np.ndarray, max_span: float = 540.0, align: bool = False) ->
     with a break (a gap) where it wraps, so the chart keeps a readable scale.
 
     ``align``: one angle in every column (the estimators' headings, before and after):
-    each unwrapped column is shifted by whole turns to lie nearest the first unwrapped one
-    at their last common row, so two headings at +179° and -179° are drawn 2° apart, not
-    358°."""
+    each unwrapped column is shifted, row by row, by whole turns to lie nearest the first
+    unwrapped one, so two headings at +179° and -179° are drawn 2° apart, not 358°. Row by
+    row: through pitch ±90° yaw and roll jump by 180°, and two columns unwrapped alone may
+    take that jump in opposite directions (aligned at one row, the rest of the window was
+    still drawn a turn apart)."""
     out = np.array(deg, dtype=float, copy=True)
     unwrapped = np.zeros(out.shape[1], dtype=bool)
     for k in range(out.shape[1]):
@@ -168,10 +170,8 @@ def unwrap_deg(deg: np.ndarray, max_span: float = 540.0, align: bool = False) ->
     if align and cols.size > 1:
         ref = out[:, cols[0]]
         for k in cols[1:]:
-            both = np.flatnonzero(np.isfinite(ref) & np.isfinite(out[:, k]))
-            if both.size:
-                i = both[-1]
-                out[:, k] -= 360.0 * np.round((out[i, k] - ref[i]) / 360.0)
+            both = np.isfinite(ref) & np.isfinite(out[:, k])
+            out[both, k] -= 360.0 * np.round((out[both, k] - ref[both]) / 360.0)
     return out
 
 
