@@ -35,7 +35,7 @@
       ["phone roll", "#1f77b4", true, false, 1.5, undefined, null]] },
     // against the phone's own estimate is a difference, not an error: that estimate is
     // itself degrees off on real phones
-    { key: "error", title: "Error to truth, difference from the phone's own [°]", unit: "°", fmt: fmtFixed(2), series: [
+    { key: "error", title: "Angle to truth, to the phone's own [°]", unit: "°", fmt: fmtFixed(2), series: [
       ["vs phone's own", "#ff7f0e", false], ["to truth", "#17becf", false]] },
     { key: "acc", title: "|acc| [m/s²]", unit: " m/s²", fmt: fmtFixed(2), series: [
       ["|acc|", "#1f77b4", false], ["band lo", GREY, true, true, 1.5, "band", "gate band"], ["band hi", GREY, true, true, 1.5, "band", null],
@@ -242,7 +242,9 @@
         { font: FONT, size: 46, gap: 3, space: 18, ticks: { size: 4 }, stroke: "#333", grid: { stroke: "#e4e4e4" },
           ...(spec.log ? {                 // decades only (no minor lines)
             splits: (u, ai, min, max) => decades(min, max),
-            values: (u, vals) => vals.map((v) => (v === null ? "" : v >= 1 ? v.toFixed(0) : String(Number(v.toPrecision(1))))),
+            // 1e4 and up as powers (a shake's or a magnet's NIS: "100000" did not fit the axis)
+            values: (u, vals) => vals.map((v) => (v === null ? "" : v >= 1e4 ? `1e${Math.round(Math.log10(v))}`
+              : v >= 1 ? v.toFixed(0) : String(Number(v.toPrecision(1))))),
           } : {}) },
       ],
       series: [{ label: "t [s]" }].concat(spec.series.map(([label, color, dash, span, width]) => ({

@@ -258,3 +258,33 @@ def test_the_phones_own_yaw_and_roll_are_drawn_beside_the_estimates(tmp_path):
         gaps = [abs(b - a) for a, b in zip(cols[est_k], cols[phone_k])]
         assert max(gaps) < 10.0, (est_k, cols[est_k], cols[phone_k])
     assert max(map(abs, cols[1] + cols[4])) <= 185.0             # no axis stretched to ±400
+
+
+LAYOUT_JS = """() => Object.entries(window.orientlabPlots.charts).map(([key, c]) => {
+  const body = c.card.querySelector('.plot-body').getBoundingClientRect();
+  const why = c.why.getBoundingClientRect(), t = c.card.querySelector('.plot-title');
+  return {key, why: c.why.hidden ? null : c.why.textContent,
+          inside: why.top >= body.top - 1 && why.bottom <= body.bottom + 1,
+          title: t.textContent, cut: t.scrollWidth > t.clientWidth + 1};
+})"""
+
+
+def test_on_a_projector_every_title_shows_whole_and_an_empty_charts_note_stays_on_it(tmp_path):
+    """At 1280×720 (the teacher's guide's smaller projector) a phone without its own
+    orientation: the error chart is empty and says why. Its note spilled over the next
+    chart's title, and that chart's title was cut ("... the phone's ow")."""
+    pytest.importorskip("playwright.sync_api")
+    from app.sources.simulate import simulate
+    lines = [ln for ln in simulate(("still", "turn_z"), seed=4).lines() if "\tORI\t" not in ln]
+    assert lines and not any("\tORI\t" in ln for ln in lines)
+    with running_server(source="none", preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api, \
+            chromium_page(srv.url + "/", tmp_path / "profile", size=(1280, 720)) as (page, _):
+        page.locator("#tab-plots").click()
+        play(srv, api, lines)
+        got = wait_for(lambda: (lambda g: g if any(c["key"] == "error" and c["why"] for c in g)
+                                else None)(page.evaluate(LAYOUT_JS)), 30.0, what="the error chart's note")
+        if ARTIFACTS.is_dir():
+            page.screenshot(path=str(ARTIFACTS / "plots_1280x720.png"))
+    assert all(c["inside"] for c in got if c["why"]), got
+    assert not any(c["cut"] for c in got), got

@@ -339,7 +339,7 @@ class PlotFeed:
             for kind, a, b in self.injections(s):
                 spans.append([kind, round(a - t0, _DEC_X),
                               None if not math.isfinite(b) else round(b - t0, _DEC_X)])
-        band = lambda b: None if b is None else [round(float(b[0]), 1), round(float(b[1]), 1)]  # noqa: E731
+        band = lambda b: None if b is None else [round(float(b[0]), 2), round(float(b[1]), 2)]  # noqa: E731
         gate = lambda g: None if not g or not math.isfinite(float(g)) else float(_sig([g])[0])  # noqa: E731
         ori = " (it needs the phone's Orientation sensor, ORI)" if core.ensemble.is_reference(primary) else ""
         live = core.session
