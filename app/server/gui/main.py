@@ -5,7 +5,8 @@ visible at once): the plots in a panel of the landing page beside this viewer
 (``static/plots.js``, fed by WS /ws/plots through :class:`app.server.gui.plots.PlotFeed`);
 in the control panel the stream line (source, seconds since the stream started, primary), the indicators
 (standstill, acc / mag disturbed with the gate and its value), the sensor switches,
-then tabs: Tuning (one folder per estimator, the primary's first and open), Read-outs,
+then tabs: Tuning (one folder per estimator, the primary's first; open for a viewer that
+connects while it is the primary: viser keeps an open viewer's folders as they are), Read-outs,
 View, Presets (and Lab).
 
 Controls are built from the estimators' parameter metadata (:mod:`app.server.gui.controls`):
