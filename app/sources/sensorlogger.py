@@ -141,8 +141,12 @@ class OrientationCheck:
     sample when its world "up" matches the measured specific force within ``tilt_deg``
     and its "north" the horizontal field within ``heading_deg``. Once ``need_s`` of rest
     data are seen and one candidate fits at least half of them and clearly more than
-    any other, it is taken (for the session). Cost: a few vectorised numpy operations
-    per released batch.
+    any other (twice as long, or ``need_s / 2`` longer), it is taken (for the session).
+    A phone lying still with its top near north or south fits two candidates alike (as
+    sent and conjugated differ only in the heading's sign): that rest tells them apart
+    no more than it tells them from the rest, and half a ``need_s`` at another heading
+    then decides (a fraction of all the rest seen never did: 38 s at north held it back
+    for good). Cost: a few vectorised numpy operations per released batch.
     """
 
     TURNS = (0, 90, 180, 270)
@@ -187,6 +191,12 @@ class OrientationCheck:
         if st == "left out":
             return "left out: its convention did not match gravity and the field"
         if st == "checking":
+            if self.rest_s >= self.need_s:
+                i, best, second = self._best()
+                if best >= 0.5:
+                    return ("not yet checked: the phone's rest fits two conventions alike (its "
+                            "top points near north or south); turn it flat by a quarter turn "
+                            "and hold it still a moment")
             return f"not yet checked ({self.rest_s:.1f} s of {self.need_s:g} s near rest seen)"
         return "not yet checked (hold the phone still for a moment)"
 
@@ -243,7 +253,8 @@ class OrientationCheck:
         self.fit_s += np.array(fits, dtype=float) * dt
         if self.rest_s >= self.need_s:
             i, best, second = self._best()
-            if best >= 0.5 and second <= 0.5 * best:
+            apart_s = (best - second) * self.rest_s          # how much longer the best fits
+            if best >= 0.5 and (second <= 0.5 * best or apart_s >= 0.5 * self.need_s):
                 self.chosen = i
 
 
