@@ -29,6 +29,7 @@ async function init() {
   $("viewer").src = url;
   $("viewer-link").href = url;
   $("watch-note").hidden = presenter;
+  $("watch-badge").hidden = presenter;      // the Plots tab opens by itself: said on every tab
   $("presenter-connect").hidden = !presenter;
   tabs(".tabs [role=tab]", (b) => { tabPicked = true; showPanel(b); });
   tabs(".apps [role=tab]", (b) => { appPicked = true; showApp(b); });

@@ -52,6 +52,10 @@ def test_a_student_downloads_the_recordings_files_from_the_page(tmp_path):
                 wait_for(lambda: page.evaluate(
                     "() => document.body.classList.contains('watch-only')"), 30.0,
                     what="a watcher's page")
+                # every tab says why the controls are greyed, not the Connect tab alone
+                badge = page.locator("#watch-badge")
+                assert badge.is_visible() and badge.text_content() == "watch-only"
+                assert "presenter's link" in badge.get_attribute("title")
                 # two logs of one name had crashed the viewer's menus (the whole panel)
                 click(page, frame.get_by_role("tab", name="Lab"))
                 frame.get_by_text("Record", exact=True).first.wait_for(state="visible")
