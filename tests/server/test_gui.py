@@ -111,3 +111,18 @@ def test_demo_lab_with_bias_follows_the_truth_and_disturbances_light(tmp_path):
         print(f"shake: 'acc disturbed: {shake}'; magnet: 'mag disturbed: {magnet}'")
         # the gate and the value that tripped it, not only "disturbed"
         assert any(c.isdigit() for c in shake) and any(c.isdigit() for c in magnet)
+
+
+def test_the_variant_just_added_is_the_one_remove_ends(tmp_path):
+    """The README's exercise 10: "Add lab-approx", then "Remove variant ends it". With an
+    older variant in the dropdown (exercise 7's), the dropdown kept showing that one, and
+    Remove ended it instead of lab-approx."""
+    with running_server(source="demo", preset_dir=tmp_path) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        tab = srv.app.state.toolkit_tab
+        for name, base, params in (("lab-no-rejection", "lab", {"mag_band_rel": 0.0}),
+                                   ("lab-approx", "lab", {"time_update": "approx"})):
+            r = api.post("/api/estimators", json={"name": name, "base": base, "params": params})
+            assert r.status_code == 200, r.text
+            wait_for(lambda n=name: n in tab.var_remove.options, 30.0, what=f"{name} in the dropdown")
+            assert tab.var_remove.value == name

@@ -643,8 +643,12 @@ class ToolkitTab:
         # variants
         b = self.core.ensemble
         variants = tuple(n for n in b.names if b.base_of(n) != n) or ("(none)",)
-        if tuple(self.var_remove.options) != variants:
+        old = tuple(self.var_remove.options)
+        if old != variants:
             self.var_remove.options = variants
+            added = [n for n in variants if n not in old and n != "(none)"]
+            if added:   # the one just added is the one "Remove variant" ends (not an older one)
+                self.var_remove.value = added[-1]
         self.var_md.content = self._readouts()
         # disturbances and the monitor
         act = tk.injection.injector.active
