@@ -148,13 +148,18 @@ def test_the_calibration_read_out_rounds_to_what_the_sensors_tell(tmp_path):
     with running_server(source="none", preset_dir=tmp_path) as srv:
         tab = srv.app.state.toolkit_tab
         tab.tk.calibration.last = {
-            "n_rows": 500, "duration_s": 5.0, "stationary": True, "warnings": [], "sensors": {},
+            "n_rows": 500, "duration_s": 5.0, "stationary": True, "warnings": [],
+            "sensors": {"gyr": {"title": "gyroscope", "unit": "rad/s", "mean": [0.0325, 0.0, -0.001],
+                                "std": [0.001] * 3, "drift_per_min": [0.0] * 3,
+                                "normality": {"normal_5pct": [True, True, None]}}},
             "g0": [0.0, 0.0, 9.812345678901234], "m0": [0.0, 19.876543210987, -44.12345678901]}
         done = threading.Event()
         srv.engine.loop.call_soon_threadsafe(lambda: (tab._draw_calibration(True), done.set()))
         assert done.wait(10.0)
         text = tab.cal_md.content
         assert "g0 = (0.00, 0.00, 9.81) m/s²" in text and "m0 (formula 7) = (0.0, 19.9, -44.1) µT" in text
+        # the gyroscope's mean in the filters' SI and as Tuning and the bias notice show it
+        assert "mean (0.0325, 0, -0.001 = 1.86, 0, -0.0573 deg/s)" in text, text
         assert not re.search(r"\d\.\d{5,}", text), text
 
 

@@ -506,6 +506,8 @@ class ToolkitTab:
             drift = ", ".join(f"{v:.3g}" for v in ss["drift_per_min"])
             normal = ", ".join("yes" if v else ("no" if v is not None else "n/a")
                                for v in ss["normality"]["normal_5pct"])
+            if ss["unit"] == "rad/s":     # SI as the filters' covariances; the bias as Tuning shows it
+                mean += " = " + ", ".join(f"{np.degrees(v):.3g}" for v in ss["mean"]) + " deg/s"
             lines.append(f"- **{ss['title']}** [{ss['unit']}]: mean ({mean}), σ ({std}), "
                          f"drift/min ({drift}), normal at 5 %: {normal}")
         if res.get("m0"):
