@@ -142,10 +142,11 @@ class OrientationCheck:
     and its "north" the horizontal field within ``heading_deg``. Once ``need_s`` of rest
     data are seen and one candidate fits at least half of them and clearly more than
     any other (twice as long, or ``need_s / 2`` longer), it is taken (for the session).
-    A phone lying still with its top near north or south fits two candidates alike (as
-    sent and conjugated differ only in the heading's sign): that rest tells them apart
-    no more than it tells them from the rest, and half a ``need_s`` at another heading
-    then decides (a fraction of all the rest seen never did: 38 s at north held it back
+    A phone lying still with its top near a multiple of 45° from north fits two
+    candidates alike (conjugated, a flat phone's heading changes sign, and one of the
+    world's turns by 90° makes up for it there): that rest tells them apart no more than
+    it tells them from the rest, and half a ``need_s`` at a heading between those then
+    decides (a fraction of all the rest seen never did: 38 s at north held it back
     for good). Cost: a few vectorised numpy operations per released batch.
     """
 
@@ -195,8 +196,8 @@ class OrientationCheck:
                 i, best, second = self._best()
                 if best >= 0.5:
                     return ("not yet checked: the phone's rest fits two conventions alike (its "
-                            "top points near north or south); turn it flat by a quarter turn "
-                            "and hold it still a moment")
+                            "top points near a multiple of 45° from north); turn it flat by about "
+                            "20-30° and hold it still a moment")
             return f"not yet checked ({self.rest_s:.1f} s of {self.need_s:g} s near rest seen)"
         return "not yet checked (hold the phone still for a moment)"
 

@@ -841,9 +841,10 @@ def test_a_message_id_no_app_reaches_is_counted_and_the_session_goes_on():
     assert st.messages == 3          # the message without its id is used, the next one too
 
 
-def test_orientation_check_decides_once_the_phone_rests_at_another_heading():
+@pytest.mark.parametrize("yaw0", [2.0, 45.0, 92.0])
+def test_orientation_check_decides_once_the_phone_rests_at_another_heading(yaw0):
     """A phone lying flat with its top to the north fits 'as sent' and 'conjugated' alike
-    (they differ in the heading's sign only). Before, the check needed one candidate to fit
+    (conjugated, its heading changes sign). Before, the check needed one candidate to fit
     twice as much of all the rest seen: after 10 s at north, 2 s at another heading never
     sufficed, and the page said "not yet checked (10.0 s of 2 s near rest seen)". Now it
     says why, and those 2 s decide."""
@@ -866,10 +867,10 @@ def test_orientation_check_decides_once_the_phone_rests_at_another_heading():
 
     chk = OrientationCheck()
     for k in range(10):
-        chk.feed(*rest(k, 1.0, 2.0))
+        chk.feed(*rest(k, 1.0, yaw0))
     assert chk.state == "checking"
-    assert "fits two conventions alike" in chk.message() and "quarter turn" in chk.message()
-    chk.feed(*rest(10.0, 1.0, 60.0))
-    chk.feed(*rest(11.0, 1.0, 60.0))
+    assert "fits two conventions alike" in chk.message() and "20-30°" in chk.message()
+    chk.feed(*rest(10.0, 1.0, yaw0 + 25.0))       # turned as the message says
+    chk.feed(*rest(11.0, 1.0, yaw0 + 25.0))
     assert chk.state == "ok", chk.status()
     assert chk.status()["convention"] == "as sent, world turned 0°"
