@@ -258,7 +258,8 @@ def dump_toml(sections: dict[str, dict[str, Any]], header: str = "") -> str:
 # quantity in one unit everywhere, declared here (tests/test_params.py checks every shared
 # name against this table and the units of its definitions). Only these names are taken
 # at the top level of PATCH /api/params (they set every estimator that has them).
-# Naming rule: ``*_noise`` is a noise density (per √s), ``*_std`` a per-sample σ.
+# Naming rule: ``*_noise`` is a noise density, ``*_std`` a per-sample σ. A process noise
+# density is per √s (rad/√s); a measurement's is times √s (rad·√s: R = σ²/Δt).
 SHARED_MEANINGS: dict[str, str] = {
     "use_gyr": "use the gyroscope (switch)",
     "use_acc": "use the accelerometer (switch)",
@@ -275,7 +276,9 @@ SHARED_MEANINGS: dict[str, str] = {
 class CommonParams:
     """Parameters every estimator has: a switch per sensor (lab manual, exercise 9)
     and the time-step limits that keep bad timestamps from doing harm."""
-    use_gyr: bool = param(True, doc="use the gyroscope (off: random-walk time update)")
+    use_gyr: bool = param(True, doc="use the gyroscope (off: lab and robust keep the attitude as a "
+                                        "random walk, complementary takes the compass as it is; phone: "
+                                        "the phone's own estimate, not switched)")
     use_acc: bool = param(True, doc="use the accelerometer")
     use_mag: bool = param(True, doc="use the magnetometer")
     max_gap: float = param(1.0, unit="s", lo=0.01, hi=60.0,

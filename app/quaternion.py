@@ -198,7 +198,9 @@ def rotvec_from_quat(q):
 @compiled
 def quat_from_matrix(R):
     """Unit quaternion of a rotation matrix: formula (2b), in its numerically stable
-    form (the largest of the four diagonal combinations is used as the pivot)."""
+    form (the largest of the four diagonal combinations is used as the pivot). The manual's
+    (2b) as printed (q1 = (R23 - R32) / 2t, ...) is the inverse of its own (2a): it gives
+    the conjugate. Here the signs are those that invert (2a): ``Q(quat_from_matrix(R)) = R``."""
     tr = R[0, 0] + R[1, 1] + R[2, 2]
     q = np.empty(4)
     if tr > 0.0:
@@ -254,8 +256,10 @@ def q2euler(q):
     """Euler angles exactly as the manual's appendix A.2.2 ``q2euler``.
 
     Returns ``[yaw (about z), pitch (about x), roll (about y)]`` in rad, each wrapped
-    to [-pi, pi). Note the manual's sign: a positive rotation about the world's z axis
-    gives a *negative* yaw (yaw grows clockwise seen from above, like a compass).
+    to [-pi, pi). Note the manual's sign, on all three: ``Q(q) = Rz(-yaw) Rx(-pitch)
+    Ry(-roll)``, so a right-handed turn gives a *negative* angle (yaw grows clockwise seen
+    from above, like a compass; the phone's top raised is a negative pitch). At pitch ±90°
+    (the phone upright) only yaw + roll is defined.
     """
     # the appendix first reorders q to [q0, q2, q1, q3]
     a, b, c, d = q[0], q[2], q[1], q[3]

@@ -14,7 +14,8 @@ element by element, and its Euler angles (eqs. 19-21)
     yaw = atan2(r2, r5)      pitch = -asin(r8)      roll = atan2(r7, r9)
 
 are the very angles of the manual's ``q2euler`` (yaw about z, positive clockwise seen
-from above like a compass; pitch about x; roll about y); the tests check both
+from above like a compass; pitch about x; roll about y; each negative for a right-handed
+turn); the tests check both
 agreements. We compute pitch as ``atan2(-r8, hypot(r7, r9))``, the same angle for an
 orthonormal R but accurate near ±90°. In gimbal lock (``cos(pitch) = 0``, eq. 22) roll is
 set to 0 and ``yaw = atan2(-r4, r1)`` (eq. 23).

@@ -83,7 +83,9 @@ class LabParams(CommonParams):
                       doc="initial P = p0 I after alignment")
     m0_learn_time: float = param(2.0, unit="s", lo=0.0, hi=60.0, tunable=False,
                                  doc="when m0 is not given: learn it by (7) from the mean field of "
-                                     "this long after alignment (the accelerometer levels it meanwhile)")
+                                     "this long after alignment (an exponentially weighted mean, "
+                                     "time constant a quarter of this; the accelerometer levels it "
+                                     "meanwhile)")
 
     # former names (same quantity): presets are translated with a warning, the API refuses
     # them with this message (see app.live.changes)

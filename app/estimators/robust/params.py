@@ -117,10 +117,13 @@ class RobustParams(CommonParams):
                                             "heading_noise² (a noise correlated over 0.5 s); 0: off",
                                             rejects=True)
     mag_norm_gate_rel: float = param(0.15, lo=0.0, hi=2.0,
-                                     doc="field strength may differ from the reference by this fraction; 0: off",
+                                     doc="field strength may differ from the reference by this fraction; 0: off. "
+                                         "It also bounds a new field's candidate while it is watched",
                                      rejects=True)
     mag_dip_gate: float = param(10.0 * math.pi / 180.0, unit="rad", lo=0.0, hi=1.6, user_unit="deg", user_scale=DEG,
-                                doc="dip angle may differ from the reference by this much; 0: off",
+                                doc="dip angle may differ from the reference by this much; 0: off. It "
+                                    "also bounds a new field's candidate while it is watched, and the "
+                                    "return after a refusal (the probation's floor; 0: no probation)",
                                 rejects=True)
     mag_ref_tau: float = param(20.0, unit="s", lo=0.1, hi=3600.0,
                                doc="time constant of learning the field reference while undisturbed")
@@ -128,7 +131,9 @@ class RobustParams(CommonParams):
                                       doc="a new homogeneous field is accepted after this long while turning (not "
                                           "one an offset found on the phone explains)")
     mag_new_min_rate: float = param(20.0 / DEG, unit="rad/s", lo=0.0, hi=10.0, user_unit="deg/s",
-                                    user_scale=DEG, doc="turn rate that counts towards accepting a new field")
+                                    user_scale=DEG, doc="turn rate that counts towards accepting a new field "
+                                                        "(and weighs the hard-iron fit's samples, and makes "
+                                                        "a field reference firm once turned through)")
     mag_dev_weight: float = param(math.sqrt(0.5), lo=0.0, hi=2.0,
                                   doc="heading σ per relative deviation of the field from its reference "
                                       "(Δ/|m_h|), within the gates too: a disturbance δ of any direction "

@@ -7,8 +7,9 @@
   the tilt only, never the heading (``_MASK_TILT``); the
   filter state is rotated with every correction, so it always lives in the current
   estimate's world frame (by how much: below). Every valid sample enters the low-pass
-  (leaving out the peaks of a movement would bias its mean); an innovation (NIS) gate, and optionally
-  a norm band (off by default: it costs accuracy on real data), hold the correction.
+  (leaving out the peaks of a movement would bias its mean); optionally a norm band (off
+  by default: it costs accuracy on real data) holds the correction. There is no NIS gate:
+  the NIS is computed and flagged, never used to refuse.
 - **A damped tilt loop** (``tilt_damping``). The low-pass (time constant τ =
   ``acc_tau``) and the corrections (time constant τc = 1/gain, from P) form a
   second-order loop. Turning the low-pass with every correction makes its poles real,
