@@ -42,7 +42,8 @@ is held until the missing one comes or ``hold_s`` has passed (then the gap is co
 a late one (its place given up) is released at once, less its readings more than 2 s
 behind the newest released (``_STALE_NS``: dropped, counted ``late_readings``); a
 duplicate is dropped whole.
-What is released together is sorted per sensor (exact duplicate times dropped) and
+What is released together is sorted per sensor (exact duplicate times dropped, also a
+time released lately: a reading sent again in a later message) and
 merged by time; the downstream SampleOrderer does the fine cross-sensor ordering.
 
 Times: ``Sample.time_ms`` = the reading's epoch ``time`` (ns) / 1e6, as float, computed
@@ -89,6 +90,9 @@ _STALE_NS = 2_000_000_000
 NO_ORI_AFTER = 5
 _PAIR_MAX_NS = 100_000_000  # accelerometer/gravity pairing: at most 0.1 s apart
 _RATE_HISTORY = 256
+# the readings' times kept per sensor to drop one sent again in a later message (a push
+# repeated with a new messageId): about 2.5 s at 400 Hz, more than a batch period
+SENT_KEPT = 1024
 
 
 @dataclass
@@ -321,6 +325,7 @@ class SensorLoggerStream:
         self.reasons: list[str] = []
         self._last_gravity: tuple | None = None
         self._recent: dict[str, deque] = {}
+        self._sent_t: dict[str, np.ndarray] = {}   # per name, the times released lately
         self._last_ms: float | None = None
         self._ori_last_ms: float | None = None   # the newest orientation reading (released or not)
         self._offsets: deque = deque(maxlen=21)
@@ -600,6 +605,16 @@ class SensorLoggerStream:
                 if not keep.all():
                     self.invalid["duplicate_time"] += int((~keep).sum())
                     T, V = T[keep], V[keep]
+            sent = self._sent_t.get(name)
+            if sent is not None and len(T):
+                again = np.isin(T, sent)      # a reading sent again in a later message
+                if again.any():
+                    self.invalid["duplicate_time"] += int(again.sum())
+                    T, V = T[~again], V[~again]
+            if len(T):
+                prev = self._sent_t.get(name)
+                self._sent_t[name] = (T[-SENT_KEPT:] if prev is None
+                                      else np.concatenate((prev, T))[-SENT_KEPT:])
             by[name] = (T, V)
         present = set(by)
         if "accelerometer" in present and ("gravity" in present or self._last_gravity is not None):

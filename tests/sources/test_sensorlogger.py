@@ -255,6 +255,21 @@ def test_nineteen_digit_times_keep_sub_ms_precision():
     assert st.status()["invalid"] == {"duplicate_time": 1}
 
 
+def test_a_reading_sent_again_in_a_later_message_is_dropped():
+    """The note: drop exact duplicate times per sensor. Within one release they were; a
+    reading sent again in the next message (a push repeated under a new messageId) went
+    through twice, two samples at one time."""
+    st = stream()
+    first = [rd("gyroscope", T0 + k * 10_000_000, x=float(k), y=0.0, z=0.0) for k in range(5)]
+    again = first[3:] + [rd("gyroscope", T0 + k * 10_000_000, x=float(k), y=0.0, z=0.0)
+                         for k in range(5, 8)]
+    out = st.decode(body(first, mid=1), 0.0).samples + st.decode(body(again, mid=2), 0.1).samples
+    out += st.flush()
+    gyr = [x for x in out if x.tag == "GYR"]
+    assert [x.values[0] for x in gyr] == [float(k) for k in range(8)]
+    assert st.status()["invalid"] == {"duplicate_time": 2}
+
+
 # ---------------------------------------------------------------- message order
 
 def gyro_msg(mid, k, session="s-1", device="d-1"):
