@@ -361,6 +361,13 @@ def configured(name: str | None, config: dict[str, Any], sets: list[str] | None)
         raise CliError(f"estimator {name!r} is not available ({e})") from None
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it, then set back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
@@ -403,7 +410,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 if len(chunk):
                     _merge_counts(flags_total, count_flags(res.flags))
                 progress.update(chunk.done, n_rows)
-        os.replace(tmp, out_path)
+        os.chmod(tmp, 0o666 & ~_umask())      # as open() would (mkstemp makes it 0600)
+        try:
+            os.replace(tmp, out_path)
+        except OSError as e:                  # a folder, no permission: one line, exit 2
+            raise CliError(f"{out_path}: cannot write ({e.strerror or e})") from None
     except BaseException:
         try:
             os.unlink(tmp)

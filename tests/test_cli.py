@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import re
 import subprocess
 import sys
@@ -342,3 +343,24 @@ def test_serve_starts_prints_the_addresses_and_stops_cleanly_on_ctrl_c():
     assert f"http://127.0.0.1:{port}/" in out
     assert f"port {phone}" in out
     assert "no phone can reach it" in " ".join(out.split())   # --host 127.0.0.1
+
+
+def test_estimate_into_a_folder_is_one_line_and_the_csv_is_readable_by_others(tmp_path):
+    """``--out`` naming a folder gave a traceback (os.replace's IsADirectoryError) and exit
+    1; now one line naming it, exit 2. And the CSV is written with the umask's permissions,
+    as any file (mkstemp's 0600 kept it from the other users of a shared lab PC)."""
+    t, gyr, acc, mag = motion(n=20)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    folder = tmp_path / "results"
+    folder.mkdir()
+    proc = run_cli("estimate", src, "--out", folder, check_rc=2)
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert str(folder) in proc.stderr and proc.stderr.startswith("orientlab: error:")
+    assert [p.name for p in folder.iterdir()] == [] and not list(tmp_path.glob(".orientlab-*"))
+    out = tmp_path / "out.csv"
+    old = os.umask(0o022)
+    try:
+        run_cli("estimate", src, "--out", out)
+    finally:
+        os.umask(old)
+    assert out.stat().st_mode & 0o777 == 0o644

@@ -46,6 +46,7 @@ from app.server.gui.scene import Scene, loop_safe_wakeups
 from app.server.settings import Settings
 from app.server.background import run_demo, run_replay
 from app.sources.pacing import ReplayControl
+from app.sources.readers import detect_format
 
 log = logging.getLogger("orientlab.server")
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
@@ -110,8 +111,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     if settings.phyphox_url is not None:
         PhyphoxPoller(settings.phyphox_url, lambda samples, new: None)   # ValueError: exit 2
-    elif settings.source not in ("demo", "none") and not Path(settings.source).is_file():
-        raise FileNotFoundError(f"--source: no such log file: {settings.source}")
+    elif settings.source not in ("demo", "none"):
+        if not Path(settings.source).is_file():
+            raise FileNotFoundError(f"--source: no such log file: {settings.source}")
+        fmt = detect_format(settings.source)     # ReaderError (a ValueError): exit 2
+        if fmt != "applog":   # a CSV or npz replayed as lines was an empty log, looping
+            raise ValueError(f"--source: {settings.source} is a {fmt} file; only a Sensor Fusion "
+                             "app log is replayed live (`orientlab estimate` reads the others)")
     config = load_config(settings.config)  # read once; a bad preset is refused before anything starts
     access = Access.from_settings(settings)
 

@@ -128,3 +128,18 @@ def test_host_loopback_binds_every_port_on_loopback_only():
     finally:
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
+
+
+def test_a_source_that_is_no_app_log_is_refused(tmp_path):
+    """``serve --source FILE`` with a CSV (or npz): it was replayed as lines of an app log,
+    an empty 0 s log looping for ever while /api/health said ok. Now one line, exit 2."""
+    csv_file = tmp_path / "semi.csv"
+    csv_file.write_text("t;ax;ay;az\n0;0;0;9.81\n")
+    r = serve_cli("--host", "127.0.0.1", "--source", str(csv_file))
+    assert r.returncode == 2, r.stderr
+    line = one_line(r.stderr)
+    assert str(csv_file) in line and ("unknown format" in line or "app log" in line), line
+    good = tmp_path / "real.csv"
+    good.write_text("t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z\n0,0,0,0,0,0,9.81\n")
+    r = serve_cli("--host", "127.0.0.1", "--source", str(good))
+    assert r.returncode == 2 and "is a csv file" in one_line(r.stderr), r.stderr
