@@ -155,6 +155,13 @@ def test_record_calibrate_rerun_over_a_real_phone_stream(tmp_path, still_log):
         assert str(rec_dir) not in r.text
         assert api.get("/api/recordings/nope/log").status_code == 404
         assert api.get("/api/recordings/..%2Fetc/log").status_code in (404, 422)
+        # a CSV or npz dropped in is downloaded as what it is, not as text
+        assert api.get("/api/recordings/lesson/log").headers["content-type"].startswith("text/plain")
+        (rec_dir / "table.csv").write_text("t,acc_x,acc_y,acc_z\n0,0,0,9.81\n0.01,0,0,9.81\n")
+        np.savez(rec_dir / "trial.npz", t=np.arange(3) * 0.01, acc=np.tile([0.0, 0.0, 9.81], (3, 1)))
+        for name, kind in (("table", "text/csv"), ("trial", "application/octet-stream")):
+            r = api.get(f"/api/recordings/{name}/log")
+            assert r.status_code == 200 and r.headers["content-type"].startswith(kind), (name, r.headers)
         # what-if: the whole recording re-run, before and after a change
         r = api.post("/api/recordings/lesson/rerun",
                      json={"patch": {"lab": {"time_update": "approx"}}})

@@ -94,9 +94,11 @@ async def _file(tk: Toolkit, name: str, kind: str, missing: str = "") -> Path:
 
 @router.get("/{name}/log")
 async def download_log(name: str, tk: Toolkit = Depends(get_toolkit)) -> FileResponse:
-    """The recording's log, as the Sensor Fusion app writes it."""
+    """The recording's log: as the Sensor Fusion app writes it (text), or the CSV or npz
+    dropped into the folder, each with its own type."""
     path = await _file(tk, name, "log")
-    return FileResponse(path, media_type="text/plain", filename=path.name)
+    kind = {".csv": "text/csv", ".npz": "application/octet-stream"}.get(path.suffix.lower(), "text/plain")
+    return FileResponse(path, media_type=kind, filename=path.name)
 
 
 @router.get("/{name}/estimates")
