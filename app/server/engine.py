@@ -88,6 +88,8 @@ class Inbox:
 
     def items(self) -> list:
         return list(self._items)
+
+
 SLICE_SAMPLES = 32    # samples per turn of the filter task before it yields the loop
 
 PLOT_HZ = 20.0                # WS /ws/plots messages a second at most (the plots redraw as often)
