@@ -525,6 +525,8 @@ class PhyphoxPoller:
                 self.session = session
             measuring = bool(st.get("measuring"))
             self.measuring = measuring
+            if measuring:       # measuring already (the user started it): a later stop is
+                self._start_sent = True      # the user's too, and no start is sent
             if first:
                 first = False
                 await self._read_time()

@@ -499,6 +499,14 @@ def test_poller_accelerometer_only_session_change_and_stop(shared_dir):
             assert fake.starts == 1            # already measuring: no start sent
             assert not any("cmd=start" in r for r in fake.requests)
             assert p.status()["missing"] == ["gyroscope", "magnetic_field", "attitude"]
+            # the student pauses the phone that was measuring when polled: the pause is
+            # theirs (a start was sent at once, and the phone measured on)
+            fake._stop()
+            await _until(lambda: p.status()["state"] == "not measuring", 5, "the pause seen")
+            await asyncio.sleep(0.3)
+            assert fake.starts == 1 and not any("cmd=start" in r for r in fake.requests)
+            fake._start()                       # and starts it again on the phone
+            starts = fake.starts
             first_batches = len(col.batches)
             configs = fake.requests.count("/config")
             # the phone restarts its server with another experiment
@@ -507,7 +515,7 @@ def test_poller_accelerometer_only_session_change_and_stop(shared_dir):
             await _until(lambda: sum(len(b) for b, _ in col.batches[first_batches:])
                          >= total2, 5, "second session")
             assert fake.requests.count("/config") > configs
-            assert fake.starts == 1 + 1        # started again in the new session
+            assert fake.starts == starts + 1   # started by the poller in the new session
             t0 = time.monotonic()
             p.stop()
             await asyncio.wait_for(task, 1.0)
