@@ -733,3 +733,15 @@ def test_a_refused_push_is_answered_before_its_body_is_read():
                 out += chunk
         assert out.startswith(b"HTTP/1.1 499"), out[:200]
         assert b"another phone" in out
+
+
+def test_a_push_address_opened_in_a_phones_browser_says_it_works(tmp_path):
+    """A student scans the Connect tab's code with the camera, or checks the address in the
+    browser: GET on a push address answered 405 "Method Not Allowed", read as a broken
+    server. Now it says the phone reaches the PC and what to do with the address."""
+    with running_server(source="none", preset_dir=tmp_path) as srv:
+        for path, app_words in (("/sensorlogger", "Sensor Logger"), ("/phyphox", "phyphox")):
+            r = httpx.get(srv.url + path, timeout=10.0)
+            assert r.status_code == 200 and "this phone reaches the PC" in r.text, r.text
+            assert app_words in r.text
+        assert httpx.post(srv.url + "/sensorlogger", content=b"{", timeout=10.0).status_code == 400

@@ -52,6 +52,29 @@ async def phyphox_push(request: Request) -> PlainTextResponse:
     return await _push(request, "phyphox")
 
 
+# What a phone's browser shows when the push address is opened there (a student scans the
+# Connect tab's code with the camera, or checks the address): it answered 405 "Method Not
+# Allowed", read as a broken server; now it says the address works and what to do with it.
+_ADDRESS_OK = {
+    "sensorlogger": "orientlab: this is the Sensor Logger push address, and this phone "
+                    "reaches the PC. Type this address in Sensor Logger's settings: Data "
+                    "Streaming > HTTP Push, on; tick the sensors, then press Record in the app.",
+    "phyphox": "orientlab: this is the push address of orientlab's phyphox experiment, and "
+               "this phone reaches the PC. Load the experiment from the code on the Connect "
+               "tab (phyphox: + > Scan QR code), then press its start button.",
+}
+
+
+@router.get("/sensorlogger", include_in_schema=False)
+async def sensorlogger_address() -> PlainTextResponse:
+    return PlainTextResponse(_ADDRESS_OK["sensorlogger"])
+
+
+@router.get("/phyphox", include_in_schema=False)
+async def phyphox_address() -> PlainTextResponse:
+    return PlainTextResponse(_ADDRESS_OK["phyphox"])
+
+
 @router.get("/privacy", include_in_schema=False)
 async def privacy() -> PlainTextResponse:
     """The data policy phyphox shows before a pushing experiment may run."""
