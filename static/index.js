@@ -206,7 +206,9 @@ function describe(v) {
   // the phones turned away in the last minute, each once: which one waits, and why
   const away = slot.turned_away || [];
   for (const t of away) lines.push(`turned away: ${esc(t.app_name)} from ${esc(t.who)} · ${esc(t.times)}×, ${esc(span(t.ago_s))} ago: ${esc(String(t.why || "").replace(/^orientlab: /, ""))}`);
-  if (slot.last_refusal && !away.length) lines.push(`refused ${esc(slot.refused)}× in all; the last: ${esc(slot.last_refusal.replace(/^orientlab: /, ""))}`);
+  // once no phone waits, the count only: the last reason would read as news (a phone
+  // "streaming" that left long ago)
+  if (slot.refused && !away.length) lines.push(`refused ${esc(slot.refused)}× in all`);
   return lines.join("<br>");
 }
 
@@ -230,11 +232,13 @@ async function connect() {
       appShownFor = app;
     }
     const sl = v.http.streams.find((x) => x.app === "sensorlogger");
-    $("sl-detected").textContent = sl ? `detected: ${sl.platform}, ${sl.convention} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
+    const CONV = { android: "Android", ios: "iPhone, Standardise off", "ios-standardised": "iPhone, Standardise on" };
+    $("sl-detected").textContent = sl ? `in force: ${CONV[sl.convention] || sl.convention} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
     if (document.activeElement !== $("sl-convention")) $("sl-convention").value = v.http.sensorlogger_convention;
     const p = v.http.poll;
     $("poll-status").textContent = p ? `${p.url}: ${p.status || p.state}${p.last_error ? " (" + p.last_error + ")" : ""}` : "";
-    if (v.other_hosts.length) $("net-note").dataset.hosts = v.other_hosts.join(", ");
+    $("other-hosts").textContent = v.other_hosts.length
+      ? `This PC's other addresses (if the phone is on that network): ${v.other_hosts.join(", ")}.` : "";
     $("unreachable").textContent = v.unreachable || "";
     $("unreachable").hidden = !v.unreachable;
   } catch (e) {

@@ -93,8 +93,9 @@ class PhoneSlot:
             return "orientlab: the presenter has locked the phone slot; no new phone is accepted"
         if self.busy():
             name = PHONE_APPS.get(self.holder.phone_app, self.holder.phone_app)
-            return (f"orientlab: another phone ({name}) "
-                    "is streaming; try again when it stops")
+            return (f"orientlab: another phone ({name}) is streaming; keep sending: this "
+                    f"phone takes over once that one has been silent for "
+                    f"{max(self.idle_s, self.holder.idle_s):g} s")
         return None
 
     # ------------------------------------------------------------------ changes

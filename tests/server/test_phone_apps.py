@@ -525,6 +525,7 @@ def test_connect_tab_names_each_phone_turned_away(tmp_path):
                      in status.inner_text(), 30.0, what="the tab naming it, twice refused")
             text = status.inner_text()
             assert "another phone (Sensor Fusion app) is streaming" in text, text
+            assert "takes over once that one has been silent for" in text, text   # not "try again"
         watcher = httpx.get(srv.url + "/api/phone").json()["slot"]["turned_away"]
         assert [t["who"] for t in watcher] == ["a phone"], watcher
         assert watcher[0]["app"] == "sensorlogger" and watcher[0]["times"] == 2
@@ -549,6 +550,9 @@ def test_connect_tab_says_what_to_change_for_a_right_pose(tmp_path):
             wait_for(lambda: "a guess" in status.inner_text(), 30.0, what="the guess said")
             text = status.inner_text()
             assert "Connect tab" in text and "tick Accelerometer" in text, text
+            # the convention in force in words, as the status line says it (not "ios, ios")
+            detected = page.locator("#sl-detected").inner_text()
+            assert detected.startswith("in force: iPhone, Standardise"), detected
 
 
 def test_phone_addresses_follow_the_address_given_with_host():
