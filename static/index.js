@@ -159,6 +159,7 @@ function span(s) {  // a duration in words: 3.2 s, 4 min, 2 h, 413 d
 }
 
 const PLATFORM = { android: "Android", ios: "iPhone" };
+const SENSOR_NAMES = { ACC: "Accelerometer", GYR: "Gyroscope", MAG: "Magnetometer" };
 const CONVENTION = { android: "Android signs", ios: "Standardise off", "ios-standardised": "Standardise on" };
 
 // Every string from a phone or the network (a phone's model, its label, an app's reason) is
@@ -194,6 +195,12 @@ function describe(v) {
     const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));
     const held = Object.keys(s.withheld || {}).map((k) => `${esc(k)} <b>held back</b>`);
     if (r.length || held.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${esc(k)} <b>stopped</b>` : `${esc(k)} ${esc(fmt(x))} Hz`).concat(held).join(" · "));
+    // the Sensor Fusion app sends only the sensors ticked in it (Sensor Logger's stream
+    // says so in its hints): after a few seconds, name the ones that never came
+    if (slot.holder && slot.holder.app === "sensorfusion" && slot.holder.for_s >= 3) {
+      const missing = Object.entries(SENSOR_NAMES).filter(([k]) => !(k in s.rates_hz)).map(([, n]) => n);
+      if (missing.length) lines.push(`<b>no ${missing.join(", no ")}: tick ${missing.length > 1 ? "them" : "it"} in the app</b>`);
+    }
   }
   if (s.kind === "phone") {
     const parts = [];

@@ -787,6 +787,13 @@ class SensorLoggerStream:
         elif src is None and self.unused.get("accelerometer"):
             out.append("no tilt: Accelerometer without Gravity (the phone removes gravity from "
                        "it): tick Gravity in the app")
+        if self._released and self.messages >= NO_ORI_AFTER:     # past the start's hold
+            if "GYR" not in self._sources:
+                out.append("no gyroscope: tick Gyroscope in the app (the filters follow the "
+                           "tilt and the field alone, late and noisy)")
+            if "MAG" not in self._sources:
+                out.append("no magnetometer: tick Magnetometer in the app (no heading, and "
+                           "the phone's own orientation cannot be checked)")
         if self._override is None and self.platform != "android" and self._released:
             if self._conv_source == "assumed":
                 out.append("the sign convention is a guess (no calibrated magnetometer or raw "
@@ -807,7 +814,14 @@ class SensorLoggerStream:
             return {}
         if self._last_ms is not None and self._last_ms - self._ori_last_ms > STOPPED_S * 1000.0:
             return {}
-        return {"ORI": self.ori.message()}
+        return {"ORI": self._ori_message()}
+
+    def _ori_message(self) -> str:
+        """The orientation check in words; without a magnetometer it cannot run, and
+        holding the phone still does not help (it said so for good)."""
+        if self.ori.chosen is None and "MAG" not in self._sources and self.messages >= NO_ORI_AFTER:
+            return "not checked: it needs the magnetometer (tick Magnetometer in the app's sensors)"
+        return self.ori.message()
 
     def status(self) -> dict:
         """A JSON-safe summary for the page and ``GET /api/connect``."""
@@ -816,7 +830,7 @@ class SensorLoggerStream:
         sources = dict(self._sources)
         if "ORI" in sources and self.ori.chosen is None:
             sources["ORI"] = None
-        ori = self.ori.status()
+        ori = {**self.ori.status(), "message": self._ori_message()}
         if "ORI" not in self._sources and sources and self.messages >= NO_ORI_AFTER:
             # holding the phone still cannot help: the app sends none
             ori = {**ori, "state": "absent",

@@ -749,3 +749,22 @@ def test_a_push_address_opened_in_a_phones_browser_says_it_works(tmp_path):
             assert r.status_code == 200 and "this phone reaches the PC" in r.text, r.text
             assert app_words in r.text
         assert httpx.post(srv.url + "/sensorlogger", content=b"{", timeout=10.0).status_code == 400
+
+
+def test_the_connect_tab_names_the_sensors_not_ticked_in_the_sensor_fusion_app(tmp_path):
+    """A real accelerometer-only stream from the Sensor Fusion app: the tab showed only
+    "rates: ACC 120 Hz", with no word that Gyroscope and Magnetometer are not ticked."""
+    from harness import CHROMIUM, chromium_page
+    if CHROMIUM is None:
+        pytest.skip("needs Debian's chromium")
+    pytest.importorskip("playwright.sync_api")
+    with running_server(open_access=False, token=TOKEN) as srv, Phone(srv.phone_port) as ph:
+        with chromium_page(f"{srv.url}/?token={TOKEN}", tmp_path / "profile", viewer=False) as (page, _):
+            page.locator("#tab-connect").click()
+            status = page.locator("#phone-status")
+            for k in range(60):                          # 6 s of a phone sending ACC only
+                ph.send_lines([f"{100 * k + 10 * j}\tACC\t0\t0\t9.81" for j in range(10)])
+                time.sleep(0.1)
+            text = wait_for(lambda: (lambda t: t if "tick them in the app" in t else None)(
+                status.inner_text()), 30.0, what="the missing sensors named")
+            assert "no Gyroscope, no Magnetometer" in text and "Accelerometer" not in text, text
