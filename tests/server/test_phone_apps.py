@@ -768,3 +768,20 @@ def test_the_connect_tab_names_the_sensors_not_ticked_in_the_sensor_fusion_app(t
             text = wait_for(lambda: (lambda t: t if "tick them in the app" in t else None)(
                 status.inner_text()), 30.0, what="the missing sensors named")
             assert "no Gyroscope, no Magnetometer" in text and "Accelerometer" not in text, text
+
+
+def test_a_push_to_a_wrong_address_says_where_pushes_go(tmp_path, caplog):
+    """Sensor Logger given the page's address, or its own example path /data: the reply
+    was a bare 404 or 405 and the terminal said nothing, so neither the student (the app
+    shows nothing of it) nor the teacher knew. The reply and one terminal line say where
+    pushes go."""
+    import logging
+    caplog.set_level(logging.WARNING, logger="orientlab.limits")
+    with running_server(source="none", preset_dir=tmp_path) as srv:
+        for path in ("/data", "/", "/SensorLogger"):
+            r = httpx.post(srv.url + path, content=b'{"messageId": 1}', timeout=10.0)
+            assert r.status_code in (404, 405) and "/sensorlogger" in r.text, (path, r.text)
+        said = [m for m in caplog.messages if "found nothing here" in m]
+        assert len(said) == 1 and "'/data'" in said[0], said          # once, not per push
+        r = httpx.get(srv.url + "/api/no-such-route", timeout=10.0)   # the API's 404 as before
+        assert r.status_code == 404 and r.json() == {"detail": "Not Found"}
