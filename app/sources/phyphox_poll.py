@@ -71,7 +71,8 @@ def _reason(exc: BaseException, timeout: float) -> str:
     if isinstance(exc, (asyncio.TimeoutError, TimeoutError)):
         return f"no reply within {timeout:g} s"
     if isinstance(exc, ConnectionRefusedError):
-        return "connection refused (is remote access on, and the port right?)"
+        return ("connection refused (is remote access on, and the port right? A locked "
+                "screen or another app in front stops phyphox's server on Android: keep it on)")
     if isinstance(exc, socket.gaierror):
         return "unknown host name"
     if isinstance(exc, (ConnectionResetError, asyncio.IncompleteReadError, BrokenPipeError)):

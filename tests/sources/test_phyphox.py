@@ -550,6 +550,7 @@ def test_poller_unreachable_then_back(shared_dir, caplog):
             await _until(lambda: p.status()["state"] == "unreachable", 3, "unreachable")
             st = p.status()
             assert "refused" in st["status"] and st["last_error"].startswith("unreachable")
+            assert "locked screen" in st["status"]      # the likely cause on a phone, named
             r0 = p.requests
             await asyncio.sleep(0.6)
             assert p.requests >= r0 + 2            # retries, with backoff
