@@ -195,12 +195,9 @@ function describe(v) {
     const r = Object.entries(s.rates_hz).filter(([k]) => ["ACC", "GYR", "MAG", "ORI"].includes(k));
     const held = Object.keys(s.withheld || {}).map((k) => `${esc(k)} <b>held back</b>`);
     if (r.length || held.length) lines.push("rates: " + r.map(([k, x]) => x === 0 ? `${esc(k)} <b>stopped</b>` : `${esc(k)} ${esc(fmt(x))} Hz`).concat(held).join(" · "));
-    // the Sensor Fusion app sends only the sensors ticked in it (Sensor Logger's stream
-    // says so in its hints): after a few seconds, name the ones that never came
-    if (slot.holder && slot.holder.app === "sensorfusion" && slot.holder.for_s >= 3) {
-      const missing = Object.entries(SENSOR_NAMES).filter(([k]) => !(k in s.rates_hz)).map(([, n]) => n);
-      if (missing.length) lines.push(`<b>no ${missing.join(", no ")}: tick ${missing.length > 1 ? "them" : "it"} in the app</b>`);
-    }
+    // a phone app sends only the sensors ticked in it: the ones that never came, named
+    const missing = (s.missing || []).map((k) => SENSOR_NAMES[k] || k);
+    if (missing.length) lines.push(`<b>no ${esc(missing.join(", no "))}: tick ${missing.length > 1 ? "them" : "it"} in the app</b>`);
   }
   if (s.kind === "phone") {
     const parts = [];
@@ -239,8 +236,8 @@ async function connect() {
       appShownFor = app;
     }
     const sl = v.http.streams.find((x) => x.app === "sensorlogger");
-    const CONV = { android: "Android", ios: "iPhone, Standardise off", "ios-standardised": "iPhone, Standardise on" };
-    $("sl-detected").textContent = sl ? `in force: ${CONV[sl.convention] || sl.convention} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
+    const conv = sl && (sl.convention === "android" ? "Android" : `iPhone, ${CONVENTION[sl.convention] || sl.convention}`);
+    $("sl-detected").textContent = sl ? `in force: ${conv} (${sl.convention_source}${sl.reasons && sl.reasons.length ? ": " + sl.reasons.join("; ") : ""})` : "";
     if (document.activeElement !== $("sl-convention")) $("sl-convention").value = v.http.sensorlogger_convention;
     const p = v.http.poll;
     $("poll-status").textContent = p ? `${p.url}: ${p.status || p.state}${p.last_error ? " (" + p.last_error + ")" : ""}` : "";

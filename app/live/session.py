@@ -28,6 +28,9 @@ SILENT_S = 3.0     # a connected phone sending nothing this long is said to be s
 # window holds are processed then (:meth:`Session.quiet`), not when it sends again or ends
 QUIET_S = 1.0
 
+# a phone's stream without one of the motion sensors after this long (s) did not tick it
+MISSING_AFTER_S = 3.0
+
 
 class Session:
     """One stream. ``truth`` (demo only) maps phone times in ms (array) to true
@@ -149,6 +152,15 @@ class Session:
         source holds back (:attr:`withheld`) has none."""
         held = self.withheld
         return {k: v for k, v in self.orderer.rates().items() if k not in held}
+
+    def missing(self) -> list[str]:
+        """The motion sensors (ACC, GYR, MAG) a phone's stream has sent none of, once it has
+        streamed :data:`MISSING_AFTER_S` s: not ticked in its app, whichever app (a sensor
+        that stopped while the others go on is :meth:`stopped`)."""
+        tags = self.orderer.counters.tags
+        if self.kind != "phone" or not tags or time.time() - self.opened < MISSING_AFTER_S:
+            return []
+        return [t for t in ("ACC", "GYR", "MAG") if not tags.get(t)]
 
     def stopped(self) -> frozenset[str]:
         """The sensor tags that stopped while the stream goes on (a sensor switched off);

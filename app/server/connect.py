@@ -91,7 +91,7 @@ class Connect:
         rates = {k: (None if v != v else round(v, 1)) for k, v in s.rates().items()}
         return {"kind": s.kind, "app": s.phone_app or None, "label": s.label, "open": s.open,
                 "close_reason": s.close_reason or None, "rates_hz": rates,
-                "withheld": dict(s.withheld),
+                "withheld": dict(s.withheld), "missing": s.missing(),
                 "samples": c["samples"], "malformed": c["malformed"],
                 "malformed_by_reason": c["malformed_by_reason"], "late": c["late"],
                 "clamped": c["clamped"], "clock_offsets_s": s.clock_offsets,

@@ -787,13 +787,6 @@ class SensorLoggerStream:
         elif src is None and self.unused.get("accelerometer"):
             out.append("no tilt: Accelerometer without Gravity (the phone removes gravity from "
                        "it): tick Gravity in the app")
-        if self._released and self.messages >= NO_ORI_AFTER:     # past the start's hold
-            if "GYR" not in self._sources:
-                out.append("no gyroscope: tick Gyroscope in the app (the filters follow the "
-                           "tilt and the field alone, late and noisy)")
-            if "MAG" not in self._sources:
-                out.append("no magnetometer: tick Magnetometer in the app (no heading, and "
-                           "the phone's own orientation cannot be checked)")
         if self._override is None and self.platform != "android" and self._released:
             if self._conv_source == "assumed":
                 out.append("the sign convention is a guess (no calibrated magnetometer or raw "
