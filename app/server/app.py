@@ -186,6 +186,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.access = access
     app.state.settings = settings
     install_error_handlers(app)
+    push.install_wrong_address_answer(app)
     install_tool_errors(app)       # a tool's refusal (ToolError) as an HTTP answer
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes,
                        paths={a.path: settings.max_push_bytes for a in PUSH_APPS.values()})

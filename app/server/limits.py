@@ -39,10 +39,8 @@ import time
 from typing import Callable
 
 from fastapi import FastAPI, Request
-from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, PlainTextResponse
-from starlette.exceptions import HTTPException as StarletteHTTPException
+from fastapi.responses import JSONResponse
 from starlette.requests import ClientDisconnect
 
 log = logging.getLogger("orientlab.limits")
@@ -195,30 +193,8 @@ async def _too_large(send, max_bytes: int, why: str = "") -> None:
     await send({"type": "http.response.body", "body": body})
 
 
-WRONG_PUSH_LOG_S = 5.0     # at most one terminal line this often about pushes to nowhere
-
-
 def install_error_handlers(app: FastAPI) -> None:
-    """422 without the input: the field's location, the reason, the error type. A POST
-    that finds no route outside the API (a phone app given the page's address without
-    ``/sensorlogger``, or Sensor Logger's own example ``/data``): the reply says where
-    pushes go, and the terminal says so once every :data:`WRONG_PUSH_LOG_S` s (the app
-    shows nothing of a 404, so the teacher's terminal is where it shows)."""
-    last_said = [0.0]
-
-    @app.exception_handler(StarletteHTTPException)
-    async def _http(request: Request, exc: StarletteHTTPException):
-        path = request.url.path
-        if exc.status_code in (404, 405) and request.method == "POST" and not path.startswith("/api/"):
-            now = time.monotonic()
-            if now - last_said[0] >= WRONG_PUSH_LOG_S:
-                last_said[0] = now
-                log.warning("a push to %s found nothing here: a phone app's push address ends in "
-                            "/sensorlogger (Sensor Logger) or /phyphox (the experiment's)",
-                            ascii(path[:80]))
-            return PlainTextResponse("orientlab: no pushes are taken here: Sensor Logger's push "
-                                     "address ends in /sensorlogger", status_code=exc.status_code)
-        return await http_exception_handler(request, exc)
+    """422 without the input: the field's location, the reason, the error type."""
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -776,7 +776,7 @@ def test_a_push_to_a_wrong_address_says_where_pushes_go(tmp_path, caplog):
     shows nothing of it) nor the teacher knew. The reply and one terminal line say where
     pushes go."""
     import logging
-    caplog.set_level(logging.WARNING, logger="orientlab.limits")
+    caplog.set_level(logging.WARNING, logger="orientlab.push")
     with running_server(source="none", preset_dir=tmp_path) as srv:
         for path in ("/data", "/", "/SensorLogger"):
             r = httpx.post(srv.url + path, content=b'{"messageId": 1}', timeout=10.0)

@@ -14,14 +14,43 @@ shows as a network error).
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Request
+import logging
+import time
+
+from fastapi import APIRouter, Depends, FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.responses import PlainTextResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from app.server.access import phone_push
 from app.sources.phyphox import experiment_xml
 
 router = APIRouter(tags=["phones"], dependencies=[Depends(phone_push)])
+log = logging.getLogger("orientlab.push")
+WRONG_PUSH_LOG_S = 5.0     # at most one terminal line this often about pushes to nowhere
+
+
+def install_wrong_address_answer(app: FastAPI) -> None:
+    """A POST that finds no route outside the API (a phone app given the page's address
+    without ``/sensorlogger``, or Sensor Logger's own example ``/data``): the reply says
+    where pushes go, and the terminal says so once every :data:`WRONG_PUSH_LOG_S` s (the
+    app shows nothing of a 404, so the teacher's terminal is where it shows)."""
+    last_said = [0.0]
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        path = request.url.path
+        if exc.status_code in (404, 405) and request.method == "POST" and not path.startswith("/api/"):
+            now = time.monotonic()
+            if now - last_said[0] >= WRONG_PUSH_LOG_S:
+                last_said[0] = now
+                log.warning("a push to %s found nothing here: a phone app's push address ends in "
+                            "/sensorlogger (Sensor Logger) or /phyphox (the experiment's)",
+                            ascii(path[:80]))
+            return PlainTextResponse("orientlab: no pushes are taken here: Sensor Logger's push "
+                                     "address ends in /sensorlogger", status_code=exc.status_code)
+        return await http_exception_handler(request, exc)
 
 
 async def _push(request: Request, phone_app: str) -> PlainTextResponse:
