@@ -58,3 +58,14 @@ import sys as _sys
 
 _HERE = Path(__file__).resolve().parent
 _sys.path[:0] = [str(_HERE), str(_HERE / "sources")]   # + the apps' data converters
+
+
+@pytest.fixture(autouse=True)
+def _fresh_log_rate_limit(request):
+    """The log's rate limit (app.server.limits) is one per process and keyed by the line's
+    format: a test that reads the log (``caplog``) must not find its lines suppressed because
+    a test before it, in the same worker, said the same thing five times in 10 s."""
+    if "caplog" in request.fixturenames:
+        from app.server.limits import reset_log_limits
+        reset_log_limits()
+    yield

@@ -267,9 +267,7 @@ def test_a_released_tcp_phone_is_kept_out_when_it_reconnects_from_another_port(c
     a new port each time, and the slot keyed the ban by host:port: it was let straight
     back in (a reviewer's find). The ban is now on its address; another phone gets in.
     The server's log gives the release as the reason it left (it said "end of stream")."""
-    from app.server.limits import reset_log_limits
     caplog.set_level(logging.INFO, logger="orientlab.receiver")
-    reset_log_limits()        # the log's rate limit, one per process, saw other tests' lines
     with running_server(open_access=False, token=TOKEN) as srv, \
             _client(srv, token=TOKEN) as presenter, _client(srv, "127.0.0.2") as other:
         with Phone(srv.phone_port) as ph:
