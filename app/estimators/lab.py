@@ -296,6 +296,20 @@ class LabEKF(Estimator):
         v[LP_SCALE:LP_SCALE + 3] = 1.0 / (1.0 + np.asarray(p.gyr_scale, dtype=float))
         self._pv = v
 
+    def set_params(self, **changes) -> None:
+        """As :meth:`Estimator.set_params`; and a given ``m0`` taken away (set to 0 0 0, or a
+        preset without it) is learned again at once by (7), over ``m0_learn_time`` from now:
+        the given one no longer holds (another phone, another place), so it must not stay in
+        force until a reset while the page says "learned"."""
+        had = self._params.m0
+        super().set_params(**changes)
+        if had is not None and self._params.m0 is None and getattr(self, "_s", None) is not None:
+            self._s[L_M0_OK] = 0.0
+            self._s[L_M_N] = 0.0
+            self._s[L_M_MEAN:L_M_MEAN + 3] = 0.0
+            if self._init:
+                self._s[L_T_ALIGN] = self._s[L_T]
+
     STATE = Estimator.STATE + ("_s", "_x", "_P")   # derived: _Rw, _Ra, _Rm, _g0, _bias, _pv
 
     def _reset_state(self) -> None:

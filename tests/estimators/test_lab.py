@@ -58,3 +58,24 @@ def test_a_reference_vector_that_is_no_field_is_refused_naming_it(key, value):
     est.set_params(m0=[0.0, 20.0, -40.0])
     est.set_params(m0=None)
     assert est.params.m0 is None
+
+
+def test_a_given_m0_taken_away_mid_stream_is_learned_again_at_once(rows):
+    """A teacher loads the preset ``default`` (or sets m0 to 0 0 0) after a calibration
+    set m0 elsewhere: the page says m0 is learned, so lab must stop holding the old one and
+    learn it by (7) from the field now, not keep it in force until a reset (a review saw
+    the old band refuse the field after the load)."""
+    wrong = np.array([0.0, 10.0, -60.0])
+    est = make_estimator("lab", {"m0": wrong.tolist()})
+    half = len(rows.t) // 4
+    est.run(rows.t[:half], rows.gyr[:half], rows.acc[:half], rows.mag[:half])
+    np.testing.assert_allclose(est.diagnostics().m0, wrong)
+    learned = make_estimator("lab")
+    learned.run(rows.t[:half], rows.gyr[:half], rows.acc[:half], rows.mag[:half])
+    est.set_params(m0=None)
+    assert est.diagnostics().m0 is None            # learning, not the old one
+    later = np.searchsorted(rows.t, rows.t[half] + est.params.m0_learn_time + 0.5)
+    est.run(rows.t[half:later], rows.gyr[half:later], rows.acc[half:later], rows.mag[half:later])
+    m0 = np.asarray(est.diagnostics().m0)
+    assert np.linalg.norm(m0 - wrong) > 10.0
+    np.testing.assert_allclose(np.linalg.norm(m0), np.linalg.norm(learned.diagnostics().m0), rtol=0.05)
