@@ -28,6 +28,8 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -177,6 +179,19 @@ def _health(port: int) -> dict | None:
     return None
 
 
+def _patch(port: int, token: str, body: dict) -> tuple[int, str, str | None]:
+    """PATCH /api/params as the presenter: (status, body text, Retry-After)."""
+    req = urllib.request.Request(f"http://127.0.0.1:{port}/api/params", method="PATCH",
+                                 data=json.dumps(body).encode(),
+                                 headers={"Content-Type": "application/json",
+                                          "X-Orientlab-Token": token})
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, r.read().decode(), r.headers.get("Retry-After")
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode(), e.headers.get("Retry-After")
+
+
 def _page_says_filters(url: str, tmp_path: Path) -> str | None:
     """The landing page's filters line in a real Chromium (None without one)."""
     if CHROMIUM is None:
@@ -221,6 +236,12 @@ def test_serve_answers_while_the_filters_compile(tmp_path):
         not_ready = [n for n, s in early["filters"].items() if s != "ready"]
         assert not_ready and all(early["filters"][n] in ("waiting", "compiling", "loading")
                                  for n in not_ready), early
+        # 1b. a change sent now is refused as "not now" (503, when to retry), and nothing of
+        #     it is applied later (it was a 500 after 5 s, then applied once ready)
+        token = re.search(r"token=([A-Za-z0-9_-]+)", out.text()).group(1)
+        status, answer, retry = _patch(port, token, {"use_mag": False})
+        assert status == 503 and retry, (status, answer)
+        assert "compiled" in answer and "nothing was applied" in answer, answer
         # 2. the page says it too
         said = _page_says_filters(f"http://127.0.0.1:{port}/", tmp_path)
         if said is not None:
@@ -252,6 +273,9 @@ def test_serve_answers_while_the_filters_compile(tmp_path):
             samples = json.loads(http_get(f"http://127.0.0.1:{port}/api/state")[1])["counts"]["samples"]
             time.sleep(0.2)
         assert samples > 0
+        params = json.loads(http_get(f"http://127.0.0.1:{port}/api/params")[1])
+        assert params["use_mag"] is True, "the change refused while compiling was applied later"
+        assert _patch(port, token, {"use_mag": False})[0] == 200     # and now it is taken
     finally:
         rc = stop_with_sigint(p)
         out.join()

@@ -97,7 +97,7 @@ SUBSCRIBER_BACKLOG = 200      # WS messages (20 s at 10 Hz) waiting for one clie
 RESTART_PAUSE_S = 0.1
 _JSON = msgspec.json.Encoder()
 
-__all__ = ["Change", "Engine", "PatchError", "Session", "Snapshot", "Subscriber", "Throttle"]
+__all__ = ["Change", "Engine", "EngineBusy", "PatchError", "Session", "Snapshot", "Subscriber", "Throttle"]
 
 
 class Throttle:
@@ -176,6 +176,11 @@ class Subscriber:
         return None if self.dropped else self.msgs.popleft()
 
 
+class EngineBusy(Exception):
+    """The filter task did not take a change in time: nothing was applied (the change is
+    dropped, not left to apply later behind the caller's back). Its text says why."""
+
+
 class Engine:
     """The async shell (see the module doc); ``core`` is the :class:`LiveCore`.
     ``config``: :func:`app.config.load_config`'s dict (read once, by the app)."""
@@ -197,6 +202,7 @@ class Engine:
         self.preset_parts: list[Callable[[], dict]] = []            # more tables for a saved preset
         self.subscribers: set[Subscriber] = set()                   # WS /ws/state
         self.plot_subscribers: set[Subscriber] = set()              # WS /ws/plots
+        self.filtering = False      # True once the filters are ready and the task runs
         self.plot_feed = None       # the plots' feed (app.server.gui.plots.PlotFeed), set by the GUI
         # the viewer's grouping (viser's ``server.atomic``): the scene's listeners' updates
         # go out together, waking viser's sender once per refresh instead of once each
@@ -255,6 +261,7 @@ class Engine:
             if not await warmup.wait_ready():
                 await asyncio.Event().wait()
             self.warm_up()   # all loaded by now: milliseconds, and no thread races the streams
+        self.filtering = True
         await self.run()
 
     # ----------------------------------------------------------------- sessions
@@ -331,7 +338,26 @@ class Engine:
         ``done`` (a future of the engine's loop) gets the new parameters, or PatchError."""
         self.loop.call_soon_threadsafe(self.inbox.put_nowait, ("change", change, done))
 
+    async def apply(self, change: Change, timeout: float) -> dict:
+        """Post ``change`` and wait for the filter task to apply it: the parameters in force,
+        or PatchError (nothing applied). After ``timeout`` s, :class:`EngineBusy` and the
+        change is dropped: a client told it failed must not see it happen later (on a
+        first start the filters compile for a minute or two before the task takes any)."""
+        done = self.loop.create_future()
+        self.post(change, done)
+        try:
+            return await asyncio.wait_for(done, timeout)
+        except asyncio.TimeoutError:
+            if not self.filtering:
+                raise EngineBusy("the filters are still being compiled (a first start after an "
+                                 "install takes a minute or two; GET /api/health says when they "
+                                 "are ready): nothing was applied, try again then") from None
+            raise EngineBusy(f"the filter task did not take the change within {timeout:g} s: "
+                             "nothing was applied, try again") from None
+
     def _apply(self, ch: Change, done: asyncio.Future | None) -> None:
+        if done is not None and done.cancelled():
+            return          # its caller gave up waiting (EngineBusy) and said nothing applied
         try:
             view = self.core.apply(ch)
         except PatchError as e:  # raced with another change: nothing applied

@@ -85,10 +85,8 @@ class Toolkit:
 
     async def post(self, change: Change) -> dict:
         """Apply ``change`` on the filter task; its view, or ToolError naming the field."""
-        done = asyncio.get_running_loop().create_future()
-        self.engine.post(change, done)
         try:
-            return await asyncio.wait_for(done, CHANGE_TIMEOUT_S)
+            return await self.engine.apply(change, CHANGE_TIMEOUT_S)
         except PatchError as e:
             raise ToolError(".".join(map(str, e.loc)), e.reason) from None
 

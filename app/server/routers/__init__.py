@@ -3,7 +3,7 @@
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse
 
-from app.server.engine import Engine, PatchError
+from app.server.engine import Engine, EngineBusy, PatchError
 from app.server.toolkit import Toolkit
 from app.toolkit.errors import ToolError
 
@@ -35,8 +35,15 @@ def tool_error_response(e: ToolError) -> JSONResponse:
 
 
 def install_tool_errors(app: FastAPI) -> None:
-    """Every ToolError a route lets through becomes :func:`tool_error_response`."""
+    """Every ToolError a route lets through becomes :func:`tool_error_response`; an
+    :class:`EngineBusy` (a change the filter task did not take in time) a 503."""
 
     @app.exception_handler(ToolError)
     async def _tool_error(request: Request, exc: ToolError) -> JSONResponse:
         return tool_error_response(exc)
+
+    @app.exception_handler(EngineBusy)
+    async def _busy(request: Request, exc: EngineBusy) -> JSONResponse:
+        # a change the filter task did not take in time (compiling on a first start): 503,
+        # nothing applied, and when to try again; it was a 500 and applied later
+        return JSONResponse({"detail": str(exc)}, status_code=503, headers={"Retry-After": "10"})

@@ -1,6 +1,5 @@
 """GET/PATCH /api/params, POST /api/reset, presets."""
 
-import asyncio
 from typing import Any
 
 from fastapi import APIRouter, Body, Depends, HTTPException, Request
@@ -17,10 +16,8 @@ APPLY_TIMEOUT_S = 5.0
 
 
 async def _apply(engine: Engine, change: Change) -> dict:
-    done = asyncio.get_running_loop().create_future()
-    engine.post(change, done)
     try:
-        return await asyncio.wait_for(done, APPLY_TIMEOUT_S)
+        return await engine.apply(change, APPLY_TIMEOUT_S)
     except PatchError as e:
         raise unprocessable(e) from None
 
