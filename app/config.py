@@ -47,10 +47,12 @@ def renamed_message(estimator: str, old: str, params_cls) -> str | None:
     return f"{old} was removed from {estimator} ({why})"
 
 
-def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source: str) -> dict[str, Any]:
+def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source: str,
+                      notes: list[str] | None = None) -> dict[str, Any]:
     """``values`` with the estimator's former parameter names replaced by the new ones and its
     removed parameters left out (a warning each: a preset saved by an older version still
-    loads); a former and a new name at once is a :class:`ConfigError`."""
+    loads; each warning is also appended to ``notes``, for the user who loaded it); a
+    former and a new name at once is a :class:`ConfigError`."""
     renamed = getattr(params_cls, "renamed", {})
     removed = getattr(params_cls, "removed", {})
     if not any(k in renamed or k in removed for k in values):
@@ -58,14 +60,19 @@ def translate_renamed(estimator: str, params_cls, values: dict[str, Any], source
     out = {}
     for k, v in values.items():
         if k in removed:
-            log.warning("%s: [%s] %s: left out", source, estimator, renamed_message(estimator, k, params_cls))
+            said = f"[{estimator}] {renamed_message(estimator, k, params_cls)}: left out"
+            log.warning("%s: %s", source, said)
+            if notes is not None:
+                notes.append(said)
         elif k in renamed:
             new = renamed[k][0]
             if new in values:
                 raise ConfigError(f"{source}: [{estimator}] has both {k} and {new}; "
                                   f"{renamed_message(estimator, k, params_cls)}: keep {new} only")
-            log.warning("%s: [%s] %s: read as %s", source, estimator,
-                        renamed_message(estimator, k, params_cls), new)
+            said = f"[{estimator}] {renamed_message(estimator, k, params_cls)}: read as {new}"
+            log.warning("%s: %s", source, said)
+            if notes is not None:
+                notes.append(said)
             out[new] = v
         else:
             out[k] = v
@@ -116,8 +123,9 @@ def validate_config(raw: dict[str, Any], source: str = "config") -> dict[str, An
     return out
 
 
-def load_config(path: str | Path | None = None) -> dict[str, Any]:
-    """``configs/default.toml`` merged with the preset at ``path`` (a file or a preset name)."""
+def load_config(path: str | Path | None = None, notes: list[str] | None = None) -> dict[str, Any]:
+    """``configs/default.toml`` merged with the preset at ``path`` (a file or a preset name);
+    ``notes`` gets what was read as a new name or left out (:func:`translate_renamed`)."""
     raw = load_toml(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else {}
     src = str(DEFAULT_CONFIG)
     if path is not None:
@@ -127,16 +135,16 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
             raise ConfigError(str(e)) from None
         except Exception as e:  # tomllib.TOMLDecodeError and friends
             raise ConfigError(f"{path}: not valid TOML: {e}") from None
-        return config_from(over, str(path))
+        return config_from(over, str(path), notes)
     return validate_config(raw, src)
 
 
-def config_from(over: dict[str, Any], source: str) -> dict[str, Any]:
+def config_from(over: dict[str, Any], source: str, notes: list[str] | None = None) -> dict[str, Any]:
     """``configs/default.toml`` merged with the preset table ``over`` (read from
     ``source``: a TOML file, or a recording's settings): renamed keys read as their new
     names, the whole checked (ConfigError says which value and why)."""
     raw = load_toml(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else {}
-    over = {k: translate_renamed(k, estimator_class(k).Params, v, source)
+    over = {k: translate_renamed(k, estimator_class(k).Params, v, source, notes)
             if isinstance(v, dict) and k in NAMES else v for k, v in over.items()}
     validate_config(over, source)
     return validate_config(merge(raw, over), source)

@@ -70,6 +70,9 @@ class Change:
     # the instances the change was validated against (name -> Instance.uid): applied only
     # if each is still on the ensemble, the same instance (not removed, not added again)
     against: dict[str, int] = field(default_factory=dict)
+    # what the preset's reading said to whoever loads it (a key read as its new name, a
+    # removed one left out): shown on the page and in the API's answer, not only in the log
+    notes: tuple[str, ...] = ()
 
 
 def _schema(ensemble: Ensemble | EnsembleSchema) -> EnsembleSchema:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from app.config import ConfigError, config_from, load_config
@@ -91,14 +92,16 @@ def load_preset_path(engine: Engine, path) -> Change:
 
 
 def _change_from_path(engine: Engine, path: Path, loc: tuple) -> Change:
+    notes: list[str] = []
     try:
-        config = load_config(path)
+        config = load_config(path, notes)
     except ConfigError as e:
         raise PatchError(loc, str(e)[:300]) from None
-    return engine.core.change_from_config(config)
+    return replace(engine.core.change_from_config(config), notes=tuple(notes))
 
 
-def config_from_text(text: str | bytes, source: str = "upload") -> dict:
+def config_from_text(text: str | bytes, source: str = "upload",
+                     notes: list[str] | None = None) -> dict:
     """``configs/default.toml`` merged with a preset given as text; ConfigError if bad."""
     if isinstance(text, bytes):
         if len(text) > MAX_PRESET_BYTES:
@@ -110,16 +113,17 @@ def config_from_text(text: str | bytes, source: str = "upload") -> dict:
         over = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{source}: not valid TOML: {str(e)[:200]}") from None
-    return config_from(over, source)       # former names read as the new, as --config does
+    return config_from(over, source, notes)   # former names read as the new, as --config does
 
 
 def load_preset_text(engine: Engine, text: str | bytes, source: str = "upload") -> Change:
     """A change from a preset's text (an uploaded file)."""
+    notes: list[str] = []
     try:
-        config = config_from_text(text, source)
+        config = config_from_text(text, source, notes)
     except ConfigError as e:
         raise PatchError(("file",), str(e)[:300]) from None
-    return engine.core.change_from_config(config)
+    return replace(engine.core.change_from_config(config), notes=tuple(notes))
 
 
 class PresetWriteError(PatchError):

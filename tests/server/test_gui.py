@@ -4,6 +4,7 @@ the demo's shake and magnet light their indicators with the gate and its value."
 
 from __future__ import annotations
 
+import logging
 import time
 
 import httpx
@@ -126,3 +127,37 @@ def test_the_variant_just_added_is_the_one_remove_ends(tmp_path):
             assert r.status_code == 200, r.text
             wait_for(lambda n=name: n in tab.var_remove.options, 30.0, what=f"{name} in the dropdown")
             assert tab.var_remove.value == name
+
+
+OLD_PRESET = b"[robust]\nmag_nis_gate = 3.0\n[lab]\ngyr_noise = 0.02\n"
+
+
+def test_the_presets_tab_lists_the_folder_and_an_old_preset_says_what_changed(tmp_path, caplog):
+    """A review: the Presets tab listed only what was saved from the page (a preset saved
+    through the API or a calibration, or dropped into the folder, never showed), and a
+    preset with a removed or renamed key loaded with a green "Preset loaded", the changes
+    said only in the server's terminal. Now the list follows the folder, and the API's
+    answer and the page's notice say what was read as a new name or left out."""
+    caplog.set_level(logging.WARNING, logger="orientlab.gui")
+    presets = tmp_path / "presets"
+    with running_server(source="demo", preset_dir=presets) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        gui = srv.app.state.gui
+        assert api.post("/api/presets/save", json={"name": "by-api"}).status_code == 200
+        wait_for(lambda: "`by-api`" in gui.preset_msg.content, 10.0, what="a preset saved by the API listed")
+        (presets / "dropped.toml").write_bytes(OLD_PRESET)
+        wait_for(lambda: "`dropped`" in gui.preset_msg.content, 10.0, what="a dropped preset listed")
+        r = api.post("/api/presets/upload", content=OLD_PRESET,
+                     headers={"Content-Type": "application/toml"})
+        assert r.status_code == 200, r.text
+        warnings = r.json().get("warnings", [])
+        assert any("mag_nis_gate was removed from robust" in w and "left out" in w for w in warnings), r.text
+        assert any("gyr_noise was renamed gyr_std in lab" in w for w in warnings), r.text
+        assert r.json()["estimators"]["lab"]["gyr_std"] == 0.02
+        r = api.post("/api/presets/load", json={"name": "by-api"})
+        assert r.status_code == 200 and "warnings" not in r.json()
+        gui.preset_name.value = "dropped"
+        gui._on_load(None)                  # the Load preset button (no viewer: its notice is logged)
+        said = [r.getMessage() for r in caplog.records if r.name == "orientlab.gui"]
+        assert any(m.startswith("Preset loaded, with changes: dropped:") and "mag_nis_gate" in m
+                   and "gyr_std" in m for m in said), said

@@ -57,6 +57,7 @@ HOLD_S = 1.0              # a rejection keeps its indicator lit this long
 # a number box sends every keystroke: a refused value ("0" on the way to "0.5") is set back
 # to the value in force, and said, only once the typing has paused this long
 REFUSAL_SETTLE_S = 1.5
+PRESETS_REFRESH_S = 2.0   # the Presets tab lists the folder again this often (a listing of a few files)
 CONTROL_PANEL_PX = 340    # the control panel, docked right of the 3D view
 
 
@@ -333,7 +334,7 @@ class Gui:
             self._notify(ev, "Preset not loaded", e.reason)
             return
         self.engine.post(change)
-        self._notify(ev, "Preset loaded", self.preset_name.value, color="green")
+        self._said_loaded(ev, change, self.preset_name.value)
 
     def _on_load_path(self, ev) -> None:
         try:
@@ -342,7 +343,7 @@ class Gui:
             self._notify(ev, "Preset not loaded", e.reason)
             return
         self.engine.post(change)
-        self._notify(ev, "Preset loaded", self.preset_file.value[-80:], color="green")
+        self._said_loaded(ev, change, self.preset_file.value[-80:])
 
     def _on_upload(self, ev) -> None:
         f = ev.target.value
@@ -356,7 +357,7 @@ class Gui:
             self._notify(ev, "Preset not loaded", str(e)[:300])
             return
         self.engine.post(change)
-        self._notify(ev, "Preset loaded", f.name[:80], color="green")
+        self._said_loaded(ev, change, f.name[:80])
 
     def _on_save(self, ev) -> None:
         try:
@@ -366,6 +367,22 @@ class Gui:
             return
         self.preset_msg.content = self._preset_list_md()
         self._notify(ev, "Preset saved", str(path), color="green")
+
+    def _said_loaded(self, ev, change, what: str) -> None:
+        """"Preset loaded", and what reading it said (a key read as its new name, a removed
+        one left out): the teacher sees it here, not only in the terminal."""
+        if change.notes:
+            self._notify(ev, "Preset loaded, with changes", f"{what}: " + "; ".join(change.notes)[:600],
+                         color="yellow")
+        else:
+            self._notify(ev, "Preset loaded", what, color="green")
+
+    def refresh_presets(self) -> None:
+        """The Presets tab's list, as the folder holds it now: presets saved through the
+        API, by a calibration or dropped into the folder show without a save from here."""
+        md = self._preset_list_md()
+        if self.preset_msg.content != md:
+            self.preset_msg.content = md
 
     def _preset_list_md(self) -> str:
         return "Presets: " + ", ".join(f"`{n}`" for n in list_presets(self.settings))
@@ -602,13 +619,16 @@ async def run_gui(gui: Gui, hz: float, plot_hz: float | None = None) -> None:
     loop = asyncio.get_running_loop()
     period = 1.0 / hz
     slow_period = period if plot_hz is None else 1.0 / plot_hz
-    due = slow_due = loop.time()
+    due = slow_due = presets_due = loop.time()
     while True:
         try:
             slow = loop.time() >= slow_due - 0.5 * period
             gui.refresh_text(readouts=slow)
             if slow:
                 slow_due = max(slow_due + slow_period, loop.time())
+            if loop.time() >= presets_due:
+                presets_due = loop.time() + PRESETS_REFRESH_S
+                gui.refresh_presets()
         except Exception:
             log.exception("GUI refresh failed")
         due = max(due + period, loop.time())      # a steady hz, no catching up after a stall

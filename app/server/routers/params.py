@@ -16,8 +16,11 @@ APPLY_TIMEOUT_S = 5.0
 
 
 async def _apply(engine: Engine, change: Change) -> dict:
+    """The parameters in force after ``change``; with ``warnings`` when loading its preset
+    said something (a key read as its new name, a removed one left out)."""
     try:
-        return await engine.apply(change, APPLY_TIMEOUT_S)
+        view = await engine.apply(change, APPLY_TIMEOUT_S)
+        return {**view, "warnings": list(change.notes)} if change.notes else view
     except PatchError as e:
         raise unprocessable(e) from None
 
