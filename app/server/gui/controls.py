@@ -167,6 +167,10 @@ class Control:
     kind: str       # bool, choice, log, linear, number, int, vector, optvec, sigma3, band2
     scale: float = 1.0             # user value = value * scale
     unit: str = ""
+    lo: float | None = None        # the valid range (SI), checked in the user's unit
+    hi: float | None = None
+
+    MULTI = ("vector", "optvec", "sigma3", "band2")      # several fields, typed one by one
 
     # ---------------------------------------------------------------- conversion
     def to_gui(self, value):
@@ -208,6 +212,31 @@ class Control:
             return tuple(out)
         return v
 
+    def shown(self, value):
+        """What the control shows for ``value`` (SI): a number with SIG significant digits
+        (the box takes every digit typed, up to the range's smallest value: see
+        :func:`show_value`), anything else as :meth:`to_gui` gives it."""
+        v = self.to_gui(value)
+        if self.kind in ("log", "number"):
+            return float(fmt(v))
+        if self.kind in ("vector", "optvec", "sigma3"):
+            return tuple(float(fmt(x)) for x in v)
+        return v
+
+    def out_of_range(self, value) -> str | None:
+        """Why a number typed (SI) is outside the valid range, in the user's unit; None if
+        inside (the box does not clamp it silently: viser's would, on leaving the box)."""
+        if self.kind not in ("log", "number") or value != value:
+            return None
+        unit = f" {self.unit}" if self.unit else ""
+        if self.lo is not None and value < self.lo:
+            return (f"{self.name}: {fmt(value * self.scale)}{unit} is below the minimum "
+                    f"{fmt(self.lo * self.scale)}{unit}")
+        if self.hi is not None and value > self.hi:
+            return (f"{self.name}: {fmt(value * self.scale)}{unit} is above the maximum "
+                    f"{fmt(self.hi * self.scale)}{unit}")
+        return None
+
     def same(self, a, b) -> bool:
         """Whether two parameter values (SI) are the same for this control."""
         if a is None or b is None:
@@ -222,13 +251,16 @@ class Control:
         return a == b
 
     def gui_same(self, value) -> bool:
-        """Whether the control already shows ``value`` (SI)."""
-        if self.kind == "sigma3":
-            # a full matrix from a preset shows as its diagonal σ: compare what is shown
-            shown = self.handle.value
-            return all(math.isclose(float(x), y, rel_tol=1e-3, abs_tol=1e-9)
-                       for x, y in zip(shown, self.to_gui(value)))
-        return self.same(self.from_gui(self.handle.value), value)
+        """Whether the control already shows ``value`` (SI): what it holds is what
+        :meth:`shown` gives (a full matrix from a preset shows as its diagonal σ)."""
+        return self.holds(self.handle.value, value)
+
+    def holds(self, held, value) -> bool:
+        """Whether a control holding ``held`` shows ``value`` (SI)."""
+        want = self.shown(value)
+        if isinstance(held, (tuple, list)) and isinstance(want, (tuple, list)):
+            return len(held) == len(want) and all(float(a) == float(b) for a, b in zip(held, want))
+        return held == want
 
     def label(self) -> str:
         return f"{self.name} [{self.unit}]" if self.unit and self.kind != "bool" else self.name
@@ -267,7 +299,7 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
         kind = "number"
     else:
         return None
-    c = Control(est_name, name, None, kind, scale, unit)
+    c = Control(est_name, name, None, kind, scale, unit, lo, hi)
     hint = hint_text({**row, "user_unit": unit}, kind)
     label = c.label()
     if kind == "bool":
@@ -290,27 +322,42 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
         v = min(max(c.to_gui(value), a), b)
         c.handle = gui.add_slider(label, a, b, step, v, marks=((a, fmt(a)), (b, fmt(b))),
                                   hint=hint, order=order)
-    else:  # log and number: the value itself, in its unit
+    else:  # log and number: the value itself, in its unit; no min/max given to viser: its
+        # box clamps a value typed outside them silently, on leaving it (100 in a box whose
+        # maximum is 91.7 became 91.7); the range is checked here and a refusal says it
         v = c.to_gui(value)
-        c.handle = gui.add_number(label, v, min=None if lo is None else lo * scale,
-                                  max=None if hi is None else hi * scale,
-                                  step=10.0 ** -precision_for(v), hint=hint, order=order)
+        c.handle = gui.add_number(label, v, step=10.0 ** -precision_for(v), hint=hint, order=order)
     if kind in ("log", "number", "vector", "optvec", "sigma3"):
         show_value(c, value, force=True)       # viser sized it for every digit: show SIG
     return c
 
 
+def box_precision(c: Control, v: float) -> int:
+    """Decimals a number box takes. viser's box cuts what is typed to its ``precision``
+    (so 0.001 typed in a box showing 5.73 arrived as 0, refused): enough for SIG digits of
+    the range's smallest value in the user's unit, or of ``v``, whichever needs more. The
+    value set in it is rounded to SIG digits (:meth:`Control.shown`), so it shows no more."""
+    p = precision_for(v)
+    if c.lo is not None and c.lo > 0:
+        p = max(p, precision_for(c.lo * c.scale))
+    return p
+
+
 def show_value(c: Control, value, force: bool = False) -> None:
-    """Set the control to ``value`` (SI), with a precision that shows it."""
+    """Set the control to ``value`` (SI), as :meth:`Control.shown` gives it; the arrows
+    step by the value's last digit shown."""
     v = c.to_gui(value)
     if c.kind in ("log", "number"):
-        p = precision_for(v)
-        if force or c.handle.precision != p:
+        p, step = box_precision(c, v), 10.0 ** -precision_for(v)
+        if force or c.handle.precision != p or c.handle.step != step:
             c.handle.precision = p
-            c.handle.step = 10.0 ** -p
+            c.handle.step = step
     elif c.kind in ("vector", "optvec", "sigma3"):
         p = precision_for(max(map(abs, v)) or 1.0)
+        if c.lo is not None and c.lo > 0:
+            p = max(p, precision_for(c.lo * c.scale))
+        p = max(p, 3)        # a σ or a bias typed to a thousandth
         if force or c.handle.precision != p:
             c.handle.precision = p
-            c.handle.step = 10.0 ** -p
-    c.handle.value = v
+            c.handle.step = 10.0 ** -precision_for(max(map(abs, v)) or 1.0)
+    c.handle.value = c.shown(value)

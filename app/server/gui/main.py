@@ -252,18 +252,25 @@ class Gui:
         def cb(ev):
             if self._ignored():
                 return
+            typed = c.handle.value
             self.engine.loop.call_soon_threadsafe(self._typing)
             try:
-                value = c.from_gui(c.handle.value)
+                value = c.from_gui(typed)
             except (TypeError, ValueError):
-                self._refuse_later(ev, f"estimators.{c.estimator}.{c.name}: not a number")
+                self._refuse_later(ev, f"estimators.{c.estimator}.{c.name}: not a number", c, typed)
                 return
             info = self.engine.core.ensemble.schema.instances.get(c.estimator)
             if info is None:        # its variant was removed meanwhile (controls going too)
                 return
-            if c.same(value, getattr(info.params, c.name)):
+            # no change: what the box shows for the value in force (a value typed to more
+            # digits than it shows is a change: 0.2865 where 0.286 is shown)
+            if c.holds(typed, getattr(info.params, c.name)):
                 return
-            self._submit({"estimators": {c.estimator: {c.name: value}}}, ev, typing=True)
+            why = c.out_of_range(value)
+            if why is not None:
+                self._refuse_later(ev, why, c, typed)
+                return
+            self._submit({"estimators": {c.estimator: {c.name: value}}}, ev, typing=(c, typed))
         return cb
 
     def _typing(self) -> None:
@@ -272,14 +279,25 @@ class Gui:
             self._refusal.cancel()
             self._refusal = None
 
-    def _refuse_later(self, ev, text: str) -> None:
+    def _refuse_later(self, ev, text: str, c: Control | None = None, typed=None) -> None:
         """A control's refused value (on viser's thread): said and set back to the value in
         force once the typing pauses (:data:`REFUSAL_SETTLE_S`), not at once: a set-back
-        between two keystrokes made "0.5" in a box holding 2 become "2.5"."""
+        between two keystrokes made "0.5" in a box holding 2 become "2.5". Not at all if
+        the box holds another value by then (viser's threads may judge the "0" of "0.05"
+        after the "0.05": its refusal was said after 0.05 was applied). A control of
+        several fields (a band, three σ) keeps what was typed: a band or a covariance is
+        valid only once every field is typed, one at a time."""
         loop = self.engine.loop
+        multi = c is not None and c.kind in Control.MULTI
 
         def fire() -> None:
             self._refusal = None
+            if c is not None and c.handle.value != typed:
+                return          # typed on: this value is no longer in the box
+            if multi:
+                self._notify(ev, "Not applied yet", f"{text} (the value in force stays until "
+                                                    "every field makes a valid one)", color="yellow")
+                return
             self._notify(ev, "Refused", f"{text} (the value in force stays)")
             self.sync()
 
@@ -288,17 +306,17 @@ class Gui:
             self._refusal = loop.call_later(REFUSAL_SETTLE_S, fire)
         loop.call_soon_threadsafe(arm)
 
-    def _submit(self, body: dict, ev=None, typing: bool = False) -> None:
+    def _submit(self, body: dict, ev=None, typing: tuple | None = None) -> None:
         """Validate and post a change (the same body PATCH /api/params takes). Runs on
         viser's threads: validation reads one schema of the ensemble (thread-safe); the
         filter task refuses the change if its estimator went meanwhile (a variant
         removed), and that refusal comes back here as a notice. ``typing``: from a
-        parameter's box, whose refusal waits for the typing to pause."""
+        parameter's box, ``(control, value typed)``: its refusal waits for the typing to pause."""
         try:
             change = self.engine.core.validate(body)
         except PatchError as e:
             if typing:
-                self._refuse_later(ev, str(e))
+                self._refuse_later(ev, str(e), *typing)
                 return
             self._notify(ev, "Refused", str(e))
             self.engine.loop.call_soon_threadsafe(self.sync)
