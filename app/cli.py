@@ -368,9 +368,25 @@ def _umask() -> int:
     return mask
 
 
+def refuse_out_over_input(out: str, *inputs: str | None) -> None:
+    """CliError when ``--out`` names one of the files read (the recording, its events file):
+    it would replace it with the output, and the recording would be gone."""
+    for path in inputs:
+        if path is None:
+            continue
+        try:
+            same = os.path.samefile(out, path)
+        except OSError:           # either does not exist (yet): not the same file
+            continue
+        if same:
+            raise CliError(f"--out {out} is the file read ({path}): it would be replaced by the "
+                           "output; write to another file")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
+    refuse_out_over_input(args.out, args.input, args.config)
     config, magcal, recording = load_settings(args.config)
     est = take_up_state(configured(args.filter, config, args.set), recording)
     if magcal:
@@ -441,6 +457,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from app.toolkit.calibration import calibrate, format_report, to_preset
     from app.sources.readers import read_log_data
 
+    refuse_out_over_input(args.out, args.input)
     rec = read_log_data(args.input)
     stats = calibrate(rec.t, rec.gyr, rec.acc, rec.mag)
     if not stats.sensors:
@@ -479,6 +496,7 @@ def cmd_gyro_scale(args: argparse.Namespace) -> int:
     from app.toolkit.errors import ToolError
     from app.toolkit.gyro_scale import Recording, fit, format_report, to_preset
 
+    refuse_out_over_input(args.out, *args.inputs)
     recs = []
     for path in args.inputs:
         rec = read_log_data(path)

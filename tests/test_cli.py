@@ -364,3 +364,24 @@ def test_estimate_into_a_folder_is_one_line_and_the_csv_is_readable_by_others(tm
     finally:
         os.umask(old)
     assert out.stat().st_mode & 0o777 == 0o644
+
+
+def test_out_naming_the_input_is_refused_and_the_recording_kept(tmp_path):
+    """A review: ``estimate REC --out REC`` (a slip of the shell's history) replaced the
+    recording by the output CSV, exit 0; ``calibrate`` likewise by the preset, and the
+    events file given as --config too. Now one line, exit 2, every input unchanged."""
+    t, gyr, acc, mag = motion(n=50)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    before = src.read_bytes()
+    link = tmp_path / "same.csv"
+    link.symlink_to(src)
+    for args in (("estimate", src, "--out", src), ("estimate", src, "--out", link),
+                 ("calibrate", src, "--out", src, "--force"),
+                 ("gyro-scale", src, "--out", src)):
+        proc = run_cli(*args, check_rc=2)
+        assert "Traceback" not in proc.stderr and "would be replaced" in proc.stderr, (args, proc.stderr)
+        assert src.read_bytes() == before, args
+    events = tmp_path / "x.events.jsonl"
+    events.write_text('{"event": "start"}\n')
+    proc = run_cli("estimate", src, "--config", events, "--out", events, check_rc=2)
+    assert "would be replaced" in proc.stderr and events.read_text() == '{"event": "start"}\n'
