@@ -385,3 +385,30 @@ def test_out_naming_the_input_is_refused_and_the_recording_kept(tmp_path):
     events.write_text('{"event": "start"}\n')
     proc = run_cli("estimate", src, "--config", events, "--out", events, check_rc=2)
     assert "would be replaced" in proc.stderr and events.read_text() == '{"event": "start"}\n'
+
+
+@pytest.mark.parametrize("arrays", [
+    {"acc": np.array(["a", "b"]), "gyr": np.zeros((2, 3)), "fs": 100.0},
+    {"acc": np.zeros((2, 3)), "gyr": np.zeros((2, 3)), "fs": "abc"},
+    {"acc": np.zeros((2, 3)), "gyr": np.zeros((2, 3)), "t": np.array(["x", "y"])},
+    {"acc": np.array([{}, 1], dtype=object), "gyr": np.zeros((2, 3)), "fs": 100.0},
+], ids=["text-acc", "text-fs", "text-t", "objects"])
+def test_an_npz_of_text_or_objects_is_one_line_exit_2(tmp_path, arrays):
+    """A review: an npz whose arrays hold text or objects gave a ValueError traceback
+    (exit 1) in estimate, calibrate and gyro-scale; now one line naming the array."""
+    src = tmp_path / "bad.npz"
+    np.savez(src, **arrays)
+    for cmd, out in (("estimate", "x.csv"), ("calibrate", "x.toml"), ("gyro-scale", "x.toml")):
+        proc = run_cli(cmd, src, "--out", tmp_path / out, check_rc=2)
+        assert "Traceback" not in proc.stderr and "does not hold numbers" in proc.stderr, (cmd, proc.stderr)
+
+
+def test_an_events_file_with_lines_that_are_no_events_is_one_line_exit_2(tmp_path):
+    """``[1, 2]`` or ``"x"`` on a line of an events file (JSON, but no event) gave an
+    AttributeError traceback; such lines are skipped as malformed ones are."""
+    t, gyr, acc, mag = motion(n=20)
+    src = write_csv(tmp_path / "in.csv", t, gyr, acc, mag)
+    events = tmp_path / "x.events.jsonl"
+    events.write_text('[1, 2]\n"x"\n')
+    proc = run_cli("estimate", src, "--config", events, "--out", tmp_path / "o.csv", check_rc=2)
+    assert "Traceback" not in proc.stderr and "no 'start' event" in proc.stderr, proc.stderr

@@ -323,6 +323,15 @@ def _refuse_impossible(arrays: dict, counts: dict) -> None:
 
 # ---------------------------------------------------------------- npz
 
+def _npz_numbers(path: Path, data, key: str) -> np.ndarray:
+    """The npz's array ``key`` as floats; ReaderError naming it if it holds anything else
+    (text, objects: those are not loaded, no pickle)."""
+    try:
+        return np.asarray(data[key], dtype=float)
+    except (ValueError, TypeError) as e:
+        raise ReaderError(f"{path}: npz array {key!r} does not hold numbers ({str(e)[:120]})") from None
+
+
 def _npz_chunks(path: Path, rows: int) -> Iterator[LogData]:
     try:
         data = np.load(path, allow_pickle=False)
@@ -338,7 +347,7 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[LogData]:
             if key not in keys:
                 arrays[key] = None
                 continue
-            a = np.asarray(data[key], dtype=float)
+            a = _npz_numbers(path, data, key)
             if a.ndim != 2 or a.shape[1] != width:
                 raise ReaderError(f"{path}: npz array {key!r} has shape {a.shape}, "
                                   f"expected (N, {width})")
@@ -348,11 +357,14 @@ def _npz_chunks(path: Path, rows: int) -> Iterator[LogData]:
             n = a.shape[0]
             arrays[key] = a
         if "t" in keys:
-            t = np.asarray(data["t"], dtype=float).reshape(-1)
+            t = _npz_numbers(path, data, "t").reshape(-1)
             if t.shape[0] != n:
                 raise ReaderError(f"{path}: npz 't' has {t.shape[0]} values for {n} rows")
         elif "fs" in keys:
-            fs = float(np.asarray(data["fs"]).reshape(-1)[0])
+            fs = _npz_numbers(path, data, "fs").reshape(-1)
+            if fs.shape[0] != 1:
+                raise ReaderError(f"{path}: npz 'fs' must be one rate in Hz, got {fs.shape[0]} values")
+            fs = float(fs[0])
             if not (math.isfinite(fs) and fs > 0):
                 raise ReaderError(f"{path}: npz 'fs' must be a positive rate in Hz, got {fs}")
             t = np.arange(n) / fs

@@ -121,9 +121,11 @@ def read_events(path: str | Path | None) -> list[dict[str, Any]]:
         return out
     for line in Path(path).read_text(errors="replace").splitlines():
         try:
-            out.append(json.loads(line))
+            event = json.loads(line)
         except json.JSONDecodeError:
             continue
+        if isinstance(event, dict):      # a line that is JSON but no event ("x", [1, 2]): skipped
+            out.append(event)
     return out
 
 
