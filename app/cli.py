@@ -126,9 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("input", metavar="INPUT",
                    help="Sensor Fusion app log, CSV (header t,acc_x,...) or .npz")
     e.add_argument("--out", "-o", required=True, metavar="OUT.csv", help="output CSV")
-    e.add_argument("--filter", "-f", choices=NAMES, default=None, metavar="NAME",
-                   help=f"estimator: {', '.join(NAMES)} (default: the preset's primary, "
-                        f"else {DEFAULT})")
+    e.add_argument("--filter", "-f", default=None, metavar="NAME",
+                   help=f"estimator: {', '.join(NAMES)}, or a variant the recording's events "
+                        f"file (--config) holds (default: the preset's or the recording's "
+                        f"primary, else {DEFAULT})")
     e.add_argument("--config", "-c", metavar="FILE",
                    help="preset TOML (a path or a name in configs/), or a recording's "
                         "NAME.events.jsonl: the settings it began with and the magnetometer "
@@ -292,7 +293,7 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
     from app.config import config_from
     from app.toolkit.recording import EVENTS_SUFFIX, STATE_SUFFIX
     from app.toolkit.recorded import (magcal_changes, read_events, recorded_state, settings_of,
-                                      warm_start_s)
+                                      variants_of, warm_start_s)
     try:
         if config_path is not None and str(config_path).endswith(EVENTS_SUFFIX):
             if not Path(config_path).is_file():
@@ -318,24 +319,26 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
                              "changes)")
             for note in filter(None, notes):
                 print(f"{PROG}: {config_path}: {note}", file=sys.stderr)
+            variants, shown = variants_of(events)
             return config, magcal_changes(events), {"warm_s": warm_start_s(events), "why": why,
-                                                    "state": state, "path": str(config_path)}
+                                                    "state": state, "path": str(config_path),
+                                                    "variants": variants, "primary": shown}
         config = load_config(config_path)
     except ConfigError as e:
         raise CliError(str(e)) from None
     return config, [(None, config["magcal"])] if config.get("magcal") else [], {}
 
 
-def take_up_state(est, recording: dict[str, Any]):
+def take_up_state(est, recording: dict[str, Any], instance: str | None = None):
     """A recording begun into its stream: ``est``'s like, going on from the live filter's
-    state as it began (its instance of the same name; ``est``'s parameters set after, as a
-    live change), and it says so; else ``est``, and it says why the re-run starts cold
-    (:func:`app.toolkit.recorded.warm_note`)."""
+    state as it began (its instance ``instance``, by default of the same name; ``est``'s
+    parameters set after, as a live change), and it says so; else ``est``, and it says why
+    the re-run starts cold (:func:`app.toolkit.recorded.warm_note`)."""
     from app.params import to_dict
     from app.toolkit.recorded import warm_estimator, warm_note
     if not recording:
         return est
-    saved = (recording.get("state") or {}).get(est.name)
+    saved = (recording.get("state") or {}).get(instance or est.name)
     warm = False
     if saved is not None:
         est, warm = warm_estimator(est.name, to_dict(est.params), saved)
@@ -347,12 +350,32 @@ def take_up_state(est, recording: dict[str, Any]):
     return est
 
 
-def configured(name: str | None, config: dict[str, Any], sets: list[str] | None):
-    """The estimator ``name`` (or ``config``'s primary) with ``config``'s parameters then
-    the ``--set`` overrides. CliError on a refused value."""
+def configured(name: str | None, config: dict[str, Any], sets: list[str] | None,
+               recording: dict[str, Any] | None = None):
+    """``(estimator, instance)``: the estimator ``name`` (or ``config``'s primary) with
+    ``config``'s parameters then the ``--set`` overrides; and the instance of a recording
+    it stands for. A recording's variant (``lab-approx``: ``--filter`` names it, or it was
+    the recording's primary) is its estimator with the variant's parameters. CliError on a
+    refused value or an unknown name."""
     overrides = parse_set(sets)
-    name = name or config.get("primary", DEFAULT)
-    params = {**config.get(name, {}), **overrides}
+    variants = (recording or {}).get("variants") or {}
+    instance = name or (recording or {}).get("primary") or config.get("primary", DEFAULT)
+    if instance in variants:
+        name, params = variants[instance][0], {**variants[instance][1], **overrides}
+    elif instance in NAMES:
+        name, params = instance, {**config.get(instance, {}), **overrides}
+    else:
+        known = ", ".join(list(NAMES) + list(variants))
+        raise CliError(f"--filter: no estimator {instance!r} (known: {known}; a variant is known "
+                       "from the recording's events file given as --config)")
+    if name != instance:
+        print(f"{PROG}: {instance}: the recording's variant of {name}, with its parameters",
+              file=sys.stderr)
+    return _make(name, params), instance
+
+
+def _make(name: str, params: dict[str, Any]):
+    """The estimator ``name`` with ``params``; CliError on a refused value."""
     try:
         return make_estimator(name, params)
     except ParamError as e:
@@ -388,7 +411,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     err = sys.stderr
     refuse_out_over_input(args.out, args.input, args.config)
     config, magcal, recording = load_settings(args.config)
-    est = take_up_state(configured(args.filter, config, args.set), recording)
+    est, instance = configured(args.filter, config, args.set, recording)
+    est = take_up_state(est, recording, instance)
     if magcal:
         from app.toolkit.magcal import correct_rows
     if args.chunk < 1:

@@ -153,6 +153,24 @@ def settings_of(events: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def variants_of(events: list[dict[str, Any]]) -> tuple[dict[str, tuple[str, dict[str, Any]]], str | None]:
+    """The variants a recording began with (instances named otherwise than their estimator,
+    ``lab-approx``), ``{name: (estimator, parameters)}``, and the instance it showed as the
+    primary (a variant's own name; None without a ``start`` event): :func:`settings_of`
+    leaves them out, a preset has none, but a re-run of the recording must be able to
+    reproduce one."""
+    start = next((e for e in events if e.get("kind") == "start"
+                  and isinstance(e.get("params"), dict)), None)
+    if start is None:
+        return {}, None
+    out = {}
+    for key, value in start["params"].items():
+        if isinstance(value, dict) and isinstance(value.get("base"), str) and value["base"] != key:
+            out[key] = (value["base"], {k: v for k, v in value.items() if k != "base" and v is not None})
+    primary = start["params"].get("primary")
+    return out, primary if isinstance(primary, str) else None
+
+
 def warm_estimator(base: str, params: dict[str, Any], saved) -> Any:
     """A new ``base`` estimator with ``params``, going on from a recording's saved state
     (``saved``: a :func:`recorded_state` entry, or None) as the live one would have: made

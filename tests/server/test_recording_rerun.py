@@ -34,13 +34,14 @@ def _ended(api):
         and st["counts"]["queued"] == 0
 
 
-def _rerun_error(folder, name, tmp_path, capsys):
+def _rerun_error(folder, name, tmp_path, capsys, filt: str | None = "robust", instance: str = "robust"):
     out = tmp_path / f"{name}.csv"
-    assert main(["estimate", str(folder / f"{name}.txt"), "--filter", "robust", "-q",
-                 "--out", str(out), "--config", str(folder / f"{name}.events.jsonl")]) == 0
+    assert main(["estimate", str(folder / f"{name}.txt"), "-q", "--out", str(out),
+                 "--config", str(folder / f"{name}.events.jsonl")]
+                + (["--filter", filt] if filt else [])) == 0
     rows = np.genfromtxt(out, delimiter=",", names=True, usecols=(0, 1, 2, 3, 4))
     t, q = rows["t"], np.column_stack([rows[c] for c in ("qw", "qx", "qy", "qz")])
-    live = read_estimates(folder / f"{name}.estimates.csv.gz")["robust"]
+    live = read_estimates(folder / f"{name}.estimates.csv.gz")[instance]
     keep = live["t"] >= t[0]          # (rows of samples buffered before the log's first)
     lt, lq = live["t"][keep], live["q"][keep]
     # several samples share a millisecond (ACC, GYR, MAG): the live row is one of them
@@ -105,3 +106,37 @@ def test_recorded_before_the_phone_streams_a_rerun_gives_the_live_estimates(shar
         print(f"warm, cold re-run: max {err.max():.2f}° at first, {err[-20:].max():.2f}° at the end")
         assert "starts cold" in said
         assert err.max() > 1.0      # (what the note is for: here 88°, and 20° at the end)
+
+
+def test_a_recording_whose_primary_is_a_variant_reruns_that_variant(shared_dir, tmp_path, capsys):
+    """A review: with a variant on show (exercise 9's ``lab-approx``) the events name it as
+    the primary, but ``estimate --config NAME.events.jsonl`` ran plain ``lab`` without a
+    word (``--filter lab-approx`` was refused), from ``lab``'s state. It runs the variant
+    now, by default and by name, from its own state, and gives what the page showed."""
+    lines = _lines(shared_dir)
+    folder = tmp_path / "rec"
+    with running_server(preset_dir=tmp_path, recordings=folder) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        r = api.post("/api/estimators", json={"name": "lab-approx", "base": "lab",
+                                              "params": {"time_update": "approx"}})
+        assert r.status_code == 200, r.text
+        assert api.patch("/api/params", json={"primary": "lab-approx"}).status_code == 200
+        with Phone(srv.phone_port) as ph:
+            t0 = int(lines[0].split("\t")[0])
+            split = next(k for k, ln in enumerate(lines)
+                         if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
+            ph.send_lines(lines[:split])
+            def processed():
+                st = api.get("/api/state").json()
+                return st["source"] == "phone" and (st["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5
+            wait_for(processed, 30.0, what="the first seconds processed")
+            assert api.post("/api/recordings/start", json={"name": "var"}).status_code == 200
+            ph.send_lines(lines[split:])
+        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
+        assert api.post("/api/recordings/stop").status_code == 200
+    for filt in (None, "lab-approx"):
+        err, said = _rerun_error(folder, "var", tmp_path, capsys, filt, "lab-approx")
+        print(f"--filter {filt}: {err.size} rows, max {err.max():.4f}°")
+        assert "lab-approx: the recording's variant of lab" in said, said
+        assert "goes on from the live filters' state" in said, said
+        assert err.size > 100 and err.max() < AGREE_DEG
