@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import itertools
 import json
 import os
 import sys
@@ -320,13 +321,36 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
             for note in filter(None, notes):
                 print(f"{PROG}: {config_path}: {note}", file=sys.stderr)
             variants, shown = variants_of(events)
-            return config, magcal_changes(events), {"warm_s": warm_start_s(events), "why": why,
-                                                    "state": state, "path": str(config_path),
-                                                    "variants": variants, "primary": shown}
+            start = next((e for e in events if e.get("kind") == "start"), {})
+            return config, magcal_changes(events), {
+                "warm_s": warm_start_s(events), "why": why, "state": state,
+                "path": str(config_path), "variants": variants, "primary": shown,
+                "t": start.get("t"), "end": next((e for e in reversed(events)
+                                                   if e.get("kind") == "end"), None)}
         config = load_config(config_path)
     except ConfigError as e:
         raise CliError(str(e)) from None
     return config, [(None, config["magcal"])] if config.get("magcal") else [], {}
+
+
+# a recording's log begins within this of where its events' recording began (the state's
+# last sample): samples the reorder window held, a phone's batch; another recording's log
+# (another phone, another stream, the same phone a minute later) is farther off
+SAME_LOG_S = 5.0
+
+
+def _not_this_log(recording: dict[str, Any], first) -> str | None:
+    """Why the saved state of ``recording`` (its events file) does not fit the log whose first
+    chunk is ``first``: the log begins far from where the recording began. None if it does
+    (or there is no state or no time to compare)."""
+    t = recording.get("t")
+    if not recording.get("state") or not isinstance(t, (int, float)) or not len(first.t):
+        return None
+    t0 = float(first.t[0])
+    if abs(t0 - float(t)) <= SAME_LOG_S:
+        return None
+    return (f"the log begins {t0 - float(t):+.1f} s from where the events' recording began "
+            f"(not this log's events file?): its saved state is not used")
 
 
 def take_up_state(est, recording: dict[str, Any], instance: str | None = None):
@@ -410,13 +434,24 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
     refuse_out_over_input(args.out, args.input, args.config)
+    from app.toolkit.recorded import cut_short
     config, magcal, recording = load_settings(args.config)
     est, instance = configured(args.filter, config, args.set, recording)
+    if args.chunk < 1:
+        raise CliError("--chunk must be at least 1")
+    chunks = iter_chunks(args.input, rows=args.chunk)
+    first = next(chunks)
+    chunks = itertools.chain((first,), chunks)
+    if recording:
+        mismatch = _not_this_log(recording, first)
+        if mismatch:
+            recording = {**recording, "why": mismatch, "state": {}}
+        cut = cut_short(os.path.getsize(args.input), recording.get("end"))
+        if cut:
+            print(f"{PROG}: {args.input}: {cut}", file=err)
     est = take_up_state(est, recording, instance)
     if magcal:
         from app.toolkit.magcal import correct_rows
-    if args.chunk < 1:
-        raise CliError("--chunk must be at least 1")
     try:
         size = os.path.getsize(args.input)
     except OSError:
@@ -438,7 +473,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     try:
         with os.fdopen(fd, "w", newline="") as fh:
             fh.write(",".join(OUTPUT_COLUMNS) + "\n")
-            for chunk in iter_chunks(args.input, rows=args.chunk):
+            for chunk in chunks:
                 t0 = time.perf_counter()
                 mag = correct_rows(chunk.t, chunk.mag, magcal) if magcal else chunk.mag
                 res = est.run(chunk.t, chunk.gyr, chunk.acc, mag, chunk.ori)

@@ -72,10 +72,12 @@ function recordingItem(rec, now) {
     rec.seconds !== null ? span(rec.seconds) : null,
     rec.samples !== null ? `${rec.samples} samples` : null,
     live ? null : `${(rec.bytes / 1e6).toFixed(rec.bytes < 1e6 ? 2 : 1)} MB`,
-    live ? "recording… (the log so far; the estimates when it stops)" : (rec.complete ? null : "not ended")];
+    live ? "recording… (the log so far; the estimates when it stops)"
+      : (rec.cut_short ? "log cut short" : (rec.complete ? null : "not ended"))];
   const info = document.createElement("span");
   info.className = "detail";
   info.textContent = " " + what.filter((x) => x).join(" · ") + " ";
+  if (rec.cut_short) info.title = rec.cut_short;
   li.append(name, info);
   for (const [file, has, title] of FILES) {
     if ((has !== "log" && !rec[has]) || (live && file === "estimates")) continue;

@@ -278,6 +278,16 @@ def _first_and_last_event(path: Path) -> tuple[dict | None, dict | None]:
     return first, (last if last is not None and last.get("kind") == "end" else None)
 
 
+def cut_short(size: int, end: dict | None) -> str | None:
+    """Why a recording's log of ``size`` bytes is not all its recording wrote (its ``end``
+    event's ``log_bytes``: a copy or a download that did not finish), or None."""
+    want = (end or {}).get("log_bytes")
+    if not isinstance(want, int) or isinstance(want, bool) or size >= want:
+        return None
+    return (f"the log holds {size} of the {want} bytes its recording wrote: it was cut short "
+            "(a copy or a download that did not finish?); a re-run covers the part there is")
+
+
 def scan_recordings(folder: str | Path) -> tuple[list[dict[str, Any]], list[dict[str, str]]]:
     """Every recording in ``folder``, newest first, and the files left out with why
     (:func:`~app.toolkit.recording.recording_logs`). A recording is our own (log and
@@ -298,6 +308,7 @@ def scan_recordings(folder: str | Path) -> tuple[list[dict[str, Any]], list[dict
         ev = folder / (name + EVENTS_SUFFIX)
         start, end = _first_and_last_event(ev) if ev.is_file() else (None, None)
         events = start is not None
+        cut = cut_short(st.st_size, end)
         out.append({"name": name, "path": str(p), "bytes": st.st_size, "modified": st.st_mtime,
                     "orientlab": events,
                     "has_estimates": estimates_file(folder, name) is not None,
@@ -307,7 +318,8 @@ def scan_recordings(folder: str | Path) -> tuple[list[dict[str, Any]], list[dict
                     "seconds": end.get("seconds") if end else None,
                     "samples": end.get("samples") if end else None,
                     "end_reason": end.get("reason") if end else None,
-                    "complete": end is not None or not events})
+                    "cut_short": cut,
+                    "complete": (end is not None and cut is None) or not events})
     out.sort(key=lambda r: r["modified"], reverse=True)
     return out, left
 

@@ -303,6 +303,7 @@ class Segment:
     ended: float | None = None
     end_reason: str = ""
     written: int = 0            # samples written to the log (marks not counted)
+    log_bytes: int = 0          # the log's bytes written (its end event says it: a copy cut short shows)
     bytes: int = 0              # its files' bytes (counted while open, measured at close)
     removed: bool = False       # it got no sample: its files were removed
 
@@ -443,7 +444,7 @@ class Recorder:
         seg.ended = self.clock()
         seg.end_reason = reason
         self._event({"kind": "end", "reason": reason, "seconds": round(seg.seconds, 3),
-                     "samples": seg.samples, "lines": seg.lines})
+                     "samples": seg.samples, "lines": seg.lines, "log_bytes": seg.log_bytes})
         self._close_files()
         if seg.written == 0 and self.error is None:
             self._remove(seg)
@@ -571,6 +572,7 @@ class Recorder:
         if self._guard(lambda: self._log.write(data), seg.path):
             seg.lines += len(samples)
             seg.written += len(samples)
+            seg.log_bytes += len(data)
             self._seg_bytes += len(data)
             self._maybe_flush()
             self.check()
@@ -654,6 +656,7 @@ class Recorder:
             line = f"{int(ms)}\tTXT\torientlab: {text}".replace("\n", " ").encode()
             if self._guard(lambda: self._log.write(line + b"\n"), seg.path):
                 seg.lines += 1
+                seg.log_bytes += len(line) + 1
                 self._seg_bytes += len(line) + 1
 
     def _event(self, obj: dict[str, Any]) -> None:

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -447,8 +448,8 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recorded import (read_estimates, read_events, recorded_state, warm_note,
-                                          warm_start_s)
+        from app.toolkit.recorded import (EstimatesCutShort, cut_short, file_size, read_estimates,
+                                          read_events, recorded_state, warm_note, warm_start_s)
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")
@@ -456,9 +457,19 @@ class WhatIfService:
 
         def run():   # in the job's thread: reading the files too (never on the loop)
             recorded = None    # what the live filters showed (and the demo's truth)
+            said = []
             if files["estimates"] is not None:
-                recorded = read_estimates(files["estimates"], warn=False)   # (may be in progress)
+                with warnings.catch_warnings(record=True) as caught:   # (may be in progress)
+                    warnings.simplefilter("always", EstimatesCutShort)
+                    recorded = read_estimates(files["estimates"])
+                said += [f"the live column covers what the estimates file holds: "
+                         f"{str(w.message).split(': ', 1)[-1]}"
+                         for w in caught if issubclass(w.category, EstimatesCutShort)]
             events = read_events(files.get("events"))
+            end = next((e for e in reversed(events) if e.get("kind") == "end"), None)
+            cut = cut_short(file_size(files["log"]), end)
+            if cut:
+                said.append(cut)
             rec = with_recorded_magcal(self._read_cached(files["log"]), events)
             state, why = recorded_state(files, events)
             out = rerun(rec, specs, patch, (recorded or {}).get("truth"), recorded=recorded,
@@ -470,6 +481,7 @@ class WhatIfService:
                 (e.get("before") or {}).get("warm") for e in out["estimators"].values()), why)
             if warm:
                 out["notes"].append(warm)
+            out["notes"] += said
             return out
         try:
             out = await self.jobs.run(run)

@@ -140,3 +140,53 @@ def test_a_recording_whose_primary_is_a_variant_reruns_that_variant(shared_dir, 
         assert "lab-approx: the recording's variant of lab" in said, said
         assert "goes on from the live filters' state" in said, said
         assert err.size > 100 and err.max() < AGREE_DEG
+
+
+OTHER = "alekodu_activityrecognition/sensorLog_20221024T182616_standstill.txt"
+
+
+def test_a_cut_short_log_and_another_logs_events_are_said(shared_dir, tmp_path, capsys):
+    """A review: a recording's log cut short (a copy or a download that did not finish) was
+    listed as whole and re-ran half without a word; and the events file of one recording
+    given with another phone's log warm-started that log from the first one's state (only
+    "time: gap 1" showed). Now the listing and both re-runs say the log is cut short, and a
+    log that does not begin where the events' recording began starts cold, saying why."""
+    lines = _lines(shared_dir)
+    other = shared_dir / "data" / "sensorfusion-app" / OTHER
+    if not other.is_file():
+        pytest.skip(f"{other} not present")
+    folder = tmp_path / "rec"
+    with running_server(preset_dir=tmp_path, recordings=folder) as srv, \
+            httpx.Client(base_url=srv.url, timeout=30.0) as api:
+        with Phone(srv.phone_port) as ph:
+            t0 = int(lines[0].split("\t")[0])
+            split = next(k for k, ln in enumerate(lines)
+                         if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
+            ph.send_lines(lines[:split])
+            wait_for(lambda: (api.get("/api/state").json()["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5,
+                     30.0, what="the first seconds processed")
+            assert api.post("/api/recordings/start", json={"name": "whole"}).status_code == 200
+            ph.send_lines(lines[split:])
+        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
+        assert api.post("/api/recordings/stop").status_code == 200
+        log = (folder / "whole.txt").read_bytes()
+        (folder / "cut.txt").write_bytes(log[:len(log) // 2])
+        for sfx in (".events.jsonl", ".state.npz", ".estimates.csv.gz"):
+            (folder / f"cut{sfx}").write_bytes((folder / f"whole{sfx}").read_bytes())
+        listed = {r["name"]: r for r in api.get("/api/recordings").json()["recordings"]}
+        assert listed["whole"]["complete"] and listed["whole"]["cut_short"] is None
+        assert not listed["cut"]["complete"] and "cut short" in listed["cut"]["cut_short"], listed["cut"]
+        r = api.post("/api/recordings/cut/rerun", json={})
+        assert r.status_code == 200, r.text
+        assert any("cut short" in n for n in r.json()["notes"]), r.json()["notes"]
+    out = tmp_path / "o.csv"
+    assert main(["estimate", str(folder / "cut.txt"), "-q", "--out", str(out),
+                 "--config", str(folder / "cut.events.jsonl")]) == 0
+    said = capsys.readouterr().err
+    assert "cut short" in said, said
+    # another log with these events: the settings are taken, the state is not
+    assert main(["estimate", str(other), "-q", "--out", str(out),
+                 "--config", str(folder / "whole.events.jsonl")]) == 0
+    said = capsys.readouterr().err
+    assert "not this log's events file?" in said and "starts cold" in said, said
+    assert "goes on from the live filters' state" not in said
