@@ -334,6 +334,9 @@ def test_serve_starts_prints_the_addresses_and_stops_cleanly_on_ctrl_c():
                 pass
             assert time.monotonic() < deadline, "the server did not come up"
             time.sleep(0.3)
+        import websockets.sync.client           # a viewer of the 3D view connects
+        with websockets.sync.client.connect(f"ws://127.0.0.1:{viewer}", open_timeout=10):
+            time.sleep(0.5)
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=30)
     finally:
@@ -343,6 +346,10 @@ def test_serve_starts_prints_the_addresses_and_stops_cleanly_on_ctrl_c():
     assert f"http://127.0.0.1:{port}/" in out
     assert f"port {phone}" in out
     assert "no phone can reach it" in " ".join(out.split())   # --host 127.0.0.1
+    # the banner only: not viser's own box of its address (a teacher opened that one), nor
+    # a line per viewer's connection
+    assert "╭" not in out and "Websocket" not in out, out
+    assert "connection open" not in out, out
 
 
 def test_estimate_into_a_folder_is_one_line_and_the_csv_is_readable_by_others(tmp_path):

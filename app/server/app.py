@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
 import logging
 import textwrap
 from pathlib import Path
@@ -132,8 +133,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await loop.run_in_executor(None, engine.warm_up)
         st.engine = engine
         st.tasks = {}
-        st.viewer = viser.ViserServer(host=settings.viewer_bind, port=settings.viewer_port,
-                                      label="orientlab", verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):   # viser's own box of its address: the
+            # banner says it (the 3D viewer only), beside the page a teacher should open
+            st.viewer = viser.ViserServer(host=settings.viewer_bind, port=settings.viewer_port,
+                                          label="orientlab", verbose=False)
         try:
             viser_adapter.check(st.viewer)   # every viser internal relied on exists, else a clear error
             loop_safe_wakeups(st.viewer)     # before any viewer connects

@@ -156,6 +156,9 @@ def serve(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     raise_fd_limit()
     logging.getLogger("orientlab").setLevel(logging.INFO)
+    # the 3D viewer's websockets server says every viewer's connection at INFO: a class of
+    # thirty is thirty lines in the teacher's terminal, none of them news
+    logging.getLogger("websockets").setLevel(logging.WARNING)
     try:
         settings = Settings.from_args(args)
         check_ports(settings)
