@@ -419,3 +419,26 @@ def test_an_events_file_with_lines_that_are_no_events_is_one_line_exit_2(tmp_pat
     events.write_text('[1, 2]\n"x"\n')
     proc = run_cli("estimate", src, "--config", events, "--out", tmp_path / "o.csv", check_rc=2)
     assert "Traceback" not in proc.stderr and "no 'start' event" in proc.stderr, proc.stderr
+
+
+def test_ctrl_c_while_the_command_loads_is_one_line():
+    """A review: Ctrl-C in the first half second of ``orientlab serve`` (while the command
+    line imports numpy and numba) printed a 30-line KeyboardInterrupt traceback. The
+    entry point imports it behind a guard: one line, exit 130, as later."""
+    import signal
+    import time
+    proc = subprocess.Popen([sys.executable, "-m", "app", "compile", "--help"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    maps = Path(f"/proc/{proc.pid}/maps")
+    deadline = time.monotonic() + 30
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            if "numpy" in maps.read_text():        # inside the command line's import
+                break
+        except OSError:
+            pass
+        time.sleep(0.002)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert "Traceback" not in err, err
+    assert proc.returncode == 130 and err.strip() == "orientlab: interrupted", (proc.returncode, err)

@@ -11,7 +11,7 @@ APP = Path(__file__).resolve().parent.parent / "app"
 
 # lowest first; a module's floor is that of its first name under app/
 FLOORS = [("jitcache",), ("quaternion", "params"), ("sources", "estimators"), ("toolkit",),
-          ("config", "warmup"), ("live",), ("cli", "server")]
+          ("config", "warmup"), ("live",), ("cli", "server", "__main__")]
 FLOOR = {name: i for i, names in enumerate(FLOORS) for name in names}
 
 
