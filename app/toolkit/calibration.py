@@ -281,7 +281,8 @@ def _row(label: str, values, fmt: str = "{:>12.5g}") -> str:
 def format_report(st: CalibrationStats) -> str:
     """A readable text report: one table per sensor (units given), the derived values
     and any warning."""
-    lines = [f"Stationary recording: {st.n_rows} rows over {st.duration:.2f} s"]
+    lines = [f"{'Stationary recording' if st.stationary else 'Recording (NOT stationary: see the warnings)'}: "
+             f"{st.n_rows} rows over {st.duration:.2f} s"]
     for name in ("acc", "gyr", "mag"):
         s = st.sensors.get(name)
         lines.append("")
