@@ -60,7 +60,7 @@ function showPanel(b) {
 // whole only then). Names are text, never markup.
 const FILES = [["log", "log", "the stream as the Sensor Fusion app logs it"],
   ["estimates", "has_estimates", "every filter's estimate (CSV, gzip)"],
-  ["events", "orientlab", "the settings it began with and every change (JSON lines)"],
+  ["events", "has_events", "the settings it began with and every change (JSON lines)"],
   ["state", "has_state", "the filters' state as it began (npz)"]];
 function recordingItem(rec, now) {
   const li = document.createElement("li");

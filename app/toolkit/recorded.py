@@ -81,8 +81,12 @@ def recorded_state(files: dict[str, Path | None], events: list[dict[str, Any]]
     kept one and the file is that one (each instance's ``_last_t`` at the event's ``t``):
     ``({instance: (its estimator, its parameters then, its state)}, None)``. Else ``({}, why)``: why a
     re-run starts cold, or None when the recording began with its stream (none to keep)."""
-    start = next((e for e in events if e.get("kind") == "start"), None) or {}
+    start = next((e for e in events if e.get("kind") == "start"), None)
     path = files.get("state")
+    if start is None and path is not None:
+        return {}, (f"the events file has no readable start event (damaged?): {path.name} "
+                    "cannot be checked against it: not used")
+    start = start or {}
     if not start.get("state"):
         return {}, (f"{path.name} is not this recording's (its start event names none): "
                     "not used" if path is not None else None)
@@ -311,6 +315,7 @@ def scan_recordings(folder: str | Path) -> tuple[list[dict[str, Any]], list[dict
         cut = cut_short(st.st_size, end)
         out.append({"name": name, "path": str(p), "bytes": st.st_size, "modified": st.st_mtime,
                     "orientlab": events,
+                    "has_events": ev.is_file(),
                     "has_estimates": estimates_file(folder, name) is not None,
                     "has_state": (folder / (name + STATE_SUFFIX)).is_file(),
                     "recording": start.get("recording", name) if events else name,

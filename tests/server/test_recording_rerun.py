@@ -179,6 +179,17 @@ def test_a_cut_short_log_and_another_logs_events_are_said(shared_dir, tmp_path, 
         r = api.post("/api/recordings/cut/rerun", json={})
         assert r.status_code == 200, r.text
         assert any("cut short" in n for n in r.json()["notes"]), r.json()["notes"]
+        # an events file whose first line is damaged: still listed to download, and the
+        # re-run blames that, not the state file ("not this recording's")
+        ev = (folder / "whole.events.jsonl").read_bytes()
+        (folder / "dmg.events.jsonl").write_bytes(ev[:40] + ev[ev.index(b"\n"):])
+        for sfx in (".txt", ".state.npz", ".estimates.csv.gz"):
+            (folder / f"dmg{sfx}").write_bytes((folder / f"whole{sfx}").read_bytes())
+        listed = {r["name"]: r for r in api.get("/api/recordings").json()["recordings"]}
+        assert listed["dmg"]["has_events"] and not listed["dmg"]["orientlab"], listed["dmg"]
+        r = api.post("/api/recordings/dmg/rerun", json={})
+        assert r.status_code == 200, r.text
+        assert any("no readable start event" in n for n in r.json()["notes"]), r.json()["notes"]
     out = tmp_path / "o.csv"
     assert main(["estimate", str(folder / "cut.txt"), "-q", "--out", str(out),
                  "--config", str(folder / "cut.events.jsonl")]) == 0
