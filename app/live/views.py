@@ -64,13 +64,18 @@ def json_safe(x):
     return x
 
 
-def decision(f: StepFlags | None, sensor: str) -> dict[str, Any]:
-    """How an estimator treated the last sample of ``sensor`` (the API's Decision)."""
+REFERENCE_UNUSED = "not used (the phone's own estimate uses none of the samples)"
+
+
+def decision(f: StepFlags | None, sensor: str, reference: bool = False) -> dict[str, Any]:
+    """How an estimator treated the last sample of ``sensor`` (the API's Decision);
+    ``reference``: the phone's own estimate, which uses no sample (not "switched off")."""
     if f is None:
         return {"reason": "absent", "text": REASON_TEXT[Reason.ABSENT], "rejected": False,
                 "value": None, "nis": None, "t": None}
     r: Reason = getattr(f, sensor)
-    return {"reason": r.label, "text": REASON_TEXT[r], "rejected": is_rejected(r),
+    text = REFERENCE_UNUSED if reference and r == Reason.DISABLED else REASON_TEXT[r]
+    return {"reason": r.label, "text": text, "rejected": is_rejected(r),
             "value": num(getattr(f, f"{sensor}_value", None)),
             "nis": num(getattr(f, f"{sensor}_nis", None)), "t": num(f.t)}
 
@@ -120,7 +125,8 @@ def estimator_state(core: CoreReadout, name: str, phone_q=None, truth_q=None) ->
             "base": inst.base, "initialized": bool(est.initialized),
             "error_to_phone_deg": error_deg(phone_q, q),
             "error_to_truth_deg": error_deg(truth_q, q),
-            "acc": decision(inst.flags("acc"), "acc"), "mag": decision(inst.flags("mag"), "mag"),
+            "acc": decision(inst.flags("acc"), "acc", core.ensemble.is_reference(name)),
+            "mag": decision(inst.flags("mag"), "mag", core.ensemble.is_reference(name)),
             "gyr_bias": None if est.gyr_bias is None else qlist(est.gyr_bias),
             "step_errors": inst.step_errors, "restored": inst.restored}
 

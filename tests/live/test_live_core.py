@@ -79,3 +79,21 @@ def test_a_replaced_streams_reason_names_the_new_phone_by_its_app():
     replay = core.open_session("replay", "walk.txt")
     core.open_session("phone", "127.0.0.1:40000")
     assert "127.0.0.1" not in replay.close_reason and "replaced by a phone" in replay.close_reason
+
+
+def test_the_phones_own_estimate_says_it_uses_no_sample_not_switched_off():
+    """A review: with every sensor switch on, the ``phone`` estimator's accelerometer and
+    magnetometer decisions read "switched off". It uses none of the samples (it shows the
+    phone's own orientation): its decisions say that; another estimator's switched-off
+    sensor still reads "switched off"."""
+    from app.live.views import state
+    core = LiveCore(None)
+    run(core, simulate(("still",), seed=1).lines())
+    st = state(core)["estimators"]
+    for sensor in ("acc", "mag"):
+        assert st["phone"][sensor]["reason"] == "disabled"
+        assert "phone's own estimate" in st["phone"][sensor]["text"], st["phone"][sensor]
+        assert st["robust"][sensor]["text"] != st["phone"][sensor]["text"]
+    core.apply(core.validate({"use_mag": False}))
+    run(core, simulate(("still",), seed=2).lines())
+    assert state(core)["estimators"]["robust"]["mag"]["text"] == "switched off"
