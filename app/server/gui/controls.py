@@ -237,19 +237,6 @@ class Control:
                     f"{fmt(self.hi * self.scale)}{unit}")
         return None
 
-    def same(self, a, b) -> bool:
-        """Whether two parameter values (SI) are the same for this control."""
-        if a is None or b is None:
-            return a is b
-        if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
-            return len(a) == len(b) and all(self.same(x, y) for x, y in zip(a, b))
-        if isinstance(a, bool) or isinstance(b, bool) or isinstance(a, str) or isinstance(b, str):
-            return a == b
-        if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-            # what the field shows: three significant digits (log) or the step
-            return math.isclose(a, b, rel_tol=1e-3 if self.kind == "log" else 1e-6, abs_tol=1e-12)
-        return a == b
-
     def gui_same(self, value) -> bool:
         """Whether the control already shows ``value`` (SI): what it holds is what
         :meth:`shown` gives (a full matrix from a preset shows as its diagonal σ)."""
