@@ -34,6 +34,25 @@ def _ended(api):
         and st["counts"]["queued"] == 0
 
 
+def _record_into_the_stream(srv, api, lines, name: str) -> None:
+    """A phone plays ``lines``; a recording ``name`` begins SPLIT_S into its stream and
+    ends with it."""
+    with Phone(srv.phone_port) as ph:
+        t0 = int(lines[0].split("\t")[0])
+        split = next(k for k, ln in enumerate(lines)
+                     if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
+        ph.send_lines(lines[:split])
+
+        def processed():
+            st = api.get("/api/state").json()     # t: the phone's clock (s)
+            return st["source"] == "phone" and (st["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5
+        wait_for(processed, 30.0, what="the first seconds processed")
+        assert api.post("/api/recordings/start", json={"name": name}).status_code == 200
+        ph.send_lines(lines[split:])
+    wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
+    assert api.post("/api/recordings/stop").status_code == 200
+
+
 def _rerun_error(folder, name, tmp_path, capsys, filt: str | None = "robust", instance: str = "robust"):
     out = tmp_path / f"{name}.csv"
     assert main(["estimate", str(folder / f"{name}.txt"), "-q", "--out", str(out),
@@ -73,19 +92,7 @@ def test_recorded_before_the_phone_streams_a_rerun_gives_the_live_estimates(shar
         assert "into its stream" not in said
 
         # the same phone again, recorded from SPLIT_S into its stream
-        with Phone(srv.phone_port) as ph:
-            t0 = int(lines[0].split("\t")[0])
-            split = next(k for k, ln in enumerate(lines)
-                         if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
-            ph.send_lines(lines[:split])
-            def processed():
-                st = api.get("/api/state").json()     # t: the phone's clock (s)
-                return st["source"] == "phone" and (st["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5
-            wait_for(processed, 30.0, what="the first seconds processed")
-            assert api.post("/api/recordings/start", json={"name": "warm"}).status_code == 200
-            ph.send_lines(lines[split:])
-        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
-        assert api.post("/api/recordings/stop").status_code == 200
+        _record_into_the_stream(srv, api, lines, "warm")
         start = read_events(folder / "warm.events.jsonl")[0]
         assert SPLIT_S - 1.0 < start["warm_s"] < SPLIT_S + 1.0, start
         assert start["state"] is True and (folder / "warm.state.npz").is_file()
@@ -121,19 +128,7 @@ def test_a_recording_whose_primary_is_a_variant_reruns_that_variant(shared_dir, 
                                               "params": {"time_update": "approx"}})
         assert r.status_code == 200, r.text
         assert api.patch("/api/params", json={"primary": "lab-approx"}).status_code == 200
-        with Phone(srv.phone_port) as ph:
-            t0 = int(lines[0].split("\t")[0])
-            split = next(k for k, ln in enumerate(lines)
-                         if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
-            ph.send_lines(lines[:split])
-            def processed():
-                st = api.get("/api/state").json()
-                return st["source"] == "phone" and (st["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5
-            wait_for(processed, 30.0, what="the first seconds processed")
-            assert api.post("/api/recordings/start", json={"name": "var"}).status_code == 200
-            ph.send_lines(lines[split:])
-        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
-        assert api.post("/api/recordings/stop").status_code == 200
+        _record_into_the_stream(srv, api, lines, "var")
     for filt in (None, "lab-approx"):
         err, said = _rerun_error(folder, "var", tmp_path, capsys, filt, "lab-approx")
         print(f"--filter {filt}: {err.size} rows, max {err.max():.4f}°")
@@ -158,17 +153,7 @@ def test_a_cut_short_log_and_another_logs_events_are_said(shared_dir, tmp_path, 
     folder = tmp_path / "rec"
     with running_server(preset_dir=tmp_path, recordings=folder) as srv, \
             httpx.Client(base_url=srv.url, timeout=30.0) as api:
-        with Phone(srv.phone_port) as ph:
-            t0 = int(lines[0].split("\t")[0])
-            split = next(k for k, ln in enumerate(lines)
-                         if ln[:1].isdigit() and int(ln.split("\t")[0]) > t0 + SPLIT_S * 1000)
-            ph.send_lines(lines[:split])
-            wait_for(lambda: (api.get("/api/state").json()["t"] or 0) > t0 / 1000 + SPLIT_S - 0.5,
-                     30.0, what="the first seconds processed")
-            assert api.post("/api/recordings/start", json={"name": "whole"}).status_code == 200
-            ph.send_lines(lines[split:])
-        wait_for(lambda: _ended(api), 60.0, what="the end of the stream")
-        assert api.post("/api/recordings/stop").status_code == 200
+        _record_into_the_stream(srv, api, lines, "whole")
         log = (folder / "whole.txt").read_bytes()
         (folder / "cut.txt").write_bytes(log[:len(log) // 2])
         for sfx in (".events.jsonl", ".state.npz", ".estimates.csv.gz"):
