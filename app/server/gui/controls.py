@@ -22,6 +22,7 @@ Each control's hover text says what it is, its unit and what raising it does.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -169,6 +170,15 @@ class Control:
     unit: str = ""
     lo: float | None = None        # the valid range (SI), checked in the user's unit
     hi: float | None = None
+    shown_at: float = 0.0          # the handle's update_timestamp when this code last set it
+    kept: Any = None               # fields typed and refused, left in the box (a half-typed band)
+
+    def typed_recently(self, seconds: float) -> bool:
+        """Whether a viewer changed the control in the last ``seconds`` (viser stamps every
+        update, a viewer's as soon as it arrives, before the callbacks run; ours are
+        known by :attr:`shown_at`)."""
+        ts = float(getattr(self.handle, "update_timestamp", 0.0) or 0.0)
+        return ts > self.shown_at and time.time() - ts < seconds
 
     MULTI = ("vector", "optvec", "sigma3", "band2")      # several fields, typed one by one
 
@@ -223,18 +233,24 @@ class Control:
             return tuple(float(fmt(x)) for x in v)
         return v
 
+    RANGED = ("log", "number", "int", "vector", "optvec", "band2")   # lo/hi per number
+
     def out_of_range(self, value) -> str | None:
-        """Why a number typed (SI) is outside the valid range, in the user's unit; None if
-        inside (the box does not clamp it silently: viser's would, on leaving the box)."""
-        if self.kind not in ("log", "number") or value != value:
+        """Why a number typed (SI; each of a vector's or a band's) is outside the valid range,
+        in the user's unit; None if inside (the box does not clamp it silently: viser's
+        would, on leaving the box)."""
+        if self.kind not in self.RANGED or value is None:
             return None
         unit = f" {self.unit}" if self.unit else ""
-        if self.lo is not None and value < self.lo:
-            return (f"{self.name}: {fmt(value * self.scale)}{unit} is below the minimum "
-                    f"{fmt(self.lo * self.scale)}{unit}")
-        if self.hi is not None and value > self.hi:
-            return (f"{self.name}: {fmt(value * self.scale)}{unit} is above the maximum "
-                    f"{fmt(self.hi * self.scale)}{unit}")
+        for x in (value if isinstance(value, (tuple, list)) else (value,)):
+            if x != x:
+                continue
+            if self.lo is not None and x < self.lo:
+                return (f"{self.name}: {fmt(x * self.scale)}{unit} is below the minimum "
+                        f"{fmt(self.lo * self.scale)}{unit}")
+            if self.hi is not None and x > self.hi:
+                return (f"{self.name}: {fmt(x * self.scale)}{unit} is above the maximum "
+                        f"{fmt(self.hi * self.scale)}{unit}")
         return None
 
     def gui_same(self, value) -> bool:
@@ -243,11 +259,22 @@ class Control:
         return self.holds(self.handle.value, value)
 
     def holds(self, held, value) -> bool:
-        """Whether a control holding ``held`` shows ``value`` (SI)."""
-        want = self.shown(value)
-        if isinstance(held, (tuple, list)) and isinstance(want, (tuple, list)):
-            return len(held) == len(want) and all(float(a) == float(b) for a, b in zip(held, want))
-        return held == want
+        """Whether a control holding ``held`` stands for ``value`` (SI): it shows it
+        (:meth:`shown`, 3 digits), or it holds what was typed to give it (0.28654 typed and
+        applied: writing 0.287 back into the box under the fingers changed the next keys'
+        number)."""
+        def eq(a, b) -> bool:
+            if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+                return len(a) == len(b) and all(eq(x, y) for x, y in zip(a, b))
+            if isinstance(a, (bool, str)) or isinstance(b, (bool, str)) or a is None or b is None:
+                return a == b
+            return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
+        if eq(held, self.shown(value)):
+            return True
+        try:
+            return eq(self.from_gui(held), value)
+        except (TypeError, ValueError):
+            return False
 
     def label(self) -> str:
         return f"{self.name} [{self.unit}]" if self.unit and self.kind != "bool" else self.name
@@ -301,8 +328,8 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
     elif kind == "band2":
         c.handle = gui.add_vector2(label, c.to_gui(value), step=0.1, hint=hint, order=order)
     elif kind == "int":
-        c.handle = gui.add_number(label, int(value), min=None if lo is None else int(lo),
-                                  max=None if hi is None else int(hi), step=1, hint=hint, order=order)
+        # no min/max given to viser: its box clamps silently (500 became 200); checked here
+        c.handle = gui.add_number(label, int(value), step=1, hint=hint, order=order)
     elif kind == "linear":
         a, b = nice_ends(lo * scale, hi * scale)
         step = nice_step(b - a)
@@ -319,15 +346,15 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
     return c
 
 
+BOX_DECIMALS = 8    # what a number box takes (precision_for's most)
+
+
 def box_precision(c: Control, v: float) -> int:
     """Decimals a number box takes. viser's box cuts what is typed to its ``precision``
-    (so 0.001 typed in a box showing 5.73 arrived as 0, refused): enough for SIG digits of
-    the range's smallest value in the user's unit, or of ``v``, whichever needs more. The
-    value set in it is rounded to SIG digits (:meth:`Control.shown`), so it shows no more."""
-    p = precision_for(v)
-    if c.lo is not None and c.lo > 0:
-        p = max(p, precision_for(c.lo * c.scale))
-    return p
+    (0.001 typed in a box showing 5.73 arrived as 0, refused; 0.05 in a gate showing 10
+    arrived as 0, the gate off): always :data:`BOX_DECIMALS`. The value set in it is
+    rounded to SIG digits (:meth:`Control.shown`), so it shows no more."""
+    return BOX_DECIMALS
 
 
 def show_value(c: Control, value, force: bool = False) -> None:
@@ -340,11 +367,9 @@ def show_value(c: Control, value, force: bool = False) -> None:
             c.handle.precision = p
             c.handle.step = step
     elif c.kind in ("vector", "optvec", "sigma3"):
-        p = precision_for(max(map(abs, v)) or 1.0)
-        if c.lo is not None and c.lo > 0:
-            p = max(p, precision_for(c.lo * c.scale))
-        p = max(p, 3)        # a σ or a bias typed to a thousandth
-        if force or c.handle.precision != p:
+        p, step = BOX_DECIMALS, 10.0 ** -precision_for(max(map(abs, v)) or 1.0)
+        if force or c.handle.precision != p or c.handle.step != step:
             c.handle.precision = p
-            c.handle.step = 10.0 ** -precision_for(max(map(abs, v)) or 1.0)
+            c.handle.step = step
     c.handle.value = c.shown(value)
+    c.shown_at = float(getattr(c.handle, "update_timestamp", 0.0) or 0.0)

@@ -55,8 +55,10 @@ log = logging.getLogger("orientlab.gui")
 SENSOR_SWITCHES = (("use_gyr", "Gyroscope"), ("use_acc", "Accelerometer"), ("use_mag", "Magnetometer"))
 HOLD_S = 1.0              # a rejection keeps its indicator lit this long
 # a number box sends every keystroke: a refused value ("0" on the way to "0.5") is set back
-# to the value in force, and said, only once the typing has paused this long
-REFUSAL_SETTLE_S = 1.5
+# to the value in force, and said, only once the typing has paused this long (a loaded PC's
+# browser, drawing the 3D view in software, took 1.5 s between two keys)
+REFUSAL_SETTLE_S = 3.0
+TYPING_S = 2.0            # a box typed in this recently is left alone by a sync (< REFUSAL_SETTLE_S)
 PRESETS_REFRESH_S = 2.0   # the Presets tab lists the folder again this often (a listing of a few files)
 CONTROL_PANEL_PX = 340    # the control panel, docked right of the 3D view
 
@@ -71,6 +73,7 @@ class Gui:
         self.settings = settings
         self._sync_thread: int | None = None
         self._refusal = None      # the pending set-back of a refused number (loop handle)
+        self._settle = None       # the sync once the typing in a box pauses (loop handle)
         self.controls: list[Control] = []
         self.folders: dict[str, object] = {}
         self._hold: dict[str, tuple[str, float, float]] = {}  # sensor -> (text, lit until, since)
@@ -267,34 +270,45 @@ class Gui:
             if c.holds(typed, getattr(info.params, c.name)):
                 return
             why = c.out_of_range(value)
-            if why is not None:
-                self._refuse_later(ev, why, c, typed)
+            if why is not None:          # set back, whatever the kind: no other field mends it
+                self._refuse_later(ev, why, c, typed, keep=False)
                 return
             self._submit({"estimators": {c.estimator: {c.name: value}}}, ev, typing=(c, typed))
         return cb
 
     def _typing(self) -> None:
-        """A parameter control changed (on the loop): a set-back pending is off."""
+        """A parameter control changed (on the loop): a set-back pending is off, and the
+        controls are synced once the typing pauses (:meth:`sync` leaves a box alone while
+        it is typed in: each key is applied a moment after the next is typed, and writing
+        the value in force back then changed the number under the fingers)."""
         if self._refusal is not None:
             self._refusal.cancel()
             self._refusal = None
+        if self._settle is not None:
+            self._settle.cancel()
+        # after a refusal's set-back, which says why (a sync first set the box back, and the
+        # refusal, finding another value in it, was not said)
+        self._settle = self.engine.loop.call_later(REFUSAL_SETTLE_S + 0.5, self.sync)
 
-    def _refuse_later(self, ev, text: str, c: Control | None = None, typed=None) -> None:
+    def _refuse_later(self, ev, text: str, c: Control | None = None, typed=None,
+                      keep: bool | None = None) -> None:
         """A control's refused value (on viser's thread): said and set back to the value in
         force once the typing pauses (:data:`REFUSAL_SETTLE_S`), not at once: a set-back
         between two keystrokes made "0.5" in a box holding 2 become "2.5". Not at all if
         the box holds another value by then (viser's threads may judge the "0" of "0.05"
         after the "0.05": its refusal was said after 0.05 was applied). A control of
-        several fields (a band, three σ) keeps what was typed: a band or a covariance is
-        valid only once every field is typed, one at a time."""
+        several fields (a band, three σ) keeps what was typed (``keep``, by default for those):
+        a band or a covariance is valid only once every field is typed, one at a time; a
+        number out of its range is set back (no other field mends it)."""
         loop = self.engine.loop
-        multi = c is not None and c.kind in Control.MULTI
+        multi = (c is not None and c.kind in Control.MULTI) if keep is None else keep
 
         def fire() -> None:
             self._refusal = None
             if c is not None and c.handle.value != typed:
                 return          # typed on: this value is no longer in the box
             if multi:
+                c.kept = typed      # left in the box: syncs leave it there while it is
                 self._notify(ev, "Not applied yet", f"{text} (the value in force stays until "
                                                     "every field makes a valid one)", color="yellow")
                 return
@@ -427,6 +441,10 @@ class Gui:
                 if self.bias_folder.order != order:
                     self.bias_folder.order = order
             for c in self.controls:
+                if c.typed_recently(TYPING_S):
+                    continue            # being typed in (synced when the typing pauses)
+                if c.kept is not None and c.handle.value == c.kept:
+                    continue            # fields typed that are not a valid value yet: kept
                 value = getattr(ensemble.params_of(c.estimator), c.name)
                 if not c.gui_same(value):
                     show_value(c, value)
