@@ -72,7 +72,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from app.config import ConfigError, load_config
-from app.estimators import DEFAULT, NAMES, make_estimator
+from app.estimators import DEFAULT, NAMES, estimator_class, make_estimator
 from app.estimators.base import count_flags
 from app.params import ParamError
 from app.sources.readers import DEFAULT_CHUNK_ROWS, ReaderError, iter_chunks
@@ -385,7 +385,10 @@ def configured(name: str | None, config: dict[str, Any], sets: list[str] | None,
     variants = (recording or {}).get("variants") or {}
     instance = name or (recording or {}).get("primary") or config.get("primary", DEFAULT)
     if instance in variants:
-        name, params = variants[instance][0], {**variants[instance][1], **overrides}
+        from app.config import translate_renamed     # an older recording's names, read as new
+        name = variants[instance][0]
+        params = {**translate_renamed(name, estimator_class(name).Params, variants[instance][1],
+                                      f"{instance} (a variant of {name})"), **overrides}
     elif instance in NAMES:
         name, params = instance, {**config.get(instance, {}), **overrides}
     else:
@@ -433,8 +436,13 @@ def refuse_out_over_input(out: str, *inputs: str | None) -> None:
 def cmd_estimate(args: argparse.Namespace) -> int:
     import numpy as np
     err = sys.stderr
-    refuse_out_over_input(args.out, args.input, args.config)
     from app.toolkit.recorded import cut_short
+    from app.toolkit.recording import ESTIMATES_SUFFIX, EVENTS_SUFFIX, STATE_SUFFIX
+    siblings = []          # a recording's other files, read or not: never the output
+    if args.config is not None and str(args.config).endswith(EVENTS_SUFFIX):
+        stem = str(args.config)[:-len(EVENTS_SUFFIX)]
+        siblings = [stem + STATE_SUFFIX, stem + ESTIMATES_SUFFIX]
+    refuse_out_over_input(args.out, args.input, args.config, *siblings)
     config, magcal, recording = load_settings(args.config)
     est, instance = configured(args.filter, config, args.set, recording)
     if args.chunk < 1:
@@ -446,7 +454,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         mismatch = _not_this_log(recording, first)
         if mismatch:
             recording = {**recording, "why": mismatch, "state": {}}
-        cut = cut_short(os.path.getsize(args.input), recording.get("end"))
+        cut = None if mismatch else cut_short(os.path.getsize(args.input), recording.get("end"))
         if cut:
             print(f"{PROG}: {args.input}: {cut}", file=err)
     est = take_up_state(est, recording, instance)

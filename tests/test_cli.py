@@ -392,6 +392,10 @@ def test_out_naming_the_input_is_refused_and_the_recording_kept(tmp_path):
     events.write_text('{"event": "start"}\n')
     proc = run_cli("estimate", src, "--config", events, "--out", events, check_rc=2)
     assert "would be replaced" in proc.stderr and events.read_text() == '{"event": "start"}\n'
+    state = tmp_path / "x.state.npz"          # the recording's state: read too, never written
+    state.write_bytes(b"state")
+    proc = run_cli("estimate", src, "--config", events, "--out", state, check_rc=2)
+    assert "would be replaced" in proc.stderr and state.read_bytes() == b"state"
 
 
 @pytest.mark.parametrize("arrays", [

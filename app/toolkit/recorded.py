@@ -84,6 +84,8 @@ def recorded_state(files: dict[str, Path | None], events: list[dict[str, Any]]
     start = next((e for e in events if e.get("kind") == "start"), None)
     path = files.get("state")
     if start is None and path is not None:
+        if "events" in files and files["events"] is None:
+            return {}, f"its events file is missing: {path.name} cannot be checked: not used"
         return {}, (f"the events file has no readable start event (damaged?): {path.name} "
                     "cannot be checked against it: not used")
     start = start or {}
@@ -167,9 +169,10 @@ def variants_of(events: list[dict[str, Any]]) -> tuple[dict[str, tuple[str, dict
                   and isinstance(e.get("params"), dict)), None)
     if start is None:
         return {}, None
+    from app.estimators import NAMES
     out = {}
     for key, value in start["params"].items():
-        if isinstance(value, dict) and isinstance(value.get("base"), str) and value["base"] != key:
+        if isinstance(value, dict) and value.get("base") in NAMES and value["base"] != key:
             out[key] = (value["base"], {k: v for k, v in value.items() if k != "base" and v is not None})
     primary = start["params"].get("primary")
     return out, primary if isinstance(primary, str) else None
@@ -356,11 +359,13 @@ def _estimate_lines(path: Path, cut: list[str] | None = None):
     # a last line without its newline was cut short: dropped
 
 
-def read_estimates(path: str | Path, warn: bool = True) -> dict[str, dict[str, np.ndarray]]:
+def read_estimates(path: str | Path, warn: bool = True,
+                   said: list[str] | None = None) -> dict[str, dict[str, np.ndarray]]:
     """A recording's estimates file (``.estimates.csv.gz`` or an older plain
     ``.estimates.csv``): per estimator ``{"t": (N,), "q": (N, 4)}``. A gzip that ends
     early (a recording still being written, or a file cut short) gives the rows up to
-    there, with a warning (``EstimatesCutShort``) saying so, unless ``warn`` is False."""
+    there, with a warning (``EstimatesCutShort``) saying so, unless ``warn`` is False;
+    ``said`` gets that text too (a worker thread's way: warnings are process-wide)."""
     import csv
     import warnings
     per: dict[str, tuple[list, list]] = {}
@@ -368,11 +373,14 @@ def read_estimates(path: str | Path, warn: bool = True) -> dict[str, dict[str, n
     try:
         return _read_estimate_rows(csv.reader(_estimate_lines(Path(path), cut)), per)
     finally:
-        if cut and warn:
+        if cut:
             n = sum(len(v[0]) for v in per.values())
-            warnings.warn(f"{path}: the file ends early ({cut[0]}): {n} rows read, the rest is "
-                          "missing (a recording still being written, or a file cut short)",
-                          EstimatesCutShort, stacklevel=2)
+            why = (f"the file ends early ({cut[0]}): {n} rows read, the rest is missing (a "
+                   "recording still being written, or a file cut short)")
+            if said is not None:
+                said.append(why)
+            if warn:
+                warnings.warn(f"{path}: {why}", EstimatesCutShort, stacklevel=2)
 
 
 class EstimatesCutShort(UserWarning):

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -448,8 +447,8 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recorded import (EstimatesCutShort, cut_short, file_size, read_estimates,
-                                          read_events, recorded_state, warm_note, warm_start_s)
+        from app.toolkit.recorded import (cut_short, file_size, read_estimates, read_events,
+                                          recorded_state, warm_note, warm_start_s)
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
             raise ToolError("patch", "must be an object {estimator: {param: value}}")
@@ -459,12 +458,9 @@ class WhatIfService:
             recorded = None    # what the live filters showed (and the demo's truth)
             said = []
             if files["estimates"] is not None:
-                with warnings.catch_warnings(record=True) as caught:   # (may be in progress)
-                    warnings.simplefilter("always", EstimatesCutShort)
-                    recorded = read_estimates(files["estimates"])
-                said += [f"the live column covers what the estimates file holds: "
-                         f"{str(w.message).split(': ', 1)[-1]}"
-                         for w in caught if issubclass(w.category, EstimatesCutShort)]
+                cut_est: list[str] = []                    # (may be in progress)
+                recorded = read_estimates(files["estimates"], warn=False, said=cut_est)
+                said += [f"the live column covers what the estimates file holds: {w}" for w in cut_est]
             events = read_events(files.get("events"))
             end = next((e for e in reversed(events) if e.get("kind") == "end"), None)
             cut = cut_short(file_size(files["log"]), end)

@@ -33,6 +33,7 @@ from app.live.changes import Change, PatchError, Variant
 from app.server.gui.plots import send_data, unwrap_deg
 from app.server.gui.scene import set_wxyz
 from app.server.gui.whatif_panel import WhatIfPanel
+from app.server.engine import EngineBusy
 from app.server.toolkit import Toolkit
 from app.toolkit.errors import ToolError
 from app.toolkit.inject import InjectionService
@@ -420,11 +421,9 @@ class ToolkitTab:
 
     async def _post(self, ev, change, ok_text: str, color: str = "green") -> bool:
         """Post a validated change to the filter task and say how it went: True once applied."""
-        done = self.loop.create_future()
-        self.tk.engine.post(change, done)
         try:
-            await asyncio.wait_for(done, 5.0)
-        except Exception as e:
+            await self.tk.engine.apply(change, 5.0)
+        except (PatchError, EngineBusy) as e:
             self._notify(ev, "Refused", str(e))
             return False
         self._notify(ev, "Done", ok_text, color=color)
