@@ -343,6 +343,8 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
         c.handle = gui.add_number(label, v, step=10.0 ** -precision_for(v), hint=hint, order=order)
     if kind in ("log", "number", "vector", "optvec", "sigma3"):
         show_value(c, value, force=True)       # viser sized it for every digit: show SIG
+    # what this code set, of every kind: only a viewer's later update counts as typing
+    c.shown_at = float(getattr(c.handle, "update_timestamp", 0.0) or 0.0)
     return c
 
 
