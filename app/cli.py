@@ -293,8 +293,8 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
     CliError on a refused file or value."""
     from app.config import config_from
     from app.toolkit.recording import EVENTS_SUFFIX, STATE_SUFFIX
-    from app.toolkit.recorded import (magcal_changes, read_events, recorded_state, settings_of,
-                                      variants_of, warm_start_s)
+    from app.toolkit.recorded import (event, magcal_changes, read_events, recorded_state,
+                                      settings_of, variants_of, warm_start_s)
     try:
         if config_path is not None and str(config_path).endswith(EVENTS_SUFFIX):
             if not Path(config_path).is_file():
@@ -321,12 +321,11 @@ def load_settings(config_path: str | None) -> tuple[dict[str, Any], list, dict[s
             for note in filter(None, notes):
                 print(f"{PROG}: {config_path}: {note}", file=sys.stderr)
             variants, shown = variants_of(events)
-            start = next((e for e in events if e.get("kind") == "start"), {})
+            start = event(events, "start") or {}
             return config, magcal_changes(events), {
                 "warm_s": warm_start_s(events), "why": why, "state": state,
                 "path": str(config_path), "variants": variants, "primary": shown,
-                "t": start.get("t"), "end": next((e for e in reversed(events)
-                                                   if e.get("kind") == "end"), None)}
+                "t": start.get("t"), "end": event(events, "end", last=True)}
         config = load_config(config_path)
     except ConfigError as e:
         raise CliError(str(e)) from None

@@ -74,6 +74,17 @@ def read_state(path: str | Path | None) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
+def event(events: list[dict[str, Any]], kind: str, last: bool = False) -> dict[str, Any] | None:
+    """The first (``last``: the last) event of ``kind`` (``start``, ``end``...), or None."""
+    return next((e for e in (reversed(events) if last else events) if e.get("kind") == kind), None)
+
+
+def _start_with_params(events: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The ``start`` event, if it holds the parameters the recording began with."""
+    start = event(events, "start")
+    return start if start is not None and isinstance(start.get("params"), dict) else None
+
+
 def recorded_state(files: dict[str, Path | None], events: list[dict[str, Any]]
                    ) -> tuple[dict[str, tuple[str, dict[str, Any], dict[str, np.ndarray]]],
                               str | None]:
@@ -81,7 +92,7 @@ def recorded_state(files: dict[str, Path | None], events: list[dict[str, Any]]
     kept one and the file is that one (each instance's ``_last_t`` at the event's ``t``):
     ``({instance: (its estimator, its parameters then, its state)}, None)``. Else ``({}, why)``: why a
     re-run starts cold, or None when the recording began with its stream (none to keep)."""
-    start = next((e for e in events if e.get("kind") == "start"), None)
+    start = event(events, "start")
     path = files.get("state")
     if start is None and path is not None:
         if "events" in files and files["events"] is None:
@@ -141,8 +152,7 @@ def settings_of(events: list[dict[str, Any]]) -> dict[str, Any]:
     parameters (the instances named as their estimator; variants are left out) and the
     magnetometer calibration in force (``magcal``), if any. ValueError when there is no
     ``start`` event with parameters."""
-    start = next((e for e in events if e.get("kind") == "start"
-                  and isinstance(e.get("params"), dict)), None)
+    start = _start_with_params(events)
     if start is None:
         raise ValueError("no 'start' event with the parameters (not an orientlab recording's "
                          "events file?)")
@@ -165,8 +175,7 @@ def variants_of(events: list[dict[str, Any]]) -> tuple[dict[str, tuple[str, dict
     primary (a variant's own name; None without a ``start`` event): :func:`settings_of`
     leaves them out, a preset has none, but a re-run of the recording must be able to
     reproduce one."""
-    start = next((e for e in events if e.get("kind") == "start"
-                  and isinstance(e.get("params"), dict)), None)
+    start = _start_with_params(events)
     if start is None:
         return {}, None
     from app.estimators import NAMES
@@ -200,7 +209,7 @@ def warm_estimator(base: str, params: dict[str, Any], saved) -> Any:
 def warm_start_s(events: list[dict[str, Any]]) -> float:
     """How long the live filters had run on the stream when the recording began (its
     ``start`` event's ``warm_s``; 0 when it does not say)."""
-    start = next((e for e in events if e.get("kind") == "start"), None)
+    start = event(events, "start")
     try:
         return float((start or {}).get("warm_s") or 0.0)
     except (TypeError, ValueError):

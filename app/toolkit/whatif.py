@@ -447,7 +447,7 @@ class WhatIfService:
         return {n: (b.base_of(n), to_dict(b.params_of(n))) for n in b.names}
 
     async def rerun(self, name: str, patch: dict[str, Any] | None) -> dict[str, Any]:
-        from app.toolkit.recorded import (cut_short, file_size, read_estimates, read_events,
+        from app.toolkit.recorded import (cut_short, event, file_size, read_estimates, read_events,
                                           recorded_state, warm_note, warm_start_s)
         files = self.files(name)
         if patch is not None and not isinstance(patch, dict):
@@ -462,8 +462,7 @@ class WhatIfService:
                 recorded = read_estimates(files["estimates"], warn=False, said=cut_est)
                 said += [f"the live column covers what the estimates file holds: {w}" for w in cut_est]
             events = read_events(files.get("events"))
-            end = next((e for e in reversed(events) if e.get("kind") == "end"), None)
-            cut = cut_short(file_size(files["log"]), end)
+            cut = cut_short(file_size(files["log"]), event(events, "end", last=True))
             if cut:
                 said.append(cut)
             rec = with_recorded_magcal(self._read_cached(files["log"]), events)
