@@ -224,8 +224,8 @@ class Control:
 
     def shown(self, value):
         """What the control shows for ``value`` (SI): a number with SIG significant digits
-        (the box takes every digit typed, up to the range's smallest value: see
-        :func:`show_value`), anything else as :meth:`to_gui` gives it."""
+        (the box takes up to :data:`BOX_DECIMALS` typed), anything else as :meth:`to_gui`
+        gives it."""
         v = self.to_gui(value)
         if self.kind in ("log", "number"):
             return float(fmt(v))
@@ -348,15 +348,10 @@ def build_control(gui, est_name: str, row: dict[str, Any], value, meta: dict[str
     return c
 
 
-BOX_DECIMALS = 8    # what a number box takes (precision_for's most)
-
-
-def box_precision(c: Control, v: float) -> int:
-    """Decimals a number box takes. viser's box cuts what is typed to its ``precision``
-    (0.001 typed in a box showing 5.73 arrived as 0, refused; 0.05 in a gate showing 10
-    arrived as 0, the gate off): always :data:`BOX_DECIMALS`. The value set in it is
-    rounded to SIG digits (:meth:`Control.shown`), so it shows no more."""
-    return BOX_DECIMALS
+# Decimals a number box takes. viser's box cuts what is typed to its ``precision`` (0.001
+# typed in a box showing 5.73 arrived as 0, refused; 0.05 in a gate showing 10 arrived as 0,
+# the gate off). The value set in it is rounded to SIG digits (Control.shown): it shows no more.
+BOX_DECIMALS = 8
 
 
 def show_value(c: Control, value, force: bool = False) -> None:
@@ -364,7 +359,7 @@ def show_value(c: Control, value, force: bool = False) -> None:
     step by the value's last digit shown."""
     v = c.to_gui(value)
     if c.kind in ("log", "number"):
-        p, step = box_precision(c, v), 10.0 ** -precision_for(v)
+        p, step = BOX_DECIMALS, 10.0 ** -precision_for(v)
         if force or c.handle.precision != p or c.handle.step != step:
             c.handle.precision = p
             c.handle.step = step
